@@ -1,0 +1,35 @@
+// Registration of the `dojo` subcommands. Each command file adds its subcommand(s) to the app
+// and sets a callback; main() parses, then runs the selected callback inside one error
+// boundary so every failure becomes a one-line message and a non-zero exit.
+#pragma once
+
+#include <functional>
+#include <string>
+
+namespace CLI {
+class App;
+}
+
+namespace dojo::cli {
+
+// Options every command shares, parsed before any callback runs.
+struct GlobalOptions {
+  int threads = 0;  // 0 = all cores
+  bool verbose = false;
+  bool quiet = false;
+};
+
+const GlobalOptions& global_options();
+
+// The callback to run once parsing succeeded. Commands set it from their parse callback.
+void set_action(std::function<int()> action);
+
+void register_version(CLI::App& app);
+void register_ckpt(CLI::App& app);
+void register_video(CLI::App& app);
+void register_bench(CLI::App& app);
+void register_sim(CLI::App& app);
+void register_data(CLI::App& app);
+void register_demo(CLI::App& app);
+
+}  // namespace dojo::cli

@@ -1,0 +1,117 @@
+#include "core/runtime.h"
+
+#include <torch/torch.h>
+#include <unistd.h>
+
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <thread>
+
+#include "core/error.h"
+
+namespace dojo {
+
+void set_threads(int threads) {
+  if (threads <= 0) {
+    const unsigned hw = std::thread::hardware_concurrency();
+    threads = hw > 0 ? static_cast<int>(hw) : 1;
+  }
+  torch::set_num_threads(threads);
+  // The inter-op pool may be sized only once per process, before it is used.
+  static bool inter_op_set = false;
+  if (!inter_op_set) {
+    inter_op_set = true;
+    try {
+      at::set_num_interop_threads(std::max(1, threads / 2));
+    } catch (const std::exception&) {
+      // Already started by an earlier parallel op: keep its size.
+    }
+  }
+}
+
+int threads() { return torch::get_num_threads(); }
+
+bool cuda_available() { return torch::cuda::is_available(); }
+int cuda_device_count() { return cuda_available() ? static_cast<int>(torch::cuda::device_count()) : 0; }
+
+c10::Device parse_device(const std::string& name) {
+  if (name == "auto") return cuda_available() ? torch::Device(torch::kCUDA, 0) : torch::Device(torch::kCPU);
+  if (name == "cpu") return torch::Device(torch::kCPU);
+  if (name.rfind("cuda", 0) == 0) {
+    if (!cuda_available())
+      throw UsageError("device '" + name + "' requested but CUDA is not available in this build/machine");
+    int index = 0;
+    if (name.size() > 4) {
+      if (name[4] != ':') throw UsageError("unknown device '" + name + "' (use cpu, cuda, cuda:N or auto)");
+      try {
+        index = std::stoi(name.substr(5));
+      } catch (const std::exception&) {
+        throw UsageError("unknown device '" + name + "' (use cpu, cuda, cuda:N or auto)");
+      }
+      if (index < 0 || index >= cuda_device_count())
+        throw UsageError("device '" + name + "' out of range: " + std::to_string(cuda_device_count()) +
+                         " CUDA device(s)");
+    }
+    return torch::Device(torch::kCUDA, static_cast<c10::DeviceIndex>(index));
+  }
+  throw UsageError("unknown device '" + name + "' (use cpu, cuda, cuda:N or auto)");
+}
+
+std::string blas_library() {
+  // Force the BLAS to be loaded (libtorch may bind it lazily).
+  torch::NoGradGuard no_grad;
+  (void)torch::mm(torch::ones({2, 2}), torch::ones({2, 2}));
+  std::ifstream maps("/proc/self/maps");
+  std::string line;
+  std::string found;
+  while (std::getline(maps, line)) {
+    const auto slash = line.rfind('/');
+    if (slash == std::string::npos) continue;
+    const std::string path = line.substr(line.find('/'));
+    const std::string file = line.substr(slash + 1);
+    if (file.find("openblas") != std::string::npos) {
+      if (path.find("pthread") != std::string::npos) return "openblas-pthread";
+      if (path.find("openmp") != std::string::npos) return "openblas-openmp";
+      found = "openblas";
+    } else if (file.find("libmkl") != std::string::npos) {
+      return "mkl";
+    } else if (file.find("libblis") != std::string::npos) {
+      found = "blis";
+    } else if (file.find("libblas.so") != std::string::npos && found.empty()) {
+      found = "reference-blas (" + path + ")";
+    }
+  }
+  if (found.empty()) return at::hasMKL() ? "mkl (static)" : "unknown";
+  return found;
+}
+
+std::string version_string() { return DOJO_VERSION; }
+std::string git_commit() { return DOJO_GIT_COMMIT; }
+std::string torch_version() {
+#ifdef TORCH_VERSION
+  return TORCH_VERSION;
+#else
+  return std::to_string(TORCH_VERSION_MAJOR) + "." + std::to_string(TORCH_VERSION_MINOR) + "." +
+         std::to_string(TORCH_VERSION_PATCH);
+#endif
+}
+
+nlohmann::json version_info() {
+  nlohmann::json info;
+  info["version"] = version_string();
+  info["git_commit"] = git_commit();
+  info["torch_version"] = torch_version();
+  info["cuda_available"] = cuda_available();
+  info["cuda_devices"] = cuda_device_count();
+  info["blas"] = blas_library();
+  info["threads"] = threads();
+  info["hardware_threads"] = std::thread::hardware_concurrency();
+#ifdef DOJO_WITH_SIM
+  info["sim"] = true;
+#else
+  info["sim"] = false;
+#endif
+  return info;
+}
+
+}  // namespace dojo

@@ -1,0 +1,37 @@
+// Process-wide runtime facts and settings: intra-op threads, device selection, build info.
+#pragma once
+
+#include <string>
+
+#include <nlohmann/json_fwd.hpp>
+
+namespace c10 {
+struct Device;
+}
+
+namespace dojo {
+
+// Sets the intra-op (and inter-op, once) thread count. threads <= 0 means all cores.
+// Debian's libtorch defaults to one thread, so every entry point calls this.
+void set_threads(int threads);
+int threads();
+
+bool cuda_available();
+int cuda_device_count();
+
+// Parses "cpu", "cuda", "cuda:N" or "auto" (CUDA when available, else CPU). Throws
+// dojo::UsageError on an unknown name or a CUDA request without CUDA.
+c10::Device parse_device(const std::string& name);
+
+// The BLAS library actually mapped into this process (e.g. "openblas-pthread"), found by
+// reading /proc/self/maps after a matrix multiply forced it to load.
+std::string blas_library();
+
+std::string version_string();
+std::string git_commit();
+std::string torch_version();
+
+// {version, git_commit, torch_version, cuda_available, cuda_devices, blas, threads, ...}
+nlohmann::json version_info();
+
+}  // namespace dojo

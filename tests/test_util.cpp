@@ -1,0 +1,43 @@
+#include "test_util.h"
+
+#include <unistd.h>
+
+#include <array>
+#include <cstdio>
+#include <random>
+
+namespace dojo::test {
+
+TempDir::TempDir() {
+  std::random_device rd;
+  path_ = std::filesystem::temp_directory_path() /
+          ("dojo_test_" + std::to_string(getpid()) + "_" + std::to_string(rd()));
+  std::filesystem::create_directories(path_);
+}
+
+TempDir::~TempDir() {
+  std::error_code ec;
+  std::filesystem::remove_all(path_, ec);
+}
+
+std::filesystem::path shared_dir() { return DOJO_SHARED_DIR; }
+
+std::filesystem::path sample_video(const std::string& name) {
+  const std::filesystem::path path = "/usr/share/doc/opencv-doc/examples/data/" + name;
+  return std::filesystem::exists(path) ? path : std::filesystem::path();
+}
+
+CommandResult run_dojo(const std::string& args) {
+  const std::string command = std::string(DOJO_EXE) + " " + args + " 2>&1";
+  CommandResult result{-1, ""};
+  FILE* pipe = popen(command.c_str(), "r");
+  if (!pipe) return result;
+  std::array<char, 4096> buffer;
+  size_t n;
+  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) result.output.append(buffer.data(), n);
+  const int status = pclose(pipe);
+  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return result;
+}
+
+}  // namespace dojo::test

@@ -1,0 +1,42 @@
+// Helpers shared by the tests: temporary directories, fixture paths, running the CLI.
+#pragma once
+
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include <filesystem>
+#include <string>
+
+namespace dojo::test {
+
+// A fresh directory under the system temp dir, removed when the object dies.
+class TempDir {
+ public:
+  TempDir();
+  ~TempDir();
+  const std::filesystem::path& path() const { return path_; }
+  std::filesystem::path operator/(const std::string& name) const { return path_ / name; }
+
+ private:
+  std::filesystem::path path_;
+};
+
+// ../shared next to the checkout (golden fixtures, reference key lists).
+std::filesystem::path shared_dir();
+// A real camera clip shipped by Debian's opencv-doc, or "" when not installed.
+std::filesystem::path sample_video(const std::string& name = "vtest.avi");
+
+struct CommandResult {
+  int exit_code;
+  std::string output;  // stdout and stderr together
+};
+// Runs the built `dojo` executable with the given argument string.
+CommandResult run_dojo(const std::string& args);
+
+}  // namespace dojo::test
+
+// GPU tests are named *_CUDA and start with this line, so they skip cleanly on CPU machines.
+#define DOJO_REQUIRE_CUDA()                                          \
+  do {                                                               \
+    if (!torch::cuda::is_available()) GTEST_SKIP() << "CUDA not available"; \
+  } while (0)
