@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Installs the Debian 12 packages DreamDojo.cpp needs and builds it into ./build.
+#   scripts/setup.sh            install dependencies (apt) + configure + build
+#   SKIP_APT=1 scripts/setup.sh build only
+# On a GPU machine with PyTorch 2.x installed, CMake picks up its CUDA libtorch automatically.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PACKAGES=(
+  build-essential cmake ninja-build ccache pkg-config git python3
+  libtorch-dev libopenblas0-pthread libgloo-dev      # libtorch 1.13 (CPU); fast BLAS; c10d headers
+  libavformat-dev libavcodec-dev libswscale-dev libavutil-dev ffmpeg
+  nlohmann-json3-dev libcli11-dev libgtest-dev
+  libmujoco-dev libosmesa6-dev                       # DojoSim physics + headless rendering
+  libhdf5-dev                                        # EgoDex reader
+  opencv-doc                                         # real camera clips used by the video tests
+)
+
+if [[ "${SKIP_APT:-0}" != 1 ]]; then
+  SUDO=""
+  if [[ $(id -u) -ne 0 ]]; then SUDO="sudo"; fi
+  missing=()
+  for p in "${PACKAGES[@]}"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+  done
+  if ((${#missing[@]})); then
+    echo "[setup] installing: ${missing[*]}"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+  else
+    echo "[setup] all Debian packages present"
+  fi
+fi
+
+JOBS="${JOBS:-$(nproc)}"
+cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=Release
+cmake --build build -j "$JOBS"
+echo "[setup] built ./build/dojo"

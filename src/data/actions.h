@@ -1,0 +1,85 @@
+// Action transforms of the clip pipeline: min-max normalisation, chunk-relative deltas and
+// placement into the 384-d unified action vector whose slot map the released checkpoints use.
+//
+// Order of operations (as in the released data loader):
+//   absolute actions a[0..13] (14 sampled steps; step 0 is only the baseline)
+//     -> a_n = normalize_min_max(a)                  per-dimension to [-1, 1]
+//     -> d   = chunk_relative(a_n, 4)                d[t..t+3] = a_n[t..t+3] - a_n[t-1], t = 1, 5, 9
+//     -> v   = place_in_slot(d, slot)                [12, 384], zeros elsewhere
+#pragma once
+
+#include <ATen/core/Tensor.h>
+
+#include <string>
+#include <vector>
+
+#include <nlohmann/json_fwd.hpp>
+
+namespace dojo::data {
+
+constexpr int kUnifiedActionDim = 384;
+
+// A [begin, end) range of the unified action vector owned by one embodiment.
+struct ActionSlot {
+  const char* name = "";
+  int begin = 0;
+  int end = 0;
+  int width() const { return end - begin; }
+};
+
+// The official slots plus DojoSim's. DojoSim's robot arm lives in the reserved range
+// [169, 220), which no released embodiment fills, so a converted official checkpoint and a
+// DojoSim post-training run never fight over columns of the action MLP.
+namespace slots {
+inline constexpr ActionSlot kGr1{"gr1", 0, 29};
+inline constexpr ActionSlot kGr1Retargeted{"gr1_retargeted", 29, 58};
+inline constexpr ActionSlot kG1{"g1", 58, 101};
+inline constexpr ActionSlot kYam{"yam", 101, 147};
+inline constexpr ActionSlot kAgibot{"agibot", 147, 169};
+inline constexpr ActionSlot kDojoSimRobot{"dojosim_robot", 169, 220};  // uses [169, 169 + action_dim)
+inline constexpr ActionSlot kMano{"mano", 220, 352};
+inline constexpr ActionSlot kLatent{"latent", 352, 384};
+}  // namespace slots
+
+// All named slots, in order; lookup by name throws dojo::Error listing the valid names.
+const std::vector<ActionSlot>& all_slots();
+ActionSlot slot_by_name(const std::string& name);
+
+// Per-dimension statistics of one array (actions or states) over a dataset.
+struct ArrayStats {
+  std::vector<float> min, max, mean, std;
+  int dim() const { return static_cast<int>(min.size()); }
+  nlohmann::json to_json() const;
+  static ArrayStats from_json(const nlohmann::json& j, const std::string& where);
+};
+
+// Accumulates ArrayStats over many [T, D] arrays (Welford for mean/std).
+class StatsAccumulator {
+ public:
+  void add(const at::Tensor& rows);  // [T, D] float
+  ArrayStats finish() const;
+  int64_t count() const { return count_; }
+
+ private:
+  std::vector<double> min_, max_, mean_, m2_;
+  int64_t count_ = 0;
+};
+
+// a_n = 2 (a - min) / (max - min) - 1; dimensions with max == min map to 0.
+at::Tensor normalize_min_max(const at::Tensor& actions, const ArrayStats& stats);  // [T, D] -> [T, D]
+at::Tensor denormalize_min_max(const at::Tensor& normalized, const ArrayStats& stats);
+
+// Chunk-relative deltas: input [R, D] (row 0 = baseline), n = (R - 1) / chunk, output
+// [n*chunk, D] with out[j] = in[1 + j] - in[chunk * (j / chunk)]: every chunk of `chunk` rows
+// is expressed relative to the last row before it. Rows past the last full chunk are dropped
+// (14 sampled steps -> 12 deltas).
+at::Tensor chunk_relative(const at::Tensor& actions, int chunk = 4);
+
+// Writes `actions` [T, w] into columns [slot.begin, slot.begin + w) of a zero [T, 384] tensor.
+at::Tensor place_in_slot(const at::Tensor& actions, const ActionSlot& slot);
+
+// Human video carries no actions: zeros everywhere, ones in the latent slot. The ones act as
+// the mask the world model multiplies with the LAM's latent actions.
+at::Tensor human_action_placeholder(int64_t rows);
+
+}  // namespace dojo::data

@@ -1,0 +1,48 @@
+// Where a training clip comes from inside an episode: which frames (13 by default, at a random
+// temporal stride from {1, 2, 3, 4}) and which action rows (one extra baseline step before
+// the first frame). Pure index arithmetic, kept apart from decoding so it can be tested by hand.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <random>
+#include <vector>
+
+namespace dojo::data {
+
+struct ClipConfig {
+  int num_frames = 13;                   // 1 conditioning frame + 12 predicted
+  std::vector<int> strides = {1, 2, 3, 4};
+  int action_chunk = 4;                  // actions per latent frame (the VAE's temporal factor)
+  int height = 64;                       // output size after centre crop + resize
+  int width = 64;
+};
+
+// A clip's position in its episode. steps[0] is the action baseline, steps[1..] are the frames:
+// steps[i] = start + i * stride, i = 0..num_frames. Frames are steps[1..num_frames];
+// actions are read at every step and turned into num_frames - 1 chunk-relative deltas.
+struct ClipWindow {
+  int64_t start = 0;
+  int stride = 1;
+  std::vector<int64_t> steps;  // num_frames + 1 entries
+  std::vector<int64_t> frame_indices() const { return {steps.begin() + 1, steps.end()}; }
+};
+
+// Builds the window for a given start and stride (no bounds check).
+ClipWindow make_window(int64_t start, int stride, int num_frames);
+
+// True when a window of this stride fits an episode of `episode_frames` frames.
+bool window_fits(int64_t episode_frames, int stride, int num_frames);
+
+// Uniform integer in [0, n) from a 64-bit engine, identical on every platform (unlike
+// std::uniform_int_distribution, whose algorithm the standard leaves open).
+uint64_t uniform_index(std::mt19937_64& rng, uint64_t n);
+
+// Picks a stride uniformly among those that fit, then a start uniformly among valid starts.
+// Returns nothing when the episode is too short for every stride.
+std::optional<ClipWindow> sample_window(int64_t episode_frames, const ClipConfig& config, std::mt19937_64& rng);
+
+// Every window of one stride, start advancing by `hop` (evaluation enumerates these).
+std::vector<ClipWindow> all_windows(int64_t episode_frames, int stride, int num_frames, int64_t hop);
+
+}  // namespace dojo::data

@@ -1,0 +1,88 @@
+#include "data/actions.h"
+
+#include <torch/torch.h>
+
+#include "core/error.h"
+#include "test_util.h"
+
+namespace dojo::data {
+
+TEST(Actions, NormalizeMinMaxHandComputed) {
+  ArrayStats stats;
+  stats.min = {0.f, -2.f, 5.f};
+  stats.max = {10.f, 2.f, 5.f};  // third dimension never moves
+  const auto a = torch::tensor({{0.f, -2.f, 5.f}, {5.f, 0.f, 5.f}, {10.f, 1.f, 5.f}});
+  const auto n = normalize_min_max(a, stats);
+  const auto expected = torch::tensor({{-1.f, -1.f, 0.f}, {0.f, 0.f, 0.f}, {1.f, 0.5f, 0.f}});
+  EXPECT_TRUE(torch::allclose(n, expected)) << n;
+  // Inverse restores the moving dimensions; the constant one comes back as its value.
+  EXPECT_TRUE(torch::allclose(denormalize_min_max(n, stats), a));
+}
+
+TEST(Actions, NormalizeRejectsWidthMismatch) {
+  ArrayStats stats;
+  stats.min = {0.f};
+  stats.max = {1.f};
+  EXPECT_THROW(normalize_min_max(torch::zeros({2, 3}), stats), Error);
+}
+
+TEST(Actions, ChunkRelativeHandComputed) {
+  // 9 rows = baseline + 2 chunks of 4, one dimension, value = row index squared.
+  auto a = torch::arange(9, torch::kFloat32).pow(2).unsqueeze(1);  // [9, 1]
+  const auto d = chunk_relative(a, 4);
+  // chunk 1 rows 1..4 relative to row 0 (0): 1, 4, 9, 16; chunk 2 rows 5..8 relative to row 4 (16).
+  const auto expected = torch::tensor({1.f, 4.f, 9.f, 16.f, 9.f, 20.f, 33.f, 48.f}).unsqueeze(1);
+  EXPECT_TRUE(torch::equal(d, expected)) << d;
+}
+
+TEST(Actions, ChunkRelativeTwelveActionsFromFourteenSteps) {
+  const auto a = torch::randn({14, 7});
+  const auto d = chunk_relative(a, 4);
+  ASSERT_EQ(d.sizes(), (std::vector<int64_t>{12, 7}));
+  // Row j uses baseline 4*(j/4): rows 0-3 -> 0, 4-7 -> 4, 8-11 -> 8 (input indices).
+  for (int j = 0; j < 12; ++j)
+    EXPECT_TRUE(torch::allclose(d[j], a[1 + j] - a[4 * (j / 4)])) << "row " << j;
+  EXPECT_EQ(chunk_relative(torch::zeros({13, 2}), 4).size(0), 12);
+  EXPECT_THROW(chunk_relative(torch::zeros({4, 2}), 4), Error);
+}
+
+TEST(Actions, PlaceInSlotAndHumanMask) {
+  const auto d = torch::ones({12, 6});
+  const auto v = place_in_slot(d, slots::kDojoSimRobot);
+  ASSERT_EQ(v.sizes(), (std::vector<int64_t>{12, kUnifiedActionDim}));
+  EXPECT_EQ(v.sum().item<float>(), 72.f);
+  EXPECT_EQ(v.slice(1, 169, 175).sum().item<float>(), 72.f);
+  EXPECT_THROW(place_in_slot(torch::ones({2, 40}), slots::kGr1), Error);
+  const auto h = human_action_placeholder(12);
+  EXPECT_EQ(h.slice(1, 352, 384).sum().item<float>(), 12.f * 32.f);
+  EXPECT_EQ(h.slice(1, 0, 352).abs().sum().item<float>(), 0.f);
+}
+
+TEST(Actions, SlotsTileTheVectorWithoutOverlap) {
+  int covered = 0;
+  int last_end = 0;
+  for (const auto& slot : all_slots()) {
+    EXPECT_GE(slot.begin, last_end) << slot.name;
+    last_end = slot.end;
+    covered += slot.width();
+  }
+  EXPECT_EQ(last_end, kUnifiedActionDim);
+  EXPECT_EQ(slot_by_name("latent").begin, 352);
+  EXPECT_THROW(slot_by_name("nope"), Error);
+}
+
+TEST(Actions, StatsAccumulator) {
+  StatsAccumulator acc;
+  acc.add(torch::tensor({{1.f, 10.f}, {3.f, 10.f}}));
+  acc.add(torch::tensor({{5.f, 10.f}}));
+  const auto s = acc.finish();
+  EXPECT_FLOAT_EQ(s.min[0], 1.f);
+  EXPECT_FLOAT_EQ(s.max[0], 5.f);
+  EXPECT_FLOAT_EQ(s.mean[0], 3.f);
+  EXPECT_FLOAT_EQ(s.std[0], 2.f);  // sample std of {1, 3, 5}
+  EXPECT_FLOAT_EQ(s.std[1], 0.f);
+  const auto back = ArrayStats::from_json(s.to_json(), "test");
+  EXPECT_EQ(back.max, s.max);
+}
+
+}  // namespace dojo::data
