@@ -4,6 +4,5 @@ namespace dojo::cli {
 void register_ckpt(CLI::App&) {}
 void register_video(CLI::App&) {}
 void register_sim(CLI::App&) {}
-void register_data(CLI::App&) {}
 void register_demo(CLI::App&) {}
 }

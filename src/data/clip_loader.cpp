@@ -1,0 +1,213 @@
+#include "data/clip_loader.h"
+
+#include <torch/torch.h>
+
+#include <chrono>
+
+#include "core/error.h"
+#include "core/log.h"
+#include "io/video.h"
+
+namespace dojo::data {
+
+std::mt19937_64 stream_rng(uint64_t seed, uint64_t index) {
+  uint64_t z = seed + 0x9E3779B97F4A7C15ull * (index + 1);
+  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+  z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+  z ^= z >> 31;
+  return std::mt19937_64(z);
+}
+
+ClipDataset::ClipDataset(EpisodeStore store, ClipConfig config, const std::string& split, bool skip_bad)
+    : store_(std::move(store)), config_(std::move(config)), skip_bad_(skip_bad) {
+  const auto& info = store_.info();
+  if (info.embodiment == Embodiment::kRobot) {
+    DOJO_CHECK(info.action_stats.has_value(), store_.dir().string() + ": robot dataset has no action statistics");
+    DOJO_CHECK(!info.action_slot.empty(), store_.dir().string() + ": robot dataset names no action_slot");
+  }
+  int64_t total = 0;
+  for (size_t index : store_.split_indices(split)) {
+    int64_t windows = 0;
+    for (int stride : config_.strides)
+      if (window_fits(info.episodes[index].frames, stride, config_.num_frames))
+        windows += info.episodes[index].frames - static_cast<int64_t>(config_.num_frames) * stride;
+    if (windows == 0) continue;  // too short for any clip
+    episodes_.push_back(index);
+    total += windows;
+    cumulative_.push_back(total);
+  }
+  DOJO_CHECK(!episodes_.empty(), store_.dir().string() + ": split '" + split + "' has no episode long enough for a " +
+                                     std::to_string(config_.num_frames) + "-frame clip");
+}
+
+Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
+  const auto& info = store_.info();
+  const std::string where = store_.episode_dir(episode).string();
+  Clip clip;
+  clip.dataset = info.name;
+  clip.episode = episode;
+  clip.window = window;
+  const int64_t frames = info.episodes[episode].frames;
+  DOJO_CHECK(window.steps.back() < frames, where + ": clip window ends at " + std::to_string(window.steps.back()) +
+                                               " beyond " + std::to_string(frames) + " frames");
+
+  EpisodeData arrays = store_.load_arrays(episode);
+  const auto steps = torch::tensor(window.steps, torch::kLong);                     // [T + 1]
+  {
+    io::VideoReader reader(store_.video_path(episode));
+    const auto raw = reader.read_frames(window.frame_indices());                    // [T, h, w, 3] u8
+    clip.video = io::resize_center_crop(raw, config_.height, config_.width);        // [T, H, W, 3] u8
+  }
+  const int64_t rows = config_.num_frames - 1;
+  if (info.embodiment == Embodiment::kRobot) {
+    const auto absolute = arrays.actions.index_select(0, steps);                    // [T + 1, A]
+    const auto normalized = normalize_min_max(absolute, *info.action_stats);        // [T + 1, A]
+    const auto relative = chunk_relative(normalized, config_.action_chunk);         // [T - 1, A]
+    DOJO_CHECK(relative.size(0) == rows, where + ": clip length " + std::to_string(config_.num_frames) +
+                                             " - 1 is not a multiple of the action chunk");
+    clip.actions = place_in_slot(relative, slot_by_name(info.action_slot));         // [T - 1, 384]
+    clip.has_actions = true;
+  } else {
+    clip.actions = human_action_placeholder(rows);                                  // [T - 1, 384]
+  }
+  if (arrays.hidden_motion.defined())
+    clip.hidden_motion = arrays.hidden_motion.index_select(0, steps.slice(0, 1));   // [T, M]
+  return clip;
+}
+
+Clip ClipDataset::sample(std::mt19937_64& rng) const {
+  for (int attempt = 0; attempt < 64; ++attempt) {
+    const uint64_t pick = uniform_index(rng, static_cast<uint64_t>(cumulative_.back()));
+    const size_t slot = std::upper_bound(cumulative_.begin(), cumulative_.end(), static_cast<int64_t>(pick)) -
+                        cumulative_.begin();
+    const size_t episode = episodes_[slot];
+    const auto window = sample_window(store_.info().episodes[episode].frames, config_, rng);
+    {
+      std::lock_guard<std::mutex> lock(bad_mutex_);
+      if (bad_.count(episode)) continue;
+    }
+    try {
+      return read(episode, *window);
+    } catch (const Error& e) {
+      if (!skip_bad_) throw;
+      std::lock_guard<std::mutex> lock(bad_mutex_);
+      if (bad_.insert(episode).second) LOG_WARN("skipping bad episode: ", e.what());
+      if (bad_.size() == episodes_.size()) throw Error(store_.dir().string() + ": every episode is bad");
+    }
+  }
+  throw Error(store_.dir().string() + ": could not draw a usable clip after 64 attempts");
+}
+
+int64_t ClipDataset::skipped_episodes() const {
+  std::lock_guard<std::mutex> lock(bad_mutex_);
+  return static_cast<int64_t>(bad_.size());
+}
+
+void ClipMixture::add(std::shared_ptr<ClipDataset> dataset, double weight) {
+  DOJO_CHECK(weight > 0, "mixture weight must be positive, got " + std::to_string(weight));
+  if (!datasets_.empty()) {
+    const auto& a = datasets_.front()->config();
+    const auto& b = dataset->config();
+    DOJO_CHECK(a.num_frames == b.num_frames && a.height == b.height && a.width == b.width,
+               dataset->store().dir().string() + ": clip geometry differs from the other datasets of the mixture");
+  }
+  datasets_.push_back(std::move(dataset));
+  weights_.push_back(weight);
+  double sum = 0;
+  for (double w : weights_) sum += w;
+  probabilities_.clear();
+  for (double w : weights_) probabilities_.push_back(w / sum);
+}
+
+Clip ClipMixture::sample(std::mt19937_64& rng) const {
+  DOJO_CHECK(!datasets_.empty(), "clip mixture is empty");
+  // 53 random bits -> uniform double in [0, 1), the same on every platform.
+  const double u = static_cast<double>(rng() >> 11) * (1.0 / 9007199254740992.0);
+  double acc = 0;
+  for (size_t i = 0; i < datasets_.size(); ++i) {
+    acc += probabilities_[i];
+    if (u < acc || i + 1 == datasets_.size()) return datasets_[i]->sample(rng);
+  }
+  return datasets_.back()->sample(rng);
+}
+
+Batch collate(const std::vector<Clip>& clips) {
+  DOJO_CHECK(!clips.empty(), "cannot collate an empty batch");
+  std::vector<at::Tensor> videos, actions;
+  std::vector<uint8_t> has;
+  Batch batch;
+  for (const auto& c : clips) {
+    videos.push_back(c.video);
+    actions.push_back(c.actions);
+    has.push_back(c.has_actions ? 1 : 0);
+    batch.datasets.push_back(c.dataset);
+  }
+  batch.video = torch::stack(videos);                                                // [B, T, H, W, 3]
+  batch.actions = torch::stack(actions);                                             // [B, T - 1, 384]
+  batch.has_actions = torch::tensor(std::vector<int64_t>(has.begin(), has.end())).to(torch::kBool);  // [B]
+  return batch;
+}
+
+PrefetchLoader::PrefetchLoader(std::shared_ptr<const ClipMixture> mixture, LoaderOptions options, int64_t first_batch)
+    : mixture_(std::move(mixture)),
+      options_(options),
+      next_to_make_(first_batch),
+      next_to_return_(first_batch) {
+  DOJO_CHECK(options_.batch_size > 0, "batch size must be positive");
+  DOJO_CHECK(options_.workers > 0, "loader needs at least one worker");
+  for (int i = 0; i < options_.workers; ++i) workers_.emplace_back([this] { worker_loop(); });
+}
+
+PrefetchLoader::~PrefetchLoader() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stop_ = true;
+  }
+  space_cv_.notify_all();
+  ready_cv_.notify_all();
+  for (auto& t : workers_) t.join();
+}
+
+void PrefetchLoader::worker_loop() {
+  // Decoding threads must not each spin up a full intra-op pool.
+  at::set_num_threads(1);
+  while (true) {
+    int64_t index;
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      space_cv_.wait(lock, [&] { return stop_ || next_to_make_ < next_to_return_ + options_.prefetch_batches; });
+      if (stop_) return;
+      index = next_to_make_++;
+    }
+    try {
+      auto rng = stream_rng(options_.seed, static_cast<uint64_t>(index));
+      std::vector<Clip> clips;
+      for (int b = 0; b < options_.batch_size; ++b) clips.push_back(mixture_->sample(rng));
+      Batch batch = collate(clips);
+      batch.index = index;
+      std::lock_guard<std::mutex> lock(mutex_);
+      ready_.emplace(index, std::move(batch));
+    } catch (...) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (!error_) error_ = std::current_exception();
+      stop_ = true;
+    }
+    ready_cv_.notify_all();
+  }
+}
+
+Batch PrefetchLoader::next() {
+  const auto start = std::chrono::steady_clock::now();
+  std::unique_lock<std::mutex> lock(mutex_);
+  ready_cv_.wait(lock, [&] { return error_ || ready_.count(next_to_return_) > 0; });
+  if (error_ && !ready_.count(next_to_return_)) std::rethrow_exception(error_);
+  Batch batch = std::move(ready_.at(next_to_return_));
+  ready_.erase(next_to_return_);
+  ++next_to_return_;
+  lock.unlock();
+  space_cv_.notify_all();
+  wait_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return batch;
+}
+
+}  // namespace dojo::data

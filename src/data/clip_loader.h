@@ -1,0 +1,131 @@
+// What every trainer consumes: clips of 13 frames at a random stride, centre-cropped and
+// resized, with their 12 actions turned into chunk-relative, min-max normalised rows of the
+// 384-d unified action vector; drawn from a weighted mixture of datasets; batched by
+// background workers so that training never waits on decoding.
+#pragma once
+
+#include <ATen/core/Tensor.h>
+
+#include <atomic>
+#include <condition_variable>
+#include <deque>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <random>
+#include <set>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "data/clip_sampler.h"
+#include "data/episode_store.h"
+
+namespace dojo::data {
+
+struct Clip {
+  at::Tensor video;           // [T, H, W, 3] uint8, T = num_frames
+  at::Tensor actions;         // [T - 1, 384] float32 unified action rows
+  at::Tensor hidden_motion;   // [T, M] float32 ground-truth motion at the frames, or undefined
+  bool has_actions = false;   // false for action-free (human) video: the latent slot holds the mask
+  std::string dataset;
+  size_t episode = 0;
+  ClipWindow window;
+};
+
+// One dataset seen through the clip transforms.
+class ClipDataset {
+ public:
+  // `skip_bad`: a broken episode is skipped and counted instead of failing the run.
+  ClipDataset(EpisodeStore store, ClipConfig config, const std::string& split = "train", bool skip_bad = false);
+
+  const EpisodeStore& store() const { return store_; }
+  const ClipConfig& config() const { return config_; }
+  const std::vector<size_t>& episodes() const { return episodes_; }
+
+  // Reads one clip. Throws dojo::Error naming the episode on bad data.
+  Clip read(size_t episode, const ClipWindow& window) const;
+  // Samples an episode (frame-count weighted) and a window. With skip_bad, broken episodes are
+  // remembered and avoided; throws when no usable episode is left.
+  Clip sample(std::mt19937_64& rng) const;
+
+  int64_t skipped_episodes() const;
+
+ private:
+  EpisodeStore store_;
+  ClipConfig config_;
+  std::vector<size_t> episodes_;      // usable episode indices of the split
+  std::vector<int64_t> cumulative_;   // cumulative window counts, for length-weighted sampling
+  bool skip_bad_;
+  mutable std::mutex bad_mutex_;
+  mutable std::set<size_t> bad_;
+};
+
+// Datasets drawn with fixed probabilities (e.g. weights 1:2:10).
+class ClipMixture {
+ public:
+  void add(std::shared_ptr<ClipDataset> dataset, double weight);
+  size_t size() const { return datasets_.size(); }
+  Clip sample(std::mt19937_64& rng) const;
+  const std::vector<double>& probabilities() const { return probabilities_; }
+
+ private:
+  std::vector<std::shared_ptr<ClipDataset>> datasets_;
+  std::vector<double> weights_;
+  std::vector<double> probabilities_;
+};
+
+struct Batch {
+  at::Tensor video;          // [B, T, H, W, 3] uint8
+  at::Tensor actions;        // [B, T - 1, 384] float32
+  at::Tensor has_actions;    // [B] bool
+  std::vector<std::string> datasets;
+  int64_t index = 0;         // position in the stream
+};
+
+// Stacks clips into a batch.
+Batch collate(const std::vector<Clip>& clips);
+
+struct LoaderOptions {
+  int batch_size = 4;
+  int workers = 2;
+  int prefetch_batches = 4;  // batches buffered ahead of the consumer
+  uint64_t seed = 0;
+};
+
+// Background batch producer. Batch k is built from an RNG seeded by (seed, k) alone, so the
+// stream is the same whatever the number of workers or their timing.
+class PrefetchLoader {
+ public:
+  PrefetchLoader(std::shared_ptr<const ClipMixture> mixture, LoaderOptions options, int64_t first_batch = 0);
+  ~PrefetchLoader();
+  PrefetchLoader(const PrefetchLoader&) = delete;
+  PrefetchLoader& operator=(const PrefetchLoader&) = delete;
+
+  // Blocks until the next batch in order is ready. Rethrows a worker's error.
+  Batch next();
+  // Seconds the consumer spent blocked in next() (0 when workers keep up).
+  double wait_seconds() const { return wait_seconds_; }
+
+ private:
+  void worker_loop();
+
+  std::shared_ptr<const ClipMixture> mixture_;
+  LoaderOptions options_;
+  std::vector<std::thread> workers_;
+  std::mutex mutex_;
+  std::condition_variable ready_cv_, space_cv_;
+  std::map<int64_t, Batch> ready_;
+  int64_t next_to_make_;
+  int64_t next_to_return_;
+  bool stop_ = false;
+  std::exception_ptr error_;
+  double wait_seconds_ = 0;
+};
+
+// Seeds a generator from (seed, stream index) with splitmix64 so neighbouring indices give
+// unrelated streams.
+std::mt19937_64 stream_rng(uint64_t seed, uint64_t index);
+
+}  // namespace dojo::data

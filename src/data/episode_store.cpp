@@ -1,0 +1,247 @@
+#include "data/episode_store.h"
+
+#include <torch/torch.h>
+#include <unistd.h>
+
+#include <fstream>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "core/safetensors.h"
+#include "io/video.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::data {
+
+std::string to_string(Embodiment embodiment) { return embodiment == Embodiment::kHuman ? "human" : "robot"; }
+
+Embodiment embodiment_from_string(const std::string& name, const std::string& where) {
+  if (name == "human") return Embodiment::kHuman;
+  if (name == "robot") return Embodiment::kRobot;
+  throw Error(where + ": unknown embodiment '" + name + "' (expected human or robot)");
+}
+
+namespace {
+
+nlohmann::json read_json_file(const fs::path& path) {
+  std::ifstream in(path);
+  if (!in) throw Error(path.string() + ": cannot open");
+  try {
+    return nlohmann::json::parse(in);
+  } catch (const nlohmann::json::exception& e) {
+    throw Error(path.string() + ": invalid JSON (" + std::string(e.what()) + ")");
+  }
+}
+
+void check_finite(const at::Tensor& t, const std::string& what, const fs::path& where) {
+  if (t.defined() && !torch::isfinite(t).all().item<bool>())
+    throw Error(where.string() + ": " + what + " contains NaN or Inf");
+}
+
+}  // namespace
+
+void write_episode(const fs::path& dir, const EpisodeData& episode, double fps) {
+  DOJO_CHECK(episode.frames.defined() && episode.frames.dim() == 4 && episode.frames.size(3) == 3 &&
+                 episode.frames.scalar_type() == torch::kUInt8,
+             dir.string() + ": frames must be [T, H, W, 3] uint8");
+  const int64_t t = episode.frames.size(0);
+  auto check_rows = [&](const at::Tensor& a, const char* name) {
+    if (a.defined())
+      DOJO_CHECK(a.dim() == 2 && a.size(0) == t, dir.string() + ": " + name + " has " +
+                                                     std::to_string(a.size(0)) + " rows for " +
+                                                     std::to_string(t) + " frames");
+  };
+  check_rows(episode.actions, "action");
+  check_rows(episode.states, "state");
+  check_rows(episode.hidden_motion, "hidden_motion");
+
+  // Build the episode beside its final place, then rename: readers and a resumed generator
+  // see either the whole episode or nothing.
+  const fs::path tmp = dir.parent_path() / (dir.filename().string() + ".tmp-" + std::to_string(getpid()));
+  fs::remove_all(tmp);
+  fs::create_directories(tmp);
+  {
+    io::VideoWriterOptions options;
+    options.fps = fps;
+    io::VideoWriter writer(tmp / "video.mp4", episode.frames.size(2), episode.frames.size(1), options);
+    writer.write_many(episode.frames);
+    writer.close();
+  }
+  NamedTensors arrays;
+  if (episode.actions.defined()) arrays.emplace_back("action", episode.actions.to(torch::kFloat32).contiguous());
+  if (episode.states.defined()) arrays.emplace_back("state", episode.states.to(torch::kFloat32).contiguous());
+  if (episode.hidden_motion.defined())
+    arrays.emplace_back("hidden_motion", episode.hidden_motion.to(torch::kFloat32).contiguous());
+  Metadata metadata;
+  metadata["frames"] = std::to_string(t);
+  save_safetensors(tmp / "data.safetensors", arrays, metadata);
+  nlohmann::json meta = episode.meta;
+  meta["frames"] = t;
+  meta["height"] = episode.frames.size(1);
+  meta["width"] = episode.frames.size(2);
+  meta["fps"] = fps;
+  write_file_atomic(tmp / "meta.json", meta.dump(2) + "\n");
+  fsync_directory(tmp);
+  fs::remove_all(dir);
+  fs::rename(tmp, dir);
+  fsync_directory(dir.parent_path());
+}
+
+int64_t DatasetInfo::total_frames() const {
+  int64_t total = 0;
+  for (const auto& e : episodes) total += e.frames;
+  return total;
+}
+
+std::map<std::string, int64_t> DatasetInfo::split_counts() const {
+  std::map<std::string, int64_t> counts;
+  for (const auto& e : episodes) ++counts[e.split];
+  return counts;
+}
+
+nlohmann::json DatasetInfo::to_json() const {
+  nlohmann::json j;
+  j["format"] = "dojo-episodes";
+  j["format_version"] = 1;
+  j["name"] = name;
+  j["embodiment"] = to_string(embodiment);
+  j["action_slot"] = action_slot;
+  j["fps"] = fps;
+  j["height"] = height;
+  j["width"] = width;
+  j["action_dim"] = action_dim;
+  j["state_dim"] = state_dim;
+  j["action_names"] = action_names;
+  j["state_names"] = state_names;
+  j["num_episodes"] = episodes.size();
+  j["num_frames"] = total_frames();
+  j["splits"] = split_counts();
+  nlohmann::json stats = nlohmann::json::object();
+  if (action_stats) stats["action"] = action_stats->to_json();
+  if (state_stats) stats["state"] = state_stats->to_json();
+  j["stats"] = stats;
+  j["generator"] = generator;
+  j["episodes"] = nlohmann::json::array();
+  for (const auto& e : episodes)
+    j["episodes"].push_back({{"id", e.id}, {"frames", e.frames}, {"split", e.split}, {"task", e.task}});
+  return j;
+}
+
+DatasetInfo DatasetInfo::from_json(const nlohmann::json& j, const std::string& where) {
+  DatasetInfo info;
+  try {
+    if (j.value("format", "") != "dojo-episodes")
+      throw Error(where + ": field 'format' must be \"dojo-episodes\"");
+    info.name = j.value("name", "");
+    info.embodiment = embodiment_from_string(j.at("embodiment").get<std::string>(), where + ": field 'embodiment'");
+    info.action_slot = j.value("action_slot", "");
+    if (!info.action_slot.empty()) (void)slot_by_name(info.action_slot);
+    info.fps = j.at("fps").get<double>();
+    info.height = j.value("height", 0);
+    info.width = j.value("width", 0);
+    info.action_dim = j.value("action_dim", 0);
+    info.state_dim = j.value("state_dim", 0);
+    info.action_names = j.value("action_names", std::vector<std::string>{});
+    info.state_names = j.value("state_names", std::vector<std::string>{});
+    if (j.contains("stats")) {
+      const auto& stats = j.at("stats");
+      if (stats.contains("action")) info.action_stats = ArrayStats::from_json(stats.at("action"), where + ": stats.action");
+      if (stats.contains("state")) info.state_stats = ArrayStats::from_json(stats.at("state"), where + ": stats.state");
+    }
+    info.generator = j.value("generator", nlohmann::json::object());
+    for (const auto& e : j.at("episodes")) {
+      EpisodeEntry entry;
+      entry.id = e.at("id").get<std::string>();
+      entry.frames = e.at("frames").get<int64_t>();
+      entry.split = e.value("split", "train");
+      entry.task = e.value("task", "");
+      info.episodes.push_back(entry);
+    }
+  } catch (const nlohmann::json::exception& e) {
+    throw Error(where + ": " + e.what());
+  }
+  if (info.action_stats && info.action_stats->dim() != info.action_dim)
+    throw Error(where + ": stats.action width " + std::to_string(info.action_stats->dim()) +
+                " != action_dim " + std::to_string(info.action_dim));
+  return info;
+}
+
+void write_dataset_info(const fs::path& dir, const DatasetInfo& info) {
+  write_file_atomic(dir / "info.json", info.to_json().dump(2) + "\n");
+}
+
+EpisodeStore EpisodeStore::open(const fs::path& dir) {
+  const fs::path info_path = dir / "info.json";
+  if (!fs::exists(info_path)) throw Error(dir.string() + ": not a dataset (no info.json)");
+  EpisodeStore store;
+  store.dir_ = dir;
+  store.info_ = DatasetInfo::from_json(read_json_file(info_path), info_path.string());
+  return store;
+}
+
+fs::path EpisodeStore::episode_dir(size_t index) const {
+  DOJO_CHECK(index < size(), dir_.string() + ": episode index " + std::to_string(index) + " out of range");
+  return dir_ / "episodes" / info_.episodes[index].id;
+}
+
+fs::path EpisodeStore::video_path(size_t index) const { return episode_dir(index) / "video.mp4"; }
+
+std::vector<size_t> EpisodeStore::split_indices(const std::string& split) const {
+  std::vector<size_t> out;
+  for (size_t i = 0; i < size(); ++i)
+    if (split.empty() || split == "all" || info_.episodes[i].split == split) out.push_back(i);
+  return out;
+}
+
+EpisodeData EpisodeStore::load_arrays(size_t index) const {
+  const fs::path edir = episode_dir(index);
+  const int64_t frames = info_.episodes[index].frames;
+  EpisodeData data;
+  if (!fs::exists(edir)) throw Error(edir.string() + ": episode directory missing");
+  data.meta = read_json_file(edir / "meta.json");
+  const fs::path arrays_path = edir / "data.safetensors";
+  if (!fs::exists(arrays_path)) throw Error(arrays_path.string() + ": missing");
+  const auto file = SafetensorsFile::open(arrays_path);
+  auto take = [&](const char* name, int64_t width) -> at::Tensor {
+    if (!file.contains(name)) {
+      if (width > 0) throw Error(arrays_path.string() + ": tensor '" + name + "' missing");
+      return {};
+    }
+    auto t = file.tensor(name, /*copy=*/true).to(torch::kFloat32);
+    if (t.dim() != 2 || t.size(0) != frames)
+      throw Error(arrays_path.string() + ": '" + name + "' has " + std::to_string(t.dim() ? t.size(0) : 0) +
+                  " rows but the episode has " + std::to_string(frames) + " frames");
+    if (width > 0 && t.size(1) != width)
+      throw Error(arrays_path.string() + ": '" + name + "' width " + std::to_string(t.size(1)) +
+                  " != dataset width " + std::to_string(width));
+    check_finite(t, std::string("'") + name + "'", arrays_path);
+    return t;
+  };
+  data.actions = take("action", info_.embodiment == Embodiment::kRobot ? info_.action_dim : 0);
+  data.states = take("state", info_.embodiment == Embodiment::kRobot ? info_.state_dim : 0);
+  data.hidden_motion = take("hidden_motion", 0);
+  return data;
+}
+
+EpisodeData EpisodeStore::load(size_t index) const {
+  EpisodeData data = load_arrays(index);
+  io::VideoReader reader(video_path(index));
+  const int64_t frames = info_.episodes[index].frames;
+  if (reader.info().frames != frames)
+    throw Error(video_path(index).string() + ": video has " + std::to_string(reader.info().frames) +
+                " frames, the dataset lists " + std::to_string(frames));
+  data.frames = reader.read_range(0, frames, 1);
+  return data;
+}
+
+std::string EpisodeStore::check_episode(size_t index) const {
+  try {
+    (void)load(index);
+    return "";
+  } catch (const std::exception& e) {
+    return e.what();
+  }
+}
+
+}  // namespace dojo::data

@@ -1,0 +1,104 @@
+// The episode dataset format of DojoSim (and of any data converted to it):
+//
+//   DIR/info.json                     dataset description, per-dimension statistics, splits
+//   DIR/episodes/000042/video.mp4     H.264 frames
+//   DIR/episodes/000042/data.safetensors  "action" [T, A] f32, "state" [T, S] f32,
+//                                     "hidden_motion" [T, M] f32 (optional; evaluation only)
+//   DIR/episodes/000042/meta.json     embodiment, task text, objects, background, fps, seed
+//
+// T frames, T actions, T states: action[t] is the command issued after observing frame t.
+// An episode directory appears only when complete (written as a sibling temp dir, renamed),
+// so an interrupted generator leaves either a whole episode or none.
+#pragma once
+
+#include <ATen/core/Tensor.h>
+
+#include <filesystem>
+#include <map>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "data/actions.h"
+
+namespace dojo::data {
+
+enum class Embodiment { kHuman, kRobot };
+std::string to_string(Embodiment embodiment);
+// Throws dojo::Error naming `where` for an unknown name.
+Embodiment embodiment_from_string(const std::string& name, const std::string& where);
+
+// What an episode holds in memory, before writing or after reading.
+struct EpisodeData {
+  at::Tensor frames;         // [T, H, W, 3] uint8
+  at::Tensor actions;        // [T, A] float32, or undefined for action-free (human) video
+  at::Tensor states;         // [T, S] float32, or undefined
+  at::Tensor hidden_motion;  // [T, M] float32, or undefined: ground truth never used for training
+  nlohmann::json meta = nlohmann::json::object();
+};
+
+// Writes one episode directory atomically. `fps` goes into the video container.
+void write_episode(const std::filesystem::path& dir, const EpisodeData& episode, double fps);
+
+// One row of info.json's episode table.
+struct EpisodeEntry {
+  std::string id;      // directory name under episodes/
+  int64_t frames = 0;
+  std::string split;   // "train", "val", "ood_objects", ...
+  std::string task;
+};
+
+struct DatasetInfo {
+  std::string name;
+  Embodiment embodiment = Embodiment::kRobot;
+  std::string action_slot;  // slot name for robot actions, e.g. "dojosim_robot"; empty for human
+  double fps = 10;
+  int height = 0, width = 0;
+  int action_dim = 0, state_dim = 0;
+  std::vector<std::string> action_names, state_names;
+  std::optional<ArrayStats> action_stats, state_stats;
+  std::vector<EpisodeEntry> episodes;
+  nlohmann::json generator = nlohmann::json::object();  // how the data was made (seed, options)
+
+  int64_t total_frames() const;
+  std::map<std::string, int64_t> split_counts() const;
+  nlohmann::json to_json() const;
+  static DatasetInfo from_json(const nlohmann::json& j, const std::string& where);
+};
+
+// Reads and validates a dataset directory. Episode data is loaded lazily.
+class EpisodeStore {
+ public:
+  // Throws dojo::Error naming the file for a missing or malformed info.json.
+  static EpisodeStore open(const std::filesystem::path& dir);
+
+  const std::filesystem::path& dir() const { return dir_; }
+  const DatasetInfo& info() const { return info_; }
+  size_t size() const { return info_.episodes.size(); }
+  std::filesystem::path episode_dir(size_t index) const;
+  std::filesystem::path video_path(size_t index) const;
+
+  // Episode indices whose split is `split` ("" or "all" = every episode).
+  std::vector<size_t> split_indices(const std::string& split) const;
+
+  // Arrays and meta of one episode (no frames). Validates lengths against the frame count
+  // and rejects NaN/Inf; errors name the episode directory.
+  EpisodeData load_arrays(size_t index) const;
+  // Arrays plus every decoded frame.
+  EpisodeData load(size_t index) const;
+
+  // Full check of one episode (files present, arrays consistent, video decodable with the
+  // recorded frame count). Returns an empty string when fine, else the one-line problem.
+  std::string check_episode(size_t index) const;
+
+ private:
+  std::filesystem::path dir_;
+  DatasetInfo info_;
+};
+
+// Writes info.json atomically.
+void write_dataset_info(const std::filesystem::path& dir, const DatasetInfo& info);
+
+}  // namespace dojo::data
