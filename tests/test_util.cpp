@@ -4,7 +4,11 @@
 
 #include <array>
 #include <cstdio>
+#include <fstream>
+#include <iterator>
 #include <random>
+
+#include "core/error.h"
 
 namespace dojo::test {
 
@@ -25,6 +29,20 @@ std::filesystem::path shared_dir() { return DOJO_SHARED_DIR; }
 std::filesystem::path sample_video(const std::string& name) {
   const std::filesystem::path path = "/usr/share/doc/opencv-doc/examples/data/" + name;
   return std::filesystem::exists(path) ? path : std::filesystem::path();
+}
+
+std::string read_file(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
+
+std::string error_message(const std::function<void()>& fn) {
+  try {
+    fn();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "(no error)";
 }
 
 CommandResult run_dojo(const std::string& args) {

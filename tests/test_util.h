@@ -5,6 +5,7 @@
 #include <torch/torch.h>
 
 #include <filesystem>
+#include <functional>
 #include <string>
 
 namespace dojo::test {
@@ -25,6 +26,11 @@ class TempDir {
 std::filesystem::path shared_dir();
 // A real camera clip shipped by Debian's opencv-doc, or "" when not installed.
 std::filesystem::path sample_video(const std::string& name = "vtest.avi");
+
+// The whole content of a file ("" when it cannot be read).
+std::string read_file(const std::filesystem::path& path);
+// The message of the dojo::Error that `fn` throws, or "(no error)" when it throws none.
+std::string error_message(const std::function<void()>& fn);
 
 struct CommandResult {
   int exit_code;
