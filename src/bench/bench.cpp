@@ -7,9 +7,21 @@
 #include <ctime>
 #include <nlohmann/json.hpp>
 #include <sstream>
+#include <unistd.h>
+#include <filesystem>
+
+#include "core/error.h"
 
 #include "core/log.h"
 #include "core/runtime.h"
+#include "data/clip_loader.h"
+#include "io/video.h"
+#ifdef DOJO_WITH_SIM
+#include "sim/episode.h"
+#include "sim/generate.h"
+#include "sim/renderer.h"
+#include "sim/scene.h"
+#endif
 
 namespace dojo::bench {
 namespace {
@@ -41,6 +53,108 @@ BenchCase matmul_case(int64_t n, torch::Device device) {
   return c;
 }
 
+double seconds_since(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+// A scratch directory for generated inputs, removed at exit.
+const std::filesystem::path& scratch_dir() {
+  static const std::filesystem::path dir = [] {
+    auto d = std::filesystem::temp_directory_path() / ("dojo_bench_" + std::to_string(::getpid()));
+    std::filesystem::create_directories(d);
+    std::atexit([] {
+      std::error_code ec;
+      std::filesystem::remove_all(std::filesystem::temp_directory_path() / ("dojo_bench_" + std::to_string(::getpid())), ec);
+    });
+    return d;
+  }();
+  return dir;
+}
+
+// A 64x64, 96-frame H.264 clip of moving gradients (the size DojoSim episodes use).
+std::string synthetic_clip() {
+  const auto path = (scratch_dir() / "synthetic_64.mp4").string();
+  if (std::filesystem::exists(path)) return path;
+  auto t = torch::arange(96).view({96, 1, 1, 1});
+  auto y = torch::arange(64).view({1, 64, 1, 1});
+  auto x = torch::arange(64).view({1, 1, 64, 1});
+  auto c = torch::arange(3).view({1, 1, 1, 3});
+  const auto frames = ((x * 4 + t * 3 + c * 40) % 256 + (y * 2) % 64).clamp(0, 255).to(torch::kUInt8);
+  io::VideoWriterOptions options;
+  options.fps = 10;
+  options.keyframe_interval = 8;
+  io::write_video(path, frames, options);
+  return path;
+}
+
+// `path` is resolved on first run so that --list generates nothing.
+BenchCase decode_case(const std::string& name, std::function<std::string()> path, const std::string& params) {
+  BenchCase c;
+  c.name = name;
+  c.unit = "frames/s";
+  c.params = params;
+  c.run_once = [path] {
+    const std::string file = path();
+    const auto start = std::chrono::steady_clock::now();
+    io::VideoReader reader(file);
+    const auto frames = reader.read_all();  // [N, H, W, 3]
+    return frames.size(0) / seconds_since(start);
+  };
+  return c;
+}
+
+#ifdef DOJO_WITH_SIM
+BenchCase sim_case(const std::string& embodiment, int size, bool render) {
+  BenchCase c;
+  c.name = std::string("sim_") + (render ? "render_" : "physics_") + embodiment;
+  c.unit = "steps/s";
+  c.params = render ? std::to_string(size) + "x" + std::to_string(size) + ", 10 Hz control" : "no rendering";
+  c.run_once = [embodiment, size, render] {
+    sim::SceneSampling sampling;
+    sampling.width = size;
+    sampling.height = size;
+    const auto emb = sim::parse_embodiment(embodiment);
+    sim::EpisodeSpec spec;
+    spec.scene = sim::sample_scene(emb, sampling, 1);
+    spec.controller = sim::default_controller(emb);
+    spec.num_steps = 48;
+    spec.render = render;
+    const auto start = std::chrono::steady_clock::now();
+    (void)sim::run_episode(spec);
+    return spec.num_steps / seconds_since(start);
+  };
+  return c;
+}
+
+BenchCase loader_case(int workers) {
+  BenchCase c;
+  c.name = "clip_loader";
+  c.unit = "clips/s";
+  c.params = "robot 64x64, 13 frames, batch 4, " + std::to_string(workers) + " workers";
+  c.run_once = [workers] {
+    const auto dir = scratch_dir() / "robot_dataset";
+    if (!std::filesystem::exists(dir / "info.json")) {
+      sim::GenerateOptions options;
+      options.embodiment = "robot";
+      options.episodes = 4;
+      options.workers = 2;
+      (void)sim::generate_dataset(dir, options);
+    }
+    auto mixture = std::make_shared<data::ClipMixture>();
+    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(dir), data::ClipConfig{}, "all"), 1.0);
+    data::LoaderOptions options;
+    options.batch_size = 4;
+    options.workers = workers;
+    data::PrefetchLoader loader(mixture, options);
+    const auto start = std::chrono::steady_clock::now();
+    constexpr int kBatches = 16;
+    for (int i = 0; i < kBatches; ++i) (void)loader.next();
+    return kBatches * options.batch_size / seconds_since(start);
+  };
+  return c;
+}
+#endif
+
 }  // namespace
 
 void register_case_factory(std::function<std::vector<BenchCase>(const BenchOptions&)> factory) {
@@ -51,15 +165,40 @@ std::vector<BenchCase> builtin_cases(const BenchOptions& options) {
   const torch::Device device = parse_device(options.device);
   std::vector<BenchCase> cases;
   cases.push_back(matmul_case(1024, device));
+  if (!options.video_path.empty()) {
+    const std::string path = options.video_path;
+    const auto info = io::probe_video(path);
+    cases.push_back(decode_case("video_decode", [path] { return path; },
+                                std::filesystem::path(path).filename().string() + " " + info.codec + " " +
+                                    std::to_string(info.width) + "x" + std::to_string(info.height)));
+  } else {
+    cases.push_back(decode_case("video_decode", synthetic_clip, "synthetic h264 64x64, 96 frames"));
+    const std::string camera_clip = "/usr/share/doc/opencv-doc/examples/data/vtest.avi";
+    if (std::filesystem::exists(camera_clip))
+      cases.push_back(decode_case("video_decode_camera", [camera_clip] { return camera_clip; },
+                                  "opencv-doc vtest.avi mpeg4 768x576"));
+  }
+#ifdef DOJO_WITH_SIM
+  cases.push_back(sim_case("robot", 64, true));
+  cases.push_back(sim_case("human", 64, true));
+  cases.push_back(sim_case("robot", 64, false));
+  cases.push_back(loader_case(2));
+#endif
   for (const auto& factory : factories()) {
     auto more = factory(options);
     cases.insert(cases.end(), more.begin(), more.end());
   }
   if (options.only.empty()) return cases;
   std::vector<BenchCase> selected;
-  for (auto& c : cases)
-    for (const auto& name : options.only)
-      if (c.name == name) selected.push_back(c);
+  for (const auto& name : options.only) {
+    bool found = false;
+    for (auto& c : cases)
+      if (c.name == name) {
+        selected.push_back(c);
+        found = true;
+      }
+    if (!found) throw UsageError("--only: no benchmark row named '" + name + "' (see dojo bench --list)");
+  }
   return selected;
 }
 

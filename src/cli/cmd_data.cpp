@@ -6,6 +6,7 @@
 #include "core/error.h"
 #include "core/progress.h"
 #include "data/episode_store.h"
+#include "io/video.h"
 
 namespace dojo::cli {
 
@@ -45,6 +46,39 @@ void register_data(CLI::App& app) {
         for (const auto& [split, count] : info.split_counts())
           std::printf("split        %-18s %lld episodes\n", split.c_str(), static_cast<long long>(count));
       }
+      return 0;
+    });
+  });
+
+  auto* preview_cmd = data->add_subcommand(
+      "preview", "Write an mp4 showing several episodes side by side, labelled with their task, to look at a dataset");
+  auto preview_dir = std::make_shared<std::string>();
+  auto preview_out = std::make_shared<std::string>();
+  auto preview_count = std::make_shared<int>(4);
+  auto preview_scale = std::make_shared<int>(2);
+  preview_cmd->add_option("DIR", *preview_dir, "Dataset directory")->required();
+  preview_cmd->add_option("--out,-o", *preview_out, "Output .mp4 path")->required();
+  preview_cmd->add_option("--episodes,-n", *preview_count, "How many episodes (the first N)")->capture_default_str();
+  preview_cmd->add_option("--scale", *preview_scale, "Integer upscale of small frames (nearest neighbour)")
+      ->check(CLI::Range(1, 8))
+      ->capture_default_str();
+  preview_cmd->callback([=] {
+    set_action([=] {
+      const auto store = data::EpisodeStore::open(*preview_dir);
+      const size_t n = std::min<size_t>(store.size(), static_cast<size_t>(std::max(1, *preview_count)));
+      std::vector<at::Tensor> videos;
+      std::vector<std::string> labels;
+      for (size_t i = 0; i < n; ++i) {
+        auto frames = store.load(i).frames;  // [T, H, W, 3] u8
+        if (*preview_scale > 1)
+          frames = frames.repeat_interleave(*preview_scale, 1).repeat_interleave(*preview_scale, 2);
+        videos.push_back(frames);
+        std::string label = store.info().episodes[i].task;
+        if (label.empty()) label = store.info().episodes[i].id;
+        labels.push_back(label);
+      }
+      io::write_comparison_video(*preview_out, videos, labels, store.info().fps);
+      std::printf("%s: %zu episodes of %s\n", preview_out->c_str(), n, store.dir().string().c_str());
       return 0;
     });
   });

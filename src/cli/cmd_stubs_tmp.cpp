@@ -2,6 +2,4 @@
 #include "cli/commands.h"
 namespace dojo::cli {
 void register_video(CLI::App&) {}
-void register_sim(CLI::App&) {}
-void register_demo(CLI::App&) {}
 }

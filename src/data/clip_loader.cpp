@@ -54,7 +54,7 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
   EpisodeData arrays = store_.load_arrays(episode);
   const auto steps = torch::tensor(window.steps, torch::kLong);                     // [T + 1]
   {
-    io::VideoReader reader(store_.video_path(episode));
+    io::VideoReader reader(store_.video_path(episode).string());
     const auto raw = reader.read_frames(window.frame_indices());                    // [T, h, w, 3] u8
     clip.video = io::resize_center_crop(raw, config_.height, config_.width);        // [T, H, W, 3] u8
   }

@@ -1,0 +1,53 @@
+// Dataset generation from DojoSim: many episodes of one embodiment and split, written in the
+// episode-store format (data/episode_store.h). Deterministic for a seed (each episode's seeds
+// derive from (seed, episode index) alone, so the worker count changes nothing), parallel,
+// and resumable: finished episodes are kept, half-written ones are discarded and redone.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+namespace dojo::sim {
+
+// The benchmark splits mirroring the paper's evaluation.
+//   train            training data (robot: bin task at mixed policy quality, with a validation
+//                    tail marked "val" = the in-distribution validation split)
+//   ood-objects      robot acting on objects only the human embodiment touched
+//   counterfactual   robot patting, reaching and missing, pushing, moving at random
+//   novel-background robot bin task in front of backgrounds never used for training
+//   long-horizon     robot bin task over 600 frames (60 s at 10 Hz)
+const std::vector<std::string>& split_names();
+
+struct GenerateOptions {
+  std::string embodiment = "robot";  // human | robot
+  std::string split = "train";
+  int episodes = 16;
+  int frames = 0;                    // 0: the split's default (64; long-horizon 600)
+  int width = 64;
+  int height = 64;
+  uint64_t seed = 0;
+  int workers = 0;                   // 0: all cores
+  double val_fraction = 0.125;       // robot train split: share of episodes marked "val"
+  std::vector<std::string> skills;   // human: restrict to these skills (default: all)
+  std::string quality;               // robot bin policy preset; empty = mix of expert/good/medium
+
+  nlohmann::json to_json() const;
+};
+
+struct GenerateSummary {
+  int generated = 0;   // episodes made by this run
+  int reused = 0;      // episodes found complete from an earlier run
+  int64_t frames = 0;  // frames made by this run
+  double seconds = 0;
+  double mean_success = 0;  // robot bin task: mean success over all episodes; NaN otherwise
+};
+
+// Generates into `out` (created if needed). A directory holding a run with different options
+// is refused with an error naming the differing field.
+GenerateSummary generate_dataset(const std::filesystem::path& out, const GenerateOptions& options);
+
+}  // namespace dojo::sim
