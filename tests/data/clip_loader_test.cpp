@@ -1,0 +1,166 @@
+#include "data/clip_loader.h"
+
+#include <torch/torch.h>
+
+#include <fstream>
+
+#include "core/error.h"
+#include "test_util.h"
+
+namespace dojo::data {
+namespace {
+
+torch::Tensor frames_with_index(int64_t t, int64_t h = 32, int64_t w = 32) {
+  // Each frame is a flat grey level encoding its index (robust to H.264).
+  return (torch::arange(t) * 8 + 16).clamp_max(255).to(torch::kUInt8).view({t, 1, 1, 1}).expand({t, h, w, 3}).contiguous();
+}
+
+// Robot dataset: action[t] = (t, 2t, 7); one human dataset without actions.
+std::filesystem::path make_dataset(const std::filesystem::path& dir, Embodiment embodiment, int episodes, int64_t frames) {
+  DatasetInfo info;
+  info.name = dir.filename().string();
+  info.embodiment = embodiment;
+  info.fps = 10;
+  info.height = info.width = 32;
+  StatsAccumulator acc;
+  for (int e = 0; e < episodes; ++e) {
+    EpisodeData ep;
+    ep.frames = frames_with_index(frames);
+    if (embodiment == Embodiment::kRobot) {
+      const auto t = torch::arange(frames).to(torch::kFloat32);
+      ep.actions = torch::stack({t, 2 * t, torch::full({frames}, 7.f)}, 1);  // [T, 3]
+      ep.states = ep.actions.clone();
+      acc.add(ep.actions);
+    }
+    char id[16];
+    std::snprintf(id, sizeof id, "%06d", e);
+    write_episode(dir / "episodes" / id, ep, 10.0);
+    info.episodes.push_back({id, frames, "train", ""});
+  }
+  if (embodiment == Embodiment::kRobot) {
+    info.action_slot = "dojosim_robot";
+    info.action_dim = info.state_dim = 3;
+    info.action_stats = acc.finish();
+    info.state_stats = acc.finish();
+  }
+  write_dataset_info(dir, info);
+  return dir;
+}
+
+ClipConfig small_config() {
+  ClipConfig config;
+  config.height = 16;
+  config.width = 16;
+  return config;
+}
+
+}  // namespace
+
+TEST(ClipLoader, RobotClipHandComputed) {
+  test::TempDir tmp;
+  make_dataset(tmp / "robot", Embodiment::kRobot, 1, 40);
+  ClipDataset dataset(EpisodeStore::open(tmp / "robot"), small_config());
+  const auto clip = dataset.read(0, make_window(2, 2, 13));  // steps 2, 4, ..., 28
+  ASSERT_EQ(clip.video.sizes(), (std::vector<int64_t>{13, 16, 16, 3}));
+  // Frame k of the clip is episode frame 4 + 2k: grey level 8 * (4 + 2k) + 16.
+  for (int k = 0; k < 13; ++k) EXPECT_NEAR(clip.video[k].to(torch::kFloat32).mean().item<float>(), 8 * (4 + 2 * k) + 16, 2.0) << k;
+  ASSERT_EQ(clip.actions.sizes(), (std::vector<int64_t>{12, 384}));
+  EXPECT_TRUE(clip.has_actions);
+  // Dim 0: min 0, max 39 -> a_n(t) = 2t/39 - 1. Row j: a_n(step 1+j) - a_n(baseline of its chunk).
+  // Steps are 2 + 2i; baselines are steps 0, 4, 8 of the window -> 2, 10, 18.
+  for (int j = 0; j < 12; ++j) {
+    const double step = 2 + 2 * (1 + j);
+    const double base = 2 + 2 * (4 * (j / 4));
+    EXPECT_NEAR(clip.actions[j][169].item<float>(), 2 * (step - base) / 39.0, 1e-5) << j;
+    EXPECT_NEAR(clip.actions[j][170].item<float>(), 2 * 2 * (step - base) / 78.0, 1e-5) << j;
+    EXPECT_EQ(clip.actions[j][171].item<float>(), 0.f);  // constant dimension -> 0
+  }
+  EXPECT_EQ(clip.actions.slice(1, 0, 169).abs().sum().item<float>(), 0.f);
+  EXPECT_EQ(clip.actions.slice(1, 172).abs().sum().item<float>(), 0.f);
+}
+
+TEST(ClipLoader, HumanClipCarriesLatentMask) {
+  test::TempDir tmp;
+  make_dataset(tmp / "human", Embodiment::kHuman, 1, 20);
+  ClipDataset dataset(EpisodeStore::open(tmp / "human"), small_config());
+  std::mt19937_64 rng(0);
+  const auto clip = dataset.sample(rng);
+  EXPECT_FALSE(clip.has_actions);
+  EXPECT_EQ(clip.actions.slice(1, 352).sum().item<float>(), 12.f * 32.f);
+  EXPECT_EQ(clip.actions.slice(1, 0, 352).abs().sum().item<float>(), 0.f);
+}
+
+TEST(ClipLoader, MixtureFollowsWeights) {
+  test::TempDir tmp;
+  make_dataset(tmp / "robot", Embodiment::kRobot, 1, 20);
+  make_dataset(tmp / "human", Embodiment::kHuman, 1, 20);
+  ClipMixture mixture;
+  mixture.add(std::make_shared<ClipDataset>(EpisodeStore::open(tmp / "robot"), small_config()), 1.0);
+  mixture.add(std::make_shared<ClipDataset>(EpisodeStore::open(tmp / "human"), small_config()), 3.0);
+  EXPECT_DOUBLE_EQ(mixture.probabilities()[1], 0.75);
+  std::mt19937_64 rng(3);
+  int robot = 0;
+  constexpr int kDraws = 200;
+  for (int i = 0; i < kDraws; ++i) robot += mixture.sample(rng).has_actions ? 1 : 0;
+  // Binomial(200, 0.25): mean 50, sd ~6.1.
+  EXPECT_GT(robot, 30);
+  EXPECT_LT(robot, 70);
+}
+
+TEST(ClipLoader, PrefetchStreamIndependentOfWorkerCount) {
+  test::TempDir tmp;
+  make_dataset(tmp / "robot", Embodiment::kRobot, 3, 30);
+  auto mixture = std::make_shared<ClipMixture>();
+  mixture->add(std::make_shared<ClipDataset>(EpisodeStore::open(tmp / "robot"), small_config()), 1.0);
+  std::vector<Batch> one, two;
+  {
+    PrefetchLoader loader(mixture, {2, 1, 2, 11});
+    for (int i = 0; i < 4; ++i) one.push_back(loader.next());
+  }
+  {
+    PrefetchLoader loader(mixture, {2, 3, 2, 11});
+    for (int i = 0; i < 4; ++i) two.push_back(loader.next());
+  }
+  for (int i = 0; i < 4; ++i) {
+    EXPECT_EQ(one[i].index, i);
+    EXPECT_TRUE(torch::equal(one[i].video, two[i].video)) << i;
+    EXPECT_TRUE(torch::equal(one[i].actions, two[i].actions)) << i;
+  }
+  ASSERT_EQ(one[0].video.sizes(), (std::vector<int64_t>{2, 13, 16, 16, 3}));
+}
+
+TEST(ClipLoader, BadEpisodeFailsOrIsSkippedAndCounted) {
+  test::TempDir tmp;
+  make_dataset(tmp / "robot", Embodiment::kRobot, 2, 30);
+  std::ofstream(tmp / "robot" / "episodes" / "000001" / "video.mp4", std::ios::binary) << "garbage";
+  {
+    ClipDataset strict(EpisodeStore::open(tmp / "robot"), small_config());
+    std::mt19937_64 rng(0);
+    bool threw = false;
+    for (int i = 0; i < 40 && !threw; ++i) {
+      try {
+        (void)strict.sample(rng);
+      } catch (const Error& e) {
+        threw = true;
+        EXPECT_NE(std::string(e.what()).find("000001"), std::string::npos) << e.what();
+      }
+    }
+    EXPECT_TRUE(threw);
+  }
+  ClipDataset lenient(EpisodeStore::open(tmp / "robot"), small_config(), "train", /*skip_bad=*/true);
+  std::mt19937_64 rng(0);
+  for (int i = 0; i < 40; ++i) EXPECT_EQ(lenient.sample(rng).episode, 0u);
+  EXPECT_EQ(lenient.skipped_episodes(), 1);
+}
+
+TEST(ClipLoader, WorkerErrorReachesConsumer) {
+  test::TempDir tmp;
+  make_dataset(tmp / "robot", Embodiment::kRobot, 1, 30);
+  std::ofstream(tmp / "robot" / "episodes" / "000000" / "video.mp4", std::ios::binary) << "garbage";
+  auto mixture = std::make_shared<ClipMixture>();
+  mixture->add(std::make_shared<ClipDataset>(EpisodeStore::open(tmp / "robot"), small_config()), 1.0);
+  PrefetchLoader loader(mixture, {2, 2, 2, 0});
+  EXPECT_THROW(loader.next(), Error);
+}
+
+}  // namespace dojo::data

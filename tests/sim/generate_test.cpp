@@ -1,0 +1,112 @@
+#include "sim/generate.h"
+
+#include <torch/torch.h>
+
+#include "core/error.h"
+#include "data/episode_store.h"
+#include "test_util.h"
+
+namespace dojo::sim {
+namespace {
+
+GenerateOptions small(const std::string& embodiment, int episodes) {
+  GenerateOptions o;
+  o.embodiment = embodiment;
+  o.episodes = episodes;
+  o.frames = 16;
+  o.width = o.height = 32;
+  o.seed = 5;
+  o.workers = 2;
+  return o;
+}
+
+// Every file of a dataset, by relative path.
+std::map<std::string, std::string> snapshot(const std::filesystem::path& dir) {
+  std::map<std::string, std::string> files;
+  for (const auto& e : std::filesystem::recursive_directory_iterator(dir))
+    if (e.is_regular_file()) files[std::filesystem::relative(e.path(), dir).string()] = test::read_file(e.path());
+  return files;
+}
+
+}  // namespace
+
+TEST(Generate, SameSeedSameBytesWhateverTheWorkers) {
+  test::TempDir tmp;
+  auto a = small("robot", 3);
+  auto b = a;
+  b.workers = 1;
+  generate_dataset(tmp / "a", a);
+  generate_dataset(tmp / "b", b);
+  const auto sa = snapshot(tmp / "a"), sb = snapshot(tmp / "b");
+  ASSERT_EQ(sa.size(), sb.size());
+  for (const auto& [name, bytes] : sa) {
+    if (name == "info.json") continue;  // holds the dataset's directory name
+    ASSERT_TRUE(sb.count(name)) << name;
+    EXPECT_TRUE(bytes == sb.at(name)) << name << " differs";
+  }
+  auto c = a;
+  c.seed = 6;
+  generate_dataset(tmp / "c", c);
+  EXPECT_NE(snapshot(tmp / "c").at("episodes/000000/video.mp4"), sa.at("episodes/000000/video.mp4"));
+}
+
+TEST(Generate, InterruptedRunResumes) {
+  test::TempDir tmp;
+  const auto o = small("human", 3);
+  generate_dataset(tmp / "d", o);
+  const auto before = snapshot(tmp / "d");
+  // Simulate a run killed mid-way: one episode missing, one half-written temp dir.
+  std::filesystem::remove_all(tmp / "d" / "episodes" / "000001");
+  std::filesystem::create_directories(tmp / "d" / "episodes" / "000001.tmp-999");
+  std::filesystem::remove(tmp / "d" / "info.json");
+  const auto summary = generate_dataset(tmp / "d", o);
+  EXPECT_EQ(summary.generated, 1);
+  EXPECT_EQ(summary.reused, 2);
+  EXPECT_FALSE(std::filesystem::exists(tmp / "d" / "episodes" / "000001.tmp-999"));
+  EXPECT_EQ(snapshot(tmp / "d"), before);
+}
+
+TEST(Generate, RefusesDirectoryOfAnotherRun) {
+  test::TempDir tmp;
+  auto o = small("human", 1);
+  generate_dataset(tmp / "d", o);
+  o.seed = 99;
+  const auto message = test::error_message([&] { generate_dataset(tmp / "d", o); });
+  EXPECT_NE(message.find("seed"), std::string::npos) << message;
+}
+
+TEST(Generate, RobotDatasetInfoAndSplits) {
+  test::TempDir tmp;
+  auto o = small("robot", 8);
+  o.val_fraction = 0.25;
+  generate_dataset(tmp / "r", o);
+  const auto store = data::EpisodeStore::open(tmp / "r");
+  const auto& info = store.info();
+  EXPECT_EQ(info.embodiment, data::Embodiment::kRobot);
+  EXPECT_EQ(info.action_slot, "dojosim_robot");
+  EXPECT_GT(info.action_dim, 0);
+  EXPECT_EQ(info.split_counts().at("val"), 2);
+  EXPECT_EQ(info.split_counts().at("train"), 6);
+  ASSERT_TRUE(info.action_stats.has_value());
+  for (int d = 0; d < info.action_dim; ++d) EXPECT_LE(info.action_stats->min[d], info.action_stats->max[d]);
+  for (size_t i = 0; i < store.size(); ++i) EXPECT_EQ(store.check_episode(i), "") << i;
+}
+
+TEST(Generate, EvaluationSplits) {
+  test::TempDir tmp;
+  for (const std::string split : {"ood-objects", "counterfactual", "novel-background"}) {
+    auto o = small("robot", 2);
+    o.split = split;
+    generate_dataset(tmp / split, o);
+    const auto store = data::EpisodeStore::open(tmp / split);
+    const auto meta = store.load_arrays(0).meta;
+    if (split == "ood-objects") EXPECT_TRUE(meta["ood_objects"].get<bool>());
+    if (split == "novel-background") EXPECT_TRUE(meta["novel_background"].get<bool>());
+    EXPECT_EQ(store.info().episodes[0].split, split);
+  }
+  auto bad = small("human", 1);
+  bad.split = "ood-objects";
+  EXPECT_THROW(generate_dataset(tmp / "bad", bad), Error);
+}
+
+}  // namespace dojo::sim
