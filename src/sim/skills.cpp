@@ -1,0 +1,944 @@
+#include "sim/skills.h"
+
+#include <algorithm>
+#include <cmath>
+#include <deque>
+
+#include "core/error.h"
+#include "sim/rng.h"
+#include "sim/robot_arm.h"
+#include "sim/task.h"
+
+namespace dojo::sim {
+namespace {
+
+using Pose = std::vector<double>;
+
+double wrap_angle(double a) {
+  while (a > M_PI) a -= 2.0 * M_PI;
+  while (a < -M_PI) a += 2.0 * M_PI;
+  return a;
+}
+
+// Minimum-jerk time scaling: zero velocity and acceleration at both ends.
+double min_jerk(double s) {
+  s = std::clamp(s, 0.0, 1.0);
+  return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s);
+}
+
+// Keyframes in some pose space, interpolated with minimum jerk between consecutive keys.
+class Script {
+ public:
+  void start(const Pose& pose, double t0) {
+    start_ = pose;
+    keys_.clear();
+    t0_ = t0;
+    total_ = 0.0;
+  }
+  void add(const Pose& pose, double duration) {
+    duration = std::max(duration, 0.05);
+    keys_.push_back({pose, duration});
+    total_ += duration;
+  }
+  void wait(double duration) { add(end(), duration); }
+  const Pose& end() const { return keys_.empty() ? start_ : keys_.back().pose; }
+  bool started() const { return !start_.empty(); }
+  bool done(double t) const { return t >= t0_ + total_ - 1e-9; }
+  Pose eval(double t) const {
+    double local = t - t0_;
+    Pose from = start_;
+    for (const Key& k : keys_) {
+      if (local <= k.duration) {
+        const double s = min_jerk(local / k.duration);
+        Pose out(from.size());
+        for (size_t i = 0; i < from.size(); ++i) out[i] = from[i] + s * (k.pose[i] - from[i]);
+        return out;
+      }
+      local -= k.duration;
+      from = k.pose;
+    }
+    return end();
+  }
+
+ private:
+  struct Key {
+    Pose pose;
+    double duration;
+  };
+  Pose start_;
+  std::vector<Key> keys_;
+  double t0_ = 0.0;
+  double total_ = 0.0;
+};
+
+// What the scripts need to know about an object right now.
+struct ObjInfo {
+  int index = -1;
+  Vec3 pos{};
+  double yaw = 0.0;
+  double bottom = 0.0, top = 0.0;
+  double radius = 0.0;  // footprint radius (upright)
+  std::string name;
+  Shape shape = Shape::kBox;
+};
+
+double yaw_of(const std::array<double, 4>& q) {
+  return std::atan2(2.0 * (q[0] * q[3] + q[1] * q[2]), 1.0 - 2.0 * (q[2] * q[2] + q[3] * q[3]));
+}
+
+ObjInfo object_info(const World& w, int i) {
+  ObjInfo o;
+  o.index = i;
+  const ObjectPose p = w.object_pose(i);
+  o.pos = p.pos;
+  o.yaw = yaw_of(p.quat);
+  const auto z = w.object_z_range(i);
+  o.bottom = z[0];
+  o.top = z[1];
+  o.radius = object_footprint_radius(w.spec().objects[i]);
+  o.name = object_description(w.spec().objects[i]);
+  o.shape = w.spec().objects[i].shape;
+  return o;
+}
+
+std::string direction_words(double dx, double dy) {
+  const double a = std::atan2(dy, dx) * 180.0 / M_PI;  // 0 = right, 90 = away from the camera
+  if (a > -30 && a <= 30) return "to the right";
+  if (a > 30 && a <= 60) return "forward and to the right";
+  if (a > 60 && a <= 120) return "forward";
+  if (a > 120 && a <= 150) return "forward and to the left";
+  if (a > 150 || a <= -150) return "to the left";
+  if (a > -150 && a <= -120) return "back and to the left";
+  if (a > -120 && a <= -60) return "toward me";
+  return "back and to the right";
+}
+
+bool on_table(double x, double y) { return std::fabs(x) < 0.4 && y > -0.28 && y < 0.34; }
+
+// ================================================================================================
+// Human
+
+constexpr double kPalmHalf = 0.011;    // palm half-thickness
+constexpr double kFingerReach = 0.12;  // palm centre -> fingertips (flat hand)
+
+class HumanController : public Controller {
+ public:
+  HumanController(const World& world, const HumanSkillOptions& options, uint64_t seed)
+      : options_(options), rng_(seed) {
+    if (options_.skills.empty()) options_.skills = all_human_skills();
+    rest_ = world.initial_command();
+    speed_ = rng_.uniform(0.75, 1.35);
+    log_ = nlohmann::json::array();
+  }
+
+  std::vector<double> act(const World& world, int step) override {
+    const double dt = world.control_dt();
+    const double now = step * dt;
+    if (!script_.started()) {
+      script_.start(world.last_command(), now);
+      plan(world, now);
+    } else if (script_.done(now) && options_.chain) {
+      script_.start(script_.end(), now);
+      plan(world, now);
+    }
+    return script_.eval(now + dt);
+  }
+
+  std::string task_text() const override {
+    std::string text;
+    for (size_t i = 0; i < texts_.size(); ++i) text += (i ? ", then " : "") + texts_[i];
+    return text;
+  }
+
+  nlohmann::json describe() const override {
+    return {{"controller", "human_skill"}, {"speed", speed_}, {"skills", log_}};
+  }
+
+ private:
+  // -- helpers ----------------------------------------------------------------------------------
+  static Pose pose(double x, double y, double z, double yaw, double pitch, double curl) {
+    return {x, y, z, yaw, pitch, curl};
+  }
+  // Unit vector along the fingers for a hand yaw.
+  static std::array<double, 2> along(double yaw) { return {-std::sin(yaw), std::cos(yaw)}; }
+  static double yaw_toward(double dx, double dy) { return std::atan2(-dx, dy); }
+
+  // Moves to `target` with a duration from the distance and the episode's speed.
+  void move(const Pose& target, double base_speed = 0.35) {
+    const Pose& from = script_.end();
+    const double dist = std::sqrt(std::pow(target[0] - from[0], 2) + std::pow(target[1] - from[1], 2) +
+                                  std::pow(target[2] - from[2], 2)) +
+                        0.05 * std::fabs(target[3] - from[3]) + 0.03 * std::fabs(target[4] - from[4]);
+    const double duration = std::clamp(dist / (base_speed * speed_), 0.3, 1.8) * rng_.uniform(0.9, 1.1);
+    script_.add(target, duration);
+  }
+  void timed(const Pose& target, double seconds) { script_.add(target, seconds / speed_); }
+  Pose with(const Pose& p, int i, double v) {
+    Pose q = p;
+    q[i] = v;
+    return q;
+  }
+  void retreat() {
+    Pose r = rest_;
+    r[0] += rng_.uniform(-0.05, 0.05);
+    r[1] += rng_.uniform(-0.03, 0.03);
+    r[2] += rng_.uniform(-0.02, 0.03);
+    r[3] += rng_.uniform(-0.2, 0.2);
+    r[4] = 0.0;
+    r[5] = rng_.uniform(0.15, 0.4);
+    Pose up = script_.end();
+    up[2] = std::max(up[2], r[2]);
+    move(up);
+    move(r);
+    script_.wait(rng_.uniform(0.0, 0.4));
+  }
+
+  // Free table spot for placing an object of footprint radius r, 8-20 cm from `from`.
+  bool free_spot(const World& w, const ObjInfo& o, double* x, double* y) {
+    for (int attempt = 0; attempt < 60; ++attempt) {
+      const double a = rng_.uniform(-M_PI, M_PI), d = rng_.uniform(0.08, 0.2);
+      const double cx = o.pos[0] + d * std::cos(a), cy = o.pos[1] + d * std::sin(a);
+      if (cx < -0.22 || cx > 0.22 || cy < -0.1 || cy > 0.2) continue;
+      bool ok = true;
+      for (int j = 0; j < w.num_objects() && ok; ++j) {
+        if (j == o.index) continue;
+        const ObjInfo other = object_info(w, j);
+        if (std::hypot(cx - other.pos[0], cy - other.pos[1]) < o.radius + other.radius + 0.02) ok = false;
+      }
+      const BinSpec& b = w.spec().bin;
+      if (b.enabled && std::fabs(cx - b.center[0]) < b.half_x + o.radius + 0.03 &&
+          std::fabs(cy - b.center[1]) < b.half_y + o.radius + 0.03) {
+        ok = false;
+      }
+      if (ok) {
+        *x = cx;
+        *y = cy;
+        return true;
+      }
+    }
+    return false;
+  }
+
+  // -- planning ---------------------------------------------------------------------------------
+  void plan(const World& w, double now) {
+    HumanSkill skill = rng_.pick(options_.skills);
+    const int n = w.num_objects();
+    int target = -1;
+    if (n > 0) target = (log_.empty() && options_.target_object >= 0 && options_.target_object < n)
+                            ? options_.target_object
+                            : rng_.randint(0, n - 1);
+    if (n == 0) skill = HumanSkill::kReach;
+    if (skill == HumanSkill::kStack && n < 2) skill = HumanSkill::kPickPlace;
+    std::string text;
+    nlohmann::json params;
+    switch (skill) {
+      case HumanSkill::kPush: text = plan_push(object_info(w, target), &params); break;
+      case HumanSkill::kPoke: text = plan_poke(object_info(w, target), &params); break;
+      case HumanSkill::kPat: text = plan_pat(object_info(w, target), &params); break;
+      case HumanSkill::kSweep: text = plan_sweep(object_info(w, target), &params); break;
+      case HumanSkill::kPickPlace: text = plan_pick_place(w, object_info(w, target), &params); break;
+      case HumanSkill::kStack: {
+        // Stack onto an object with a flat top, other than the one carried.
+        std::vector<int> bases;
+        for (int j = 0; j < n; ++j) {
+          const Shape s = w.spec().objects[j].shape;
+          if (j != target && (s == Shape::kBox || s == Shape::kCylinder || s == Shape::kPlate || s == Shape::kMug)) {
+            bases.push_back(j);
+          }
+        }
+        if (bases.empty()) {
+          skill = HumanSkill::kPickPlace;
+          text = plan_pick_place(w, object_info(w, target), &params);
+        } else {
+          const int base = rng_.pick(bases);
+          text = plan_stack(object_info(w, target), object_info(w, base), &params);
+        }
+        break;
+      }
+      case HumanSkill::kTopple: {
+        std::vector<int> tall;
+        for (int j = 0; j < n; ++j) {
+          const ObjInfo o = object_info(w, j);
+          if (o.top - o.bottom > std::max(0.06, 1.2 * o.radius * 2)) tall.push_back(j);
+        }
+        if (!tall.empty()) {
+          if (std::find(tall.begin(), tall.end(), target) == tall.end()) target = rng_.pick(tall);
+          text = plan_topple(object_info(w, target), &params);
+        } else {
+          skill = HumanSkill::kPush;
+          text = plan_push(object_info(w, target), &params);
+        }
+        break;
+      }
+      case HumanSkill::kReach:
+        text = n > 0 ? plan_reach(object_info(w, target), &params) : plan_wave(&params);
+        break;
+      case HumanSkill::kLiftDrop: text = plan_lift_drop(object_info(w, target), &params); break;
+    }
+    texts_.push_back(text);
+    log_.push_back({{"skill", to_string(skill)},
+                    {"object", target},
+                    {"text", text},
+                    {"start_step", static_cast<int>(std::lround(now / w.control_dt()))},
+                    {"params", params}});
+  }
+
+  // How far the hand's outline reaches from the palm centre in horizontal direction (dx, dy)
+  // for a hand yaw: the palm plus fingers, roughly a 9 x 17 cm rectangle.
+  static double hand_extent(double yaw, double dx, double dy) {
+    const auto u = along(yaw);
+    const double a = u[0] * dx + u[1] * dy;     // along the fingers
+    const double c = u[1] * dx - u[0] * dy;     // across (toward the pinky, +x at yaw 0)
+    return (a > 0 ? a * kFingerReach : -a * 0.045) + std::fabs(c) * 0.045;
+  }
+
+  // Pushes with whichever side of the hand faces the motion: fingertips when pushing away, the
+  // pinky edge when pushing right, the thumb side when pushing left. The hand keeps a natural
+  // right-hand yaw, so the arm never twists back over itself.
+  std::string plan_push(const ObjInfo& o, nlohmann::json* params) {
+    const double phi = rng_.uniform(0.0, 180.0) * M_PI / 180.0;
+    const double dx = std::cos(phi), dy = std::sin(phi);
+    const double yaw = std::clamp(yaw_toward(dx, dy), -1.0, 0.8) + rng_.uniform(-0.15, 0.15);
+    const double curl = rng_.uniform(0.05, 0.2);
+    const double z = std::max(0.028, o.bottom + std::clamp(0.5 * (o.top - o.bottom), 0.012, 0.035));
+    const double back = o.radius + 0.02 + hand_extent(yaw, dx, dy);
+    const double sx = o.pos[0] - dx * back, sy = o.pos[1] - dy * back;
+    double dist = rng_.uniform(0.06, 0.14);
+    while (dist > 0.02 && !on_table(o.pos[0] + dx * dist, o.pos[1] + dy * dist)) dist -= 0.01;
+    const double travel = dist + 0.02;
+    move(pose(sx, sy, z + 0.07, yaw, 0.0, curl));
+    timed(pose(sx, sy, z, yaw, 0.0, curl), 0.4);
+    script_.add(pose(sx + dx * travel, sy + dy * travel, z, yaw, 0.0, curl), travel / (0.12 * speed_));
+    timed(pose(sx + dx * travel, sy + dy * travel, z + 0.07, yaw, 0.0, curl), 0.4);
+    retreat();
+    *params = {{"direction_deg", phi * 180 / M_PI}, {"distance", dist}, {"yaw", yaw}};
+    return "push the " + o.name + " " + direction_words(dx, dy);
+  }
+
+  std::string plan_poke(const ObjInfo& o, nlohmann::json* params) {
+    const double phi = rng_.uniform(40.0, 140.0) * M_PI / 180.0;
+    const double dx = std::cos(phi), dy = std::sin(phi);
+    const double yaw = yaw_toward(dx, dy);
+    const double pitch = rng_.uniform(0.55, 0.8), curl = rng_.uniform(0.0, 0.1);
+    const double reach = kFingerReach * std::cos(pitch), drop = kFingerReach * std::sin(pitch);
+    const double contact = o.bottom + std::clamp(0.6 * (o.top - o.bottom), 0.012, 0.04);
+    // Fingertip positions: pulled back, and pressed 1.2 cm into the object's side.
+    const double side = std::max(0.6 * o.radius, 0.012);
+    const double bx = o.pos[0] - dx * (side + 0.045), by = o.pos[1] - dy * (side + 0.045);
+    const double ix = o.pos[0] - dx * (side - 0.012), iy = o.pos[1] - dy * (side - 0.012);
+    const double z = contact + drop;
+    auto palm = [&](double tx, double ty, double tz) { return pose(tx - dx * reach, ty - dy * reach, tz, yaw, pitch, curl); };
+    move(palm(bx, by, z + 0.06));
+    timed(palm(bx, by, z), 0.35);
+    const int jabs = rng_.randint(1, 3);
+    for (int k = 0; k < jabs; ++k) {
+      timed(palm(ix, iy, z), rng_.uniform(0.2, 0.3));
+      timed(palm(bx, by, z), rng_.uniform(0.25, 0.35));
+    }
+    timed(palm(bx, by, z + 0.06), 0.35);
+    retreat();
+    *params = {{"direction_deg", phi * 180 / M_PI}, {"jabs", jabs}, {"pitch", pitch}};
+    return "poke the " + o.name;
+  }
+
+  std::string plan_pat(const ObjInfo& o, nlohmann::json* params) {
+    const double yaw = rng_.uniform(-0.3, 0.5), curl = rng_.uniform(0.0, 0.15);
+    const auto u = along(yaw);
+    const double cx = o.pos[0] - u[0] * 0.03, cy = o.pos[1] - u[1] * 0.03;
+    const double up = o.top + kPalmHalf + rng_.uniform(0.04, 0.07), down = o.top + kPalmHalf - 0.004;
+    move(pose(cx, cy, up, yaw, 0.0, curl));
+    const int pats = rng_.randint(2, 4);
+    for (int k = 0; k < pats; ++k) {
+      timed(pose(cx, cy, down, yaw, 0.0, curl), rng_.uniform(0.15, 0.25));
+      timed(pose(cx, cy, up, yaw, 0.0, curl), rng_.uniform(0.2, 0.3));
+    }
+    retreat();
+    *params = {{"pats", pats}, {"height", up - down}};
+    return "pat the " + o.name;
+  }
+
+  std::string plan_sweep(const ObjInfo& o, nlohmann::json* params) {
+    double side = rng_.bernoulli(0.5) ? 1.0 : -1.0;
+    if (o.pos[0] > 0.15) side = -1.0;
+    if (o.pos[0] < -0.15) side = 1.0;
+    const double yaw = rng_.uniform(-0.2, 0.3), curl = rng_.uniform(0.1, 0.3);
+    const double y = o.pos[1] - rng_.uniform(0.0, 0.07);
+    const double z = 0.022;
+    const double x0 = o.pos[0] - side * (o.radius + 0.07), x1 = o.pos[0] + side * rng_.uniform(0.08, 0.16);
+    move(pose(x0, y, 0.08, yaw, 0.05, curl));
+    timed(pose(x0, y, z, yaw, 0.05, curl), 0.35);
+    script_.add(pose(x1, y, z, yaw, 0.05, curl), std::fabs(x1 - x0) / (0.2 * speed_));
+    timed(pose(x1, y, 0.08, yaw, 0.05, curl), 0.35);
+    retreat();
+    *params = {{"side", side}, {"distance", std::fabs(x1 - x0)}};
+    return "sweep the " + o.name + (side > 0 ? " to the right" : " to the left");
+  }
+
+  // Grasp: the object ends up under the front of the palm with the fingers curled around it.
+  struct Grasp {
+    double x, y, z, yaw, ux, uy;
+  };
+  Grasp plan_grasp(const ObjInfo& o) {
+    Grasp g;
+    g.yaw = rng_.uniform(-0.3, 0.5);
+    const auto u = along(g.yaw);
+    g.ux = u[0];
+    g.uy = u[1];
+    g.x = o.pos[0] - u[0] * 0.012;
+    g.y = o.pos[1] - u[1] * 0.012;
+    g.z = o.top + kPalmHalf - 0.002;  // palm presses lightly on the top
+    move(pose(g.x, g.y, g.z + 0.06, g.yaw, 0.0, 0.05));
+    timed(pose(g.x, g.y, g.z, g.yaw, 0.0, 0.05), 0.4);
+    timed(pose(g.x, g.y, g.z, g.yaw, 0.0, 0.95), 0.45);
+    script_.wait(0.15);
+    return g;
+  }
+
+  // Carries the grasped object so its centre ends above (tx, ty) with its bottom `clearance`
+  // above `surface`, then lets go.
+  void place(const ObjInfo& o, const Grasp& g, double tx, double ty, double surface, double lift) {
+    const double carry = g.z + lift;
+    timed(pose(g.x, g.y, carry, g.yaw, 0.0, 0.95), 0.5);
+    const double px = tx - g.ux * 0.012, py = ty - g.uy * 0.012;
+    move(pose(px, py, carry, g.yaw, 0.0, 0.95), 0.3);
+    const double z = g.z + (surface - o.bottom) + 0.006;
+    timed(pose(px, py, z, g.yaw, 0.0, 0.95), 0.5);
+    timed(pose(px, py, z, g.yaw, 0.0, 0.1), 0.35);
+    timed(pose(px, py, z + 0.06, g.yaw, 0.0, 0.1), 0.35);
+    retreat();
+  }
+
+  std::string plan_pick_place(const World& w, const ObjInfo& o, nlohmann::json* params) {
+    const BinSpec& bin = w.spec().bin;
+    double tx = 0, ty = 0, surface = 0.0;
+    std::string text;
+    if (bin.enabled && rng_.bernoulli(0.5)) {
+      tx = bin.center[0] + rng_.uniform(-0.03, 0.03);
+      ty = bin.center[1] + rng_.uniform(-0.03, 0.03);
+      surface = 0.004;
+      text = "put the " + o.name + " in the tray";
+    } else if (free_spot(w, o, &tx, &ty)) {
+      text = "pick up the " + o.name + " and move it " + direction_words(tx - o.pos[0], ty - o.pos[1]);
+    } else {
+      tx = o.pos[0];
+      ty = o.pos[1];
+      text = "pick up the " + o.name + " and put it back down";
+    }
+    const Grasp g = plan_grasp(o);
+    place(o, g, tx, ty, surface, rng_.uniform(0.08, 0.12));
+    *params = {{"target", {tx, ty}}};
+    return text;
+  }
+
+  std::string plan_stack(const ObjInfo& o, const ObjInfo& base, nlohmann::json* params) {
+    const Grasp g = plan_grasp(o);
+    const double lift = std::max(rng_.uniform(0.08, 0.12), base.top - o.bottom + 0.05);
+    place(o, g, base.pos[0], base.pos[1], base.top, lift);
+    *params = {{"base", base.index}};
+    return "stack the " + o.name + " on the " + base.name;
+  }
+
+  std::string plan_topple(const ObjInfo& o, nlohmann::json* params) {
+    const double phi = rng_.uniform(0.0, 180.0) * M_PI / 180.0;
+    const double dx = std::cos(phi), dy = std::sin(phi);
+    const double yaw = std::clamp(yaw_toward(dx, dy), -1.0, 0.8);
+    const double curl = rng_.uniform(0.1, 0.25);
+    const double z = o.bottom + rng_.uniform(0.7, 0.85) * (o.top - o.bottom);
+    const double back = o.radius + 0.025 + hand_extent(yaw, dx, dy);
+    const double sx = o.pos[0] - dx * back, sy = o.pos[1] - dy * back;
+    const double travel = 0.03 + rng_.uniform(0.07, 0.1);
+    move(pose(sx, sy, z + 0.06, yaw, 0.0, curl));
+    timed(pose(sx, sy, z, yaw, 0.0, curl), 0.35);
+    script_.add(pose(sx + dx * travel, sy + dy * travel, z, yaw, 0.0, curl), travel / (0.3 * speed_));
+    timed(pose(sx + dx * travel, sy + dy * travel, z + 0.06, yaw, 0.0, curl), 0.35);
+    retreat();
+    *params = {{"direction_deg", phi * 180 / M_PI}, {"height", z}};
+    return "knock over the " + o.name;
+  }
+
+  std::string plan_reach(const ObjInfo& o, nlohmann::json* params) {
+    const double yaw = rng_.uniform(-0.3, 0.5), pitch = rng_.uniform(0.0, 0.4), curl = rng_.uniform(0.1, 0.5);
+    const auto u = along(yaw);
+    const double hx = o.pos[0] - u[0] * 0.05, hy = o.pos[1] - u[1] * 0.05;
+    const double z = o.top + kPalmHalf + rng_.uniform(0.05, 0.1);
+    move(pose(hx, hy, z, yaw, pitch, curl));
+    const bool wave = rng_.bernoulli(0.5);
+    if (wave) {
+      for (int k = 0; k < 2; ++k) {
+        timed(pose(hx, hy, z, yaw + 0.35, pitch, curl), 0.3);
+        timed(pose(hx, hy, z, yaw - 0.35, pitch, curl), 0.3);
+      }
+      timed(pose(hx, hy, z, yaw, pitch, curl), 0.2);
+    }
+    script_.wait(rng_.uniform(0.2, 0.7));
+    retreat();
+    *params = {{"wave", wave}, {"height", z}};
+    return (wave ? "wave over the " : "reach toward the ") + o.name;
+  }
+
+  std::string plan_wave(nlohmann::json* params) {
+    const double x = rng_.uniform(-0.15, 0.15), y = rng_.uniform(-0.05, 0.15), z = rng_.uniform(0.08, 0.15);
+    const double yaw = rng_.uniform(-0.3, 0.5);
+    move(pose(x, y, z, yaw, 0.0, 0.1));
+    for (int k = 0; k < 2; ++k) {
+      timed(pose(x, y, z, yaw + 0.35, 0.0, 0.1), 0.3);
+      timed(pose(x, y, z, yaw - 0.35, 0.0, 0.1), 0.3);
+    }
+    retreat();
+    *params = {{"at", {x, y, z}}};
+    return "wave over the table";
+  }
+
+  std::string plan_lift_drop(const ObjInfo& o, nlohmann::json* params) {
+    const Grasp g = plan_grasp(o);
+    const double lift = rng_.uniform(0.1, 0.16);
+    timed(pose(g.x, g.y, g.z + lift, g.yaw, 0.0, 0.95), 0.6);
+    script_.wait(rng_.uniform(0.1, 0.4));
+    timed(pose(g.x, g.y, g.z + lift, g.yaw, 0.0, 0.1), 0.2);
+    script_.wait(0.3);
+    retreat();
+    *params = {{"lift", lift}};
+    return "lift the " + o.name + " and drop it";
+  }
+
+  HumanSkillOptions options_;
+  Rng rng_;
+  Pose rest_;
+  double speed_;
+  Script script_;
+  std::vector<std::string> texts_;
+  nlohmann::json log_;
+};
+
+// ================================================================================================
+// Robot
+
+constexpr double kCarryZ = 0.16;   // grasp-point height while carrying
+constexpr double kHoverZ = 0.10;   // approach height above the grasp height
+constexpr double kTipBelow = arm::kGripLen - arm::kFingerStart - arm::kFingerLen;  // negative
+
+class RobotController : public Controller {
+ public:
+  RobotController(const World& world, const RobotPolicyOptions& options, uint64_t seed)
+      : options_(options), rng_(seed), attempts_(world.num_objects(), 0) {
+    const std::vector<double>& c = world.initial_command();
+    home_joints_ = {c[0], c[1], c[2], c[3], c[4]};
+    const arm::Point p = arm::forward_grasp_point(home_joints_);
+    home_ = {p[0], p[1], p[2], c[4], c[5]};
+    noise_.assign(arm::kNumArmJoints, 0.0);
+    for (int i = 0; i < options_.quality.delay_steps; ++i) queue_.push_back(c);
+    log_ = nlohmann::json::array();
+    if (options_.behavior == RobotBehavior::kBinPick) {
+      DOJO_CHECK(world.spec().bin.enabled, "robot bin policy: the scene has no bin");
+    }
+  }
+
+  std::vector<double> act(const World& world, int step) override {
+    const double dt = world.control_dt();
+    const double now = step * dt;
+    if (!script_.started()) {
+      script_.start(home_, now);
+      joint_mode_ = false;
+      plan(world, now);
+    } else if (script_.done(now)) {
+      script_.start(script_.end(), now);
+      plan(world, now);
+    }
+    const Pose target = script_.eval(now + dt);
+    std::vector<double> command(arm::kActionDim);
+    if (joint_mode_) {
+      command = target;
+    } else {
+      arm::Joints q{};
+      arm::solve_topdown_ik({target[0], target[1], target[2]}, 0.0, &q);
+      for (int j = 0; j < 4; ++j) command[j] = q[j];
+      command[4] = std::clamp(target[3], arm::kJointLimits[4].lo, arm::kJointLimits[4].hi);
+      command[5] = target[4];
+    }
+    const PolicyQuality& quality = options_.quality;
+    if (quality.noise_std > 0) {
+      const double a = 0.8;
+      for (int j = 0; j < arm::kNumArmJoints; ++j) {
+        noise_[j] = a * noise_[j] + std::sqrt(1 - a * a) * rng_.normal(0.0, quality.noise_std);
+        command[j] += noise_[j];
+      }
+    }
+    for (int j = 0; j < arm::kNumArmJoints; ++j) {
+      command[j] = std::clamp(command[j], arm::kJointLimits[j].lo, arm::kJointLimits[j].hi);
+    }
+    command[5] = std::clamp(command[5], 0.0, 1.0);
+    if (quality.delay_steps > 0) {
+      queue_.push_back(command);
+      command = queue_.front();
+      queue_.pop_front();
+    }
+    return command;
+  }
+
+  std::string task_text() const override { return text_; }
+
+  nlohmann::json describe() const override {
+    return {{"controller", "robot_policy"},
+            {"behavior", to_string(options_.behavior)},
+            {"quality", options_.quality.to_json()},
+            {"attempts", log_}};
+  }
+
+ private:
+  // Cartesian pose: [x, y, z, wrist_roll, gripper].
+  static Pose cart(double x, double y, double z, double roll, double grip) { return {x, y, z, roll, grip}; }
+  double s() const { return options_.quality.speed; }
+  void timed(const Pose& p, double seconds) { script_.add(p, seconds / s()); }
+  void move(const Pose& p, double base_speed = 0.3) {
+    const Pose& from = script_.end();
+    const double dist = std::sqrt(std::pow(p[0] - from[0], 2) + std::pow(p[1] - from[1], 2) + std::pow(p[2] - from[2], 2));
+    script_.add(p, std::clamp(dist / (base_speed * s()), 0.6, 2.0));
+  }
+  // Wrist roll that aligns the fingers with a box's faces (or zero for round objects).
+  static double roll_for(const ObjInfo& o, double x, double y) {
+    if (o.shape != Shape::kBox && o.shape != Shape::kDumbbell) return 0.0;
+    const arm::Point p{x, y, 0.0};
+    const double psi = arm::box_closing_yaw(p, o.yaw + (o.shape == Shape::kDumbbell ? M_PI / 2 : 0.0));
+    return wrap_angle(arm::neutral_closing_yaw(p) - psi);
+  }
+  // Grasp-point height: the object's centre, but high enough that the fingertips clear the
+  // table and low enough that the palm clears the object's top.
+  static double grasp_height(const ObjInfo& o) {
+    const double palm_gap = arm::kGripLen - arm::kFingerStart;  // grasp point -> palm underside
+    return std::max({0.018, std::min(o.pos[2], o.top - 0.025), o.top - palm_gap + 0.005});
+  }
+  void go_home() {
+    Pose h = home_;
+    h[3] = script_.end()[3];
+    Pose up = script_.end();
+    up[2] = std::max(up[2], 0.18);
+    timed(up, 0.4);
+    move(h);
+    h[3] = home_[3];
+    timed(h, 0.3);
+  }
+
+  void plan(const World& w, double now) {
+    switch (options_.behavior) {
+      case RobotBehavior::kBinPick: plan_bin_attempt(w, now); break;
+      case RobotBehavior::kPat:
+      case RobotBehavior::kReachMiss:
+      case RobotBehavior::kPush:
+        if (!counterfactual_done_) {
+          plan_counterfactual(w);
+          counterfactual_done_ = true;
+        } else {
+          script_.wait(1.0);
+        }
+        break;
+      case RobotBehavior::kRandomMotion: plan_random(w, now); break;
+    }
+  }
+
+  int pick_target(const World& w) {
+    const int n = w.num_objects();
+    if (options_.target_object >= 0 && options_.target_object < n) return options_.target_object;
+    return n > 0 ? rng_.randint(0, n - 1) : -1;
+  }
+
+  void plan_bin_attempt(const World& w, double now) {
+    const PolicyQuality& q = options_.quality;
+    const int n = w.num_objects();
+    if (text_.empty()) {
+      text_ = "put the objects in the bin";
+      if (n > 0 && n <= 3) {
+        text_ = "put the ";
+        for (int i = 0; i < n; ++i) {
+          text_ += (i == 0 ? "" : (i + 1 == n ? " and the " : ", the ")) + object_description(w.spec().objects[i]);
+        }
+        text_ += " in the bin";
+      }
+    }
+    if (finished_) {
+      script_.wait(1.0);
+      return;
+    }
+    // Nearest object still outside the bin (and still on the table) from the gripper.
+    const Vec3 g = w.grasp_point();
+    int target = -1;
+    double best = 1e9;
+    for (int i = 0; i < n; ++i) {
+      const ObjInfo o = object_info(w, i);
+      if (object_in_bin(w, i) || attempts_[i] >= 3 || o.bottom < -0.02 || !on_table(o.pos[0], o.pos[1])) continue;
+      const double d = std::hypot(o.pos[0] - g[0], o.pos[1] - g[1]);
+      if (d < best) {
+        best = d;
+        target = i;
+      }
+    }
+    const bool wrong_object = n > 0 && rng_.bernoulli(q.wrong_object_prob);
+    if (wrong_object) target = rng_.randint(0, n - 1);
+    if (target < 0) {
+      finished_ = true;
+      go_home();
+      return;
+    }
+    ++attempts_[target];
+    const ObjInfo o = object_info(w, target);
+    double gx = o.pos[0], gy = o.pos[1];
+    const bool miss = rng_.bernoulli(q.miss_prob);
+    if (miss) {
+      const double a = rng_.uniform(-M_PI, M_PI), d = o.radius + rng_.uniform(0.025, 0.04);
+      gx += d * std::cos(a);
+      gy += d * std::sin(a);
+    }
+    const double gz = grasp_height(o);
+    const double roll = roll_for(o, gx, gy);
+    move(cart(gx, gy, gz + kHoverZ, roll, 1.0));
+    timed(cart(gx, gy, gz, roll, 1.0), 0.8);
+    timed(cart(gx, gy, gz, roll, 0.0), 0.5);
+    timed(cart(gx, gy, kCarryZ, roll, 0.0), 0.7);
+    double tx = 0, ty = 0;
+    free_bin_spot(w, target, o.radius, &tx, &ty);
+    const bool wrong_target = rng_.bernoulli(q.wrong_target_prob);
+    if (wrong_target) {
+      tx = rng_.uniform(-0.15, 0.05);
+      ty = rng_.uniform(-0.1, 0.08);
+    }
+    const bool early = rng_.bernoulli(q.early_release_prob);
+    // The object's bottom ends 1.2 cm above the bin floor (or the table) before release.
+    const double drop_z = (wrong_target ? 0.0 : 0.004) + 0.012 + (gz - o.bottom);
+    if (early) {
+      const double f = rng_.uniform(0.2, 0.7);
+      const Pose& from = script_.end();
+      const double mx = from[0] + f * (tx - from[0]), my = from[1] + f * (ty - from[1]);
+      move(cart(mx, my, kCarryZ, roll, 0.0));
+      timed(cart(mx, my, kCarryZ, roll, 1.0), 0.3);
+      move(cart(tx, ty, kCarryZ, roll, 1.0));
+    } else {
+      move(cart(tx, ty, kCarryZ, roll, 0.0));
+      timed(cart(tx, ty, drop_z, roll, 0.0), 0.5);
+      timed(cart(tx, ty, drop_z, roll, 1.0), 0.4);
+    }
+    timed(cart(tx, ty, 0.18, roll, 1.0), 0.5);
+    log_.push_back({{"object", target},
+                    {"start_step", static_cast<int>(std::lround(now / w.control_dt()))},
+                    {"miss", miss},
+                    {"wrong_object", wrong_object},
+                    {"wrong_target", wrong_target},
+                    {"early_release", early}});
+  }
+
+  // The spot in the bin farthest from the objects already in it (among random candidates).
+  void free_bin_spot(const World& w, int carried, double radius, double* x, double* y) {
+    const BinSpec& bin = w.spec().bin;
+    const double mx = std::max(0.0, bin.half_x - radius - 0.015), my = std::max(0.0, bin.half_y - radius - 0.015);
+    double best = -1e9;
+    for (int k = 0; k < 24; ++k) {
+      const double cx = bin.center[0] + rng_.uniform(-mx, mx), cy = bin.center[1] + rng_.uniform(-my, my);
+      double clearance = 1.0;
+      for (int j = 0; j < w.num_objects(); ++j) {
+        if (j == carried || !object_in_bin(w, j)) continue;
+        const ObjInfo other = object_info(w, j);
+        clearance = std::min(clearance, std::hypot(cx - other.pos[0], cy - other.pos[1]) - other.radius - radius);
+      }
+      // Prefer clearance, then the centre (small tie-break).
+      const double score = std::min(clearance, 0.03) - 0.1 * std::hypot(cx - bin.center[0], cy - bin.center[1]);
+      if (score > best) {
+        best = score;
+        *x = cx;
+        *y = cy;
+      }
+    }
+  }
+
+  void plan_counterfactual(const World& w) {
+    const int target = pick_target(w);
+    if (target < 0) {
+      text_ = "move the arm over the table";
+      move(cart(rng_.uniform(-0.1, 0.05), rng_.uniform(-0.05, 0.1), rng_.uniform(0.08, 0.15), 0.0, 1.0));
+      go_home();
+      return;
+    }
+    const ObjInfo o = object_info(w, target);
+    nlohmann::json entry = {{"object", target}};
+    switch (options_.behavior) {
+      case RobotBehavior::kPat: {
+        text_ = "pat the " + o.name;
+        const double touch = o.top - kTipBelow - 0.004;  // fingertips press 4 mm into the top
+        const double amp = rng_.uniform(0.04, 0.07);
+        move(cart(o.pos[0], o.pos[1], touch + amp + 0.04, 0.0, 0.0));
+        const int pats = rng_.randint(2, 4);
+        for (int k = 0; k < pats; ++k) {
+          timed(cart(o.pos[0], o.pos[1], touch, 0.0, 0.0), rng_.uniform(0.25, 0.35));
+          timed(cart(o.pos[0], o.pos[1], touch + amp, 0.0, 0.0), rng_.uniform(0.3, 0.4));
+        }
+        entry["pats"] = pats;
+        break;
+      }
+      case RobotBehavior::kReachMiss: {
+        text_ = "reach for the " + o.name + " and miss";
+        const double a = rng_.uniform(-M_PI, M_PI), d = o.radius + rng_.uniform(0.04, 0.07);
+        const double gx = o.pos[0] + d * std::cos(a), gy = o.pos[1] + d * std::sin(a);
+        const double gz = grasp_height(o);
+        move(cart(gx, gy, gz + kHoverZ, 0.0, 1.0));
+        timed(cart(gx, gy, gz, 0.0, 1.0), 0.8);
+        timed(cart(gx, gy, gz, 0.0, 0.0), 0.5);
+        timed(cart(gx, gy, kCarryZ, 0.0, 0.0), 0.7);
+        script_.wait(0.3);
+        entry["offset"] = {gx - o.pos[0], gy - o.pos[1]};
+        break;
+      }
+      case RobotBehavior::kPush: {
+        const double a = rng_.uniform(-M_PI, M_PI);
+        const double dx = std::cos(a), dy = std::sin(a);
+        text_ = "push the " + o.name + " " + direction_words(dx, dy);
+        // Closed fingers are a 2.4 cm block whose pads reach 1.5 cm below the grasp point.
+        const double gz = std::max(0.02, o.bottom - kTipBelow + 0.005);
+        const double back = o.radius + 0.03;
+        const double sx = o.pos[0] - dx * back, sy = o.pos[1] - dy * back;
+        double dist = rng_.uniform(0.06, 0.12);
+        while (dist > 0.02 && !on_table(o.pos[0] + dx * dist, o.pos[1] + dy * dist)) dist -= 0.01;
+        move(cart(sx, sy, gz + 0.08, 0.0, 0.0));
+        timed(cart(sx, sy, gz, 0.0, 0.0), 0.6);
+        script_.add(cart(sx + dx * (dist + 0.02), sy + dy * (dist + 0.02), gz, 0.0, 0.0), (dist + 0.02) / (0.08 * s()));
+        timed(cart(sx + dx * (dist + 0.02), sy + dy * (dist + 0.02), gz + 0.08, 0.0, 0.0), 0.5);
+        entry["direction"] = {dx, dy};
+        entry["distance"] = dist;
+        break;
+      }
+      default: break;
+    }
+    go_home();
+    log_.push_back(entry);
+  }
+
+  // Random smooth joint-space motion between poses whose grasp point stays over the workspace
+  // (so the arm stays in view), with extra random wrist pitch/roll and gripper changes.
+  void plan_random(const World& w, double now) {
+    text_ = "move the arm around";
+    if (!joint_mode_) {
+      joint_mode_ = true;
+      script_.start(w.last_command(), now);
+    }
+    arm::Joints q{};
+    arm::solve_topdown_ik({rng_.uniform(-0.2, 0.2), rng_.uniform(-0.12, 0.2), rng_.uniform(0.04, 0.25)}, 0.0, &q);
+    q[3] += rng_.uniform(-0.4, 0.3);
+    q[4] = rng_.uniform(-1.5, 1.5);
+    Pose target(q.begin(), q.end());
+    target.push_back(rng_.bernoulli(0.5) ? 1.0 : rng_.uniform(0.0, 1.0));
+    script_.add(target, rng_.uniform(0.8, 2.0) / s());
+    if (rng_.bernoulli(0.3)) script_.wait(rng_.uniform(0.1, 0.5));
+  }
+
+  RobotPolicyOptions options_;
+  Rng rng_;
+  std::vector<int> attempts_;
+  arm::Joints home_joints_{};
+  Pose home_;
+  Script script_;
+  bool joint_mode_ = false;
+  bool finished_ = false;
+  bool counterfactual_done_ = false;
+  std::vector<double> noise_;
+  std::deque<std::vector<double>> queue_;
+  std::string text_;
+  nlohmann::json log_;
+};
+
+}  // namespace
+
+// ================================================================================================
+
+const char* to_string(HumanSkill skill) {
+  switch (skill) {
+    case HumanSkill::kPush: return "push";
+    case HumanSkill::kPoke: return "poke";
+    case HumanSkill::kPat: return "pat";
+    case HumanSkill::kSweep: return "sweep";
+    case HumanSkill::kPickPlace: return "pick_place";
+    case HumanSkill::kStack: return "stack";
+    case HumanSkill::kTopple: return "topple";
+    case HumanSkill::kReach: return "reach";
+    case HumanSkill::kLiftDrop: return "lift_drop";
+  }
+  return "?";
+}
+
+HumanSkill parse_human_skill(const std::string& name) {
+  for (HumanSkill s : all_human_skills()) {
+    if (name == to_string(s)) return s;
+  }
+  throw UsageError("unknown human skill '" + name +
+                   "' (expected push, poke, pat, sweep, pick_place, stack, topple, reach or lift_drop)");
+}
+
+std::vector<HumanSkill> all_human_skills() {
+  std::vector<HumanSkill> out;
+  for (int i = 0; i < kNumHumanSkills; ++i) out.push_back(static_cast<HumanSkill>(i));
+  return out;
+}
+
+PolicyQuality PolicyQuality::preset(const std::string& name) {
+  PolicyQuality q;
+  if (name == "expert") return q;
+  if (name == "good") {
+    q.noise_std = 0.01;
+    q.miss_prob = q.wrong_target_prob = q.early_release_prob = 0.05;
+    return q;
+  }
+  if (name == "medium") {
+    q.noise_std = 0.025;
+    q.delay_steps = 1;
+    q.miss_prob = q.wrong_target_prob = q.early_release_prob = 0.15;
+    q.wrong_object_prob = 0.05;
+    return q;
+  }
+  if (name == "poor") {
+    q.noise_std = 0.06;
+    q.delay_steps = 3;
+    q.miss_prob = 0.4;
+    q.wrong_target_prob = 0.35;
+    q.early_release_prob = 0.35;
+    q.wrong_object_prob = 0.2;
+    return q;
+  }
+  throw UsageError("unknown policy quality '" + name + "' (expected expert, good, medium or poor)");
+}
+
+nlohmann::json PolicyQuality::to_json() const {
+  return {{"noise_std", noise_std},         {"delay_steps", delay_steps},
+          {"miss_prob", miss_prob},         {"wrong_target_prob", wrong_target_prob},
+          {"wrong_object_prob", wrong_object_prob}, {"early_release_prob", early_release_prob},
+          {"speed", speed}};
+}
+
+const char* to_string(RobotBehavior behavior) {
+  switch (behavior) {
+    case RobotBehavior::kBinPick: return "bin_pick";
+    case RobotBehavior::kPat: return "pat";
+    case RobotBehavior::kReachMiss: return "reach_miss";
+    case RobotBehavior::kPush: return "push";
+    case RobotBehavior::kRandomMotion: return "random_motion";
+  }
+  return "?";
+}
+
+RobotBehavior parse_robot_behavior(const std::string& name) {
+  for (int i = 0; i <= static_cast<int>(RobotBehavior::kRandomMotion); ++i) {
+    if (name == to_string(static_cast<RobotBehavior>(i))) return static_cast<RobotBehavior>(i);
+  }
+  throw UsageError("unknown robot behavior '" + name + "' (expected bin_pick, pat, reach_miss, push or random_motion)");
+}
+
+std::unique_ptr<Controller> make_human_controller(const World& world, const HumanSkillOptions& options,
+                                                  uint64_t seed) {
+  DOJO_CHECK(world.embodiment() == Embodiment::kHuman, "human skills need a human scene");
+  return std::make_unique<HumanController>(world, options, seed);
+}
+
+std::unique_ptr<Controller> make_robot_controller(const World& world, const RobotPolicyOptions& options,
+                                                  uint64_t seed) {
+  DOJO_CHECK(world.embodiment() == Embodiment::kRobot, "robot policies need a robot scene");
+  DOJO_CHECK(options.quality.speed > 0.1 && options.quality.speed < 10, "policy quality: speed must be in (0.1, 10)");
+  DOJO_CHECK(options.quality.delay_steps >= 0 && options.quality.delay_steps < 100,
+             "policy quality: delay_steps must be in [0, 100)");
+  return std::make_unique<RobotController>(world, options, seed);
+}
+
+}  // namespace dojo::sim
