@@ -16,8 +16,9 @@ torch::Tensor moving_frames(int64_t t, int64_t h = 32, int64_t w = 32) {
   auto ti = torch::arange(t).view({t, 1, 1, 1});
   auto y = torch::arange(h).view({1, h, 1, 1});
   auto x = torch::arange(w).view({1, 1, w, 1});
-  auto c = torch::arange(3).view({1, 1, 1, 3});
-  return ((x * 6 + y * 3 + ti * 8 + c * 60) % 256).to(torch::kUInt8);  // [T, H, W, 3]
+  // Smooth ramps without wrap-around edges: what a codec reproduces well.
+  const auto base = (x * 3 + y * 2 + ti * 2 + 20).to(torch::kFloat32);  // [T, H, W, 1]
+  return torch::cat({base, base * 0.8 + 20, 255 - base}, 3).clamp(0, 255).to(torch::kUInt8);  // [T, H, W, 3]
 }
 
 // A two-episode robot dataset whose action dim 0 equals the frame index.
