@@ -1,9 +1,9 @@
 // `dojo video`: inspect videos and dump frames as PNG.
+#include <torch/torch.h>
 #include <CLI/CLI.hpp>
 #include <cstdio>
 #include <filesystem>
 #include <nlohmann/json.hpp>
-#include <torch/torch.h>
 
 #include "cli/commands.h"
 #include "core/error.h"
@@ -30,7 +30,8 @@ std::pair<int64_t, int64_t> parse_size(const std::string& text) {
 }
 
 void register_info(CLI::App& video) {
-  auto* cmd = video.add_subcommand("info", "Print frame count, size, fps, codec and duration of a video file");
+  auto* cmd =
+      video.add_subcommand("info", "Print frame count, size, fps, codec and duration of a video file");
   auto file = std::make_shared<std::string>();
   auto json = std::make_shared<bool>(false);
   cmd->add_option("FILE", *file, "Video file (mp4, mkv, webm, avi, mov, ...)")->required();
@@ -43,7 +44,8 @@ void register_info(CLI::App& video) {
       } else {
         std::printf("%-13s %s\n", "path", info.path.c_str());
         std::printf("%-13s %lld\n", "frames", static_cast<long long>(info.frames));
-        std::printf("%-13s %dx%d (WxH)\n", "size", info.width, info.height);
+        std::printf("%-13s %d\n", "width", info.width);
+        std::printf("%-13s %d\n", "height", info.height);
         std::printf("%-13s %.6g\n", "fps", info.fps);
         std::printf("%-13s %.3f s\n", "duration", info.duration_s);
         std::printf("%-13s %s\n", "codec", info.codec.c_str());
@@ -58,7 +60,8 @@ void register_info(CLI::App& video) {
 
 void register_frames(CLI::App& video) {
   auto* cmd = video.add_subcommand(
-      "frames", "Decode frames and write them as PNG files OUT/frame_<index>.png (index = source frame number)");
+      "frames",
+      "Decode frames and write them as PNG files OUT/frame_<index>.png (index = source frame number)");
   struct Options {
     std::string file, out, size;
     int64_t start = 0, count = -1, stride = 1;
@@ -67,9 +70,13 @@ void register_frames(CLI::App& video) {
   auto o = std::make_shared<Options>();
   cmd->add_option("FILE", o->file, "Video file")->required();
   cmd->add_option("-o,--out", o->out, "Output directory (created when missing)")->required();
-  cmd->add_option("--start", o->start, "First frame index")->check(CLI::NonNegativeNumber)->capture_default_str();
+  cmd->add_option("--start", o->start, "First frame index")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   cmd->add_option("--count", o->count, "Number of frames (-1 = through the end)")->capture_default_str();
-  cmd->add_option("--stride", o->stride, "Take every S-th frame")->check(CLI::PositiveNumber)->capture_default_str();
+  cmd->add_option("--stride", o->stride, "Take every S-th frame")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   cmd->add_option("--size", o->size, "Center-crop to the HxW aspect, then resize to HxW (e.g. 256x256)");
   cmd->add_flag("--json", o->json, "Print the written files as JSON");
   cmd->callback([o] {
@@ -80,8 +87,8 @@ void register_frames(CLI::App& video) {
       io::VideoReader reader(o->file);
       const int64_t total = reader.num_frames();
       if (o->start >= total)
-        throw UsageError("--start " + std::to_string(o->start) + " is past the last frame of '" + o->file + "' (" +
-                         std::to_string(total) + " frames)");
+        throw UsageError("--start " + std::to_string(o->start) + " is past the last frame of '" + o->file +
+                         "' (" + std::to_string(total) + " frames)");
       const int64_t available = (total - o->start + o->stride - 1) / o->stride;
       const int64_t count = o->count < 0 ? available : std::min(o->count, available);
       if (o->count > available)

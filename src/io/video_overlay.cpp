@@ -9,7 +9,7 @@ namespace {
 
 // Printable ASCII 32..126; each glyph is 7 rows of 5 bits, bit 4 = leftmost pixel.
 constexpr uint8_t kFont5x7[95][7] = {
-    {0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00},  //  
+    {0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00},  // space
     {0x04, 0x04, 0x04, 0x04, 0x04, 0x00, 0x04},  // !
     {0x0A, 0x0A, 0x0A, 0x00, 0x00, 0x00, 0x00},  // "
     {0x0A, 0x0A, 0x1F, 0x0A, 0x1F, 0x0A, 0x0A},  // #
@@ -123,8 +123,8 @@ std::array<int64_t, 2> text_size(const std::string& text, int scale) {
 
 void draw_text(at::Tensor& image, const std::string& text, int64_t x, int64_t y, int scale,
                std::array<uint8_t, 3> color) {
-  DOJO_CHECK(image.defined() && image.dim() == 3 && image.size(2) == 3 && image.scalar_type() == torch::kUInt8 &&
-                 image.is_contiguous() && image.device().is_cpu(),
+  DOJO_CHECK(image.defined() && image.dim() == 3 && image.size(2) == 3 &&
+                 image.scalar_type() == torch::kUInt8 && image.is_contiguous() && image.device().is_cpu(),
              "draw_text: expected a contiguous CPU [H, W, 3] uint8 image");
   scale = std::max(1, scale);
   const int64_t h = image.size(0), w = image.size(1);
@@ -150,18 +150,21 @@ void draw_text(at::Tensor& image, const std::string& text, int64_t x, int64_t y,
   }
 }
 
-at::Tensor compose_side_by_side(const std::vector<at::Tensor>& videos, const std::vector<std::string>& labels) {
+at::Tensor compose_side_by_side(const std::vector<at::Tensor>& videos,
+                                const std::vector<std::string>& labels) {
   DOJO_CHECK(!videos.empty(), "comparison video: no videos given");
   DOJO_CHECK(labels.empty() || labels.size() == videos.size(),
-             "comparison video: " + std::to_string(labels.size()) + " labels for " + std::to_string(videos.size()) +
-                 " videos");
+             "comparison video: " + std::to_string(labels.size()) + " labels for " +
+                 std::to_string(videos.size()) + " videos");
   std::vector<torch::Tensor> clips;
   int64_t frames = 0, panel_h = 0, width = 0, min_h = INT64_MAX;
   for (size_t i = 0; i < videos.size(); ++i) {
     const auto& v = videos[i];
-    DOJO_CHECK(v.defined() && v.dim() == 4 && v.size(3) == 3 && v.scalar_type() == torch::kUInt8 && v.size(0) > 0,
-               "comparison video: video " + std::to_string(i) + " must be a non-empty [T, H, W, 3] uint8 tensor, got " +
-                   (v.defined() ? c10::str(v.sizes()) : std::string("undefined")));
+    DOJO_CHECK(
+        v.defined() && v.dim() == 4 && v.size(3) == 3 && v.scalar_type() == torch::kUInt8 && v.size(0) > 0,
+        "comparison video: video " + std::to_string(i) +
+            " must be a non-empty [T, H, W, 3] uint8 tensor, got " +
+            (v.defined() ? c10::str(v.sizes()) : std::string("undefined")));
     clips.push_back(v.to(torch::kCPU));
     frames = std::max(frames, v.size(0));
     panel_h = std::max(panel_h, v.size(1));
@@ -191,7 +194,9 @@ at::Tensor compose_side_by_side(const std::vector<at::Tensor>& videos, const std
       auto label = torch::zeros({strip, w, 3}, torch::kUInt8);  // [strip, w, 3] uint8
       const auto size = text_size(text, scale);
       draw_text(label, text, (w - size[0]) / 2, (strip - size[1]) / 2, scale);
-      canvas.slice(2, left, left + w).slice(1, 0, strip).copy_(label.unsqueeze(0).expand({frames, strip, w, 3}));
+      canvas.slice(2, left, left + w)
+          .slice(1, 0, strip)
+          .copy_(label.unsqueeze(0).expand({frames, strip, w, 3}));
     }
     left += w + kPanelGap;
   }

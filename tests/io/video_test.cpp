@@ -33,8 +33,8 @@ constexpr ClipFacts kMegamind{"Megamind.avi", 270, 720, 528, 2997.0 / 125.0, "mp
 // The AVI header of tree.avi claims 444 frames; 376 of them are dropped-frame placeholders.
 constexpr ClipFacts kTree{"tree.avi", 68, 320, 240, 1000000.0 / 66667.0, "cinepak"};
 
-#define REQUIRE_SAMPLE(var, name)                                            \
-  const fs::path var = test::sample_video(name);                             \
+#define REQUIRE_SAMPLE(var, name)                \
+  const fs::path var = test::sample_video(name); \
   if (var.empty()) GTEST_SKIP() << name << " not installed (apt install opencv-doc)"
 
 bool has_ffmpeg_cli() { return std::system("ffmpeg -version > /dev/null 2>&1") == 0; }
@@ -53,7 +53,8 @@ bool has_encoder(const std::string& name) {
 }
 
 void run_or_fail(const std::string& command) {
-  ASSERT_EQ(std::system((command + " > /dev/null 2>&1").c_str()), 0) << command;
+  // timeout: a wrong option must not hang the suite.
+  ASSERT_EQ(std::system(("timeout 120 " + command + " > /dev/null 2>&1").c_str()), 0) << command;
 }
 
 // Moving smooth colour waves and a bouncing brighter square, different on every frame. Colour
@@ -109,18 +110,21 @@ void expect_random_access_matches(const fs::path& path, const std::vector<int64_
   io::VideoReader reader(path.string());
   const auto batch = reader.read_frames(indices);  // [T, H, W, 3]
   for (size_t i = 0; i < indices.size(); ++i)
-    EXPECT_TRUE(torch::equal(batch[i], reference.at(indices[i]))) << path << " frame " << indices[i] << " (batch)";
+    EXPECT_TRUE(torch::equal(batch[i], reference.at(indices[i])))
+        << path << " frame " << indices[i] << " (batch)";
   for (auto it = indices.rbegin(); it != indices.rend(); ++it)
-    EXPECT_TRUE(torch::equal(reader.read_frame(*it), reference.at(*it))) << path << " frame " << *it << " (single)";
+    EXPECT_TRUE(torch::equal(reader.read_frame(*it), reference.at(*it)))
+        << path << " frame " << *it << " (single)";
 }
 
 // Frame `index` decoded by the ffmpeg CLI (its select filter counts output frames like we do;
 // with the same scaler flags the pixels are identical to ours).
 torch::Tensor ffmpeg_frame(const fs::path& path, int64_t index, int width, int height, const fs::path& tmp) {
   const fs::path raw = tmp / ("frame_" + std::to_string(index) + ".rgb");
-  const std::string command = "ffmpeg -v error -y -i '" + path.string() + "' -sws_flags bilinear+accurate_rnd+full_chroma_int -vf 'select=eq(n\\," +
-                              std::to_string(index) + ")' -frames:v 1 -f rawvideo -pix_fmt rgb24 '" + raw.string() +
-                              "'";
+  const std::string command = "ffmpeg -nostdin -v error -y -i '" + path.string() +
+                              "' -sws_flags bilinear+accurate_rnd+full_chroma_int -vf 'select=eq(n\\," +
+                              std::to_string(index) + ")' -frames:v 1 -f rawvideo -pix_fmt rgb24 '" +
+                              raw.string() + "'";
   EXPECT_EQ(std::system(command.c_str()), 0) << command;
   const std::string bytes = read_bytes(raw);
   EXPECT_EQ(static_cast<int64_t>(bytes.size()), int64_t{width} * height * 3);
@@ -276,7 +280,8 @@ TEST(VideoReader, TruncatedAviDecodesWhatIsThere) {
   test::TempDir tmp;
   const fs::path cut = tmp / "megamind_cut.avi";
   const std::string bytes = read_bytes(path);
-  std::ofstream(cut, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size() * 3 / 10));
+  std::ofstream(cut, std::ios::binary)
+      .write(bytes.data(), static_cast<std::streamsize>(bytes.size() * 3 / 10));
   io::VideoReader reader(cut.string());
   const int64_t n = reader.num_frames();
   EXPECT_GT(n, 10);
@@ -296,7 +301,8 @@ TEST(VideoReader, TruncatedMp4NamesTheFile) {
   // faststart puts the index first: the cut file opens, the frames that are there decode, and
   // frames past the cut are out of range.
   const fs::path cut = tmp / "cut_faststart.mp4";
-  std::ofstream(cut, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size() * 3 / 10));
+  std::ofstream(cut, std::ios::binary)
+      .write(bytes.data(), static_cast<std::streamsize>(bytes.size() * 3 / 10));
   io::VideoReader reader(cut.string());
   EXPECT_GT(reader.num_frames(), 0);
   EXPECT_LT(reader.num_frames(), 30);
@@ -326,12 +332,15 @@ struct CodecCase {
 TEST(VideoReader, GeneratedCodecsDecodeWithCorrectCount) {
   if (!has_ffmpeg_cli()) GTEST_SKIP() << "ffmpeg CLI not installed";
   const CodecCase cases[] = {
-      {"libx264", "h264.mkv", "-c:v libx264 -preset ultrafast -bf 2 -g 5", "h264"},
-      {"libx265", "hevc.mp4", "-c:v libx265 -preset ultrafast -x265-params log-level=none:keyint=5", "hevc"},
-      {"libvpx-vp9", "vp9.webm", "-c:v libvpx-vp9 -deadline realtime -cpu-used 8 -g 5", "vp9"},
-      {"libaom-av1", "av1.mkv", "-c:v libaom-av1 -cpu-used 8 -crf 50 -g 5", "av1"},
-      {"libsvtav1", "av1_svt.mkv", "-c:v libsvtav1 -preset 12 -g 5", "av1"},
-      {"mpeg4", "mpeg4.avi", "-c:v mpeg4 -bf 2 -g 5 -q:v 5", "mpeg4"},
+      // Audio as stream 0: the reader must pick the video stream and skip audio packets.
+      {"libx264", "h264_audio.mkv",
+       "-map 1:a -map 0:v -c:a flac -t 1.2 -c:v libx264 -preset ultrafast -bf 2 -g 5", "h264"},
+      {"libx265", "hevc.mp4", "-map 0:v -c:v libx265 -preset ultrafast -x265-params log-level=none:keyint=5",
+       "hevc"},
+      {"libvpx-vp9", "vp9.webm", "-map 0:v -c:v libvpx-vp9 -deadline realtime -cpu-used 8 -g 5", "vp9"},
+      {"libaom-av1", "av1.mkv", "-map 0:v -c:v libaom-av1 -cpu-used 8 -crf 50 -g 5", "av1"},
+      {"libsvtav1", "av1_svt.mkv", "-map 0:v -c:v libsvtav1 -preset 12 -g 5", "av1"},
+      {"mpeg4", "mpeg4.avi", "-map 0:v -c:v mpeg4 -bf 2 -g 5 -q:v 5", "mpeg4"},
   };
   test::TempDir tmp;
   bool av1_done = false;
@@ -340,8 +349,11 @@ TEST(VideoReader, GeneratedCodecsDecodeWithCorrectCount) {
     if (!has_encoder(c.encoder) || (std::string(c.codec) == "av1" && av1_done)) continue;
     SCOPED_TRACE(c.file);
     const fs::path path = tmp / c.file;
-    run_or_fail("ffmpeg -v error -y -f lavfi -i testsrc2=size=96x64:rate=10 -frames:v 12 -pix_fmt yuv420p " +
-                std::string(c.args) + " '" + path.string() + "'");
+    run_or_fail(
+        "ffmpeg -nostdin -v error -y -f lavfi -i testsrc2=size=96x64:rate=10 -f lavfi -i "
+        "sine=sample_rate=8000:duration=1.2 "
+        "-frames:v 12 -pix_fmt yuv420p " +
+        std::string(c.args) + " '" + path.string() + "'");
     io::VideoReader reader(path.string());
     EXPECT_EQ(reader.num_frames(), 12);
     EXPECT_EQ(reader.info().codec, c.codec);
@@ -362,9 +374,12 @@ TEST(VideoReader, EditListCutSkipsDiscardedFrames) {
   if (!has_ffmpeg_cli() || !has_encoder("libx264")) GTEST_SKIP() << "ffmpeg CLI with libx264 not installed";
   test::TempDir tmp;
   const fs::path source = tmp / "source.mp4", cut = tmp / "cut.mp4";
-  run_or_fail("ffmpeg -v error -y -f lavfi -i testsrc2=size=96x64:rate=10 -frames:v 30 -pix_fmt yuv420p "
-              "-c:v libx264 -g 10 -bf 2 '" + source.string() + "'");
-  run_or_fail("ffmpeg -v error -y -ss 0.45 -i '" + source.string() + "' -c copy '" + cut.string() + "'");
+  run_or_fail(
+      "ffmpeg -nostdin -v error -y -f lavfi -i testsrc2=size=96x64:rate=10 -frames:v 30 -pix_fmt yuv420p "
+      "-c:v libx264 -g 10 -bf 2 '" +
+      source.string() + "'");
+  run_or_fail("ffmpeg -nostdin -v error -y -ss 0.45 -i '" + source.string() + "' -c copy '" + cut.string() +
+              "'");
   io::VideoReader reader(cut.string());
   ASSERT_EQ(reader.num_frames(), 25);
   io::VideoReader original(source.string());
@@ -418,14 +433,16 @@ TEST(VideoTransforms, ResizeCenterCrop) {
   EXPECT_EQ(out.scalar_type(), torch::kUInt8);
   // Uniform colour survives cropping and (antialiased) resizing exactly.
   const auto flat = torch::full({2, 37, 53, 3}, 77, torch::kUInt8);
-  EXPECT_TRUE(torch::equal(io::resize_center_crop(flat, 24, 32), torch::full({2, 24, 32, 3}, 77, torch::kUInt8)));
+  EXPECT_TRUE(
+      torch::equal(io::resize_center_crop(flat, 24, 32), torch::full({2, 24, 32, 3}, 77, torch::kUInt8)));
   // Same size is the identity; a single frame keeps its rank.
   EXPECT_TRUE(torch::equal(io::resize(clip, 48, 80), clip));
   EXPECT_EQ(io::resize_center_crop(clip[0], 30, 40).sizes(), (std::vector<int64_t>{30, 40, 3}));
   // Cropping first: the centre of the crop is the centre of the frame.
   auto marked = torch::zeros({1, 40, 80, 3}, torch::kUInt8);
   marked.slice(2, 20, 60).fill_(200);  // the central 40 x 40 square
-  EXPECT_TRUE(torch::equal(io::resize_center_crop(marked, 10, 10), torch::full({1, 10, 10, 3}, 200, torch::kUInt8)));
+  EXPECT_TRUE(
+      torch::equal(io::resize_center_crop(marked, 10, 10), torch::full({1, 10, 10, 3}, 200, torch::kUInt8)));
 }
 
 // --- encoding ----------------------------------------------------------------------------------
@@ -453,7 +470,8 @@ TEST(VideoWriter, RoundTripQualityCountAndFps) {
   ASSERT_EQ(decoded.sizes(), clip.sizes());
   EXPECT_GT(psnr(decoded, clip), 38.0);
   // Frame order survives B-frames: each decoded frame is closest to its own source frame.
-  for (int t : {0, 5, 23}) EXPECT_LT(mean_abs_diff(decoded[t], clip[t]), mean_abs_diff(decoded[t], clip[t ^ 1]));
+  for (int t : {0, 5, 23})
+    EXPECT_LT(mean_abs_diff(decoded[t], clip[t]), mean_abs_diff(decoded[t], clip[t ^ 1]));
   // Random access over B-frames and 1-second GOPs.
   expect_random_access_matches(path, {23, 0, 14, 15, 16, 7});
 }
@@ -507,8 +525,9 @@ TEST(VideoWriter, BadInputAndEmptyWriterErrors) {
   io::VideoWriter writer(empty);
   expect_error_mentions([&] { writer.close(); }, {empty, "no frames"});
   EXPECT_FALSE(fs::exists(empty));
-  expect_error_mentions([&] { io::write_video((tmp / "no/such/dir/x.mp4").string(), synthetic_clip(2, 8, 8)); },
-                        {"no/such/dir"});
+  expect_error_mentions(
+      [&] { io::write_video((tmp / "no/such/dir/x.mp4").string(), synthetic_clip(2, 8, 8)); },
+      {"no/such/dir"});
 }
 
 TEST(VideoWriter, UnwindingWriterLeavesNoFile) {
