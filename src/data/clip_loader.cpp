@@ -54,7 +54,10 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
   EpisodeData arrays = store_.load_arrays(episode);
   const auto steps = torch::tensor(window.steps, torch::kLong);                     // [T + 1]
   {
-    io::VideoReader reader(store_.video_path(episode).string());
+    // One decoding thread per reader: the loader's parallelism comes from its workers.
+    io::VideoReaderOptions reader_options;
+    reader_options.threads = 1;
+    io::VideoReader reader(store_.video_path(episode).string(), reader_options);
     const auto raw = reader.read_frames(window.frame_indices());                    // [T, h, w, 3] u8
     clip.video = io::resize_center_crop(raw, config_.height, config_.width);        // [T, H, W, 3] u8
   }
