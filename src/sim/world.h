@@ -16,7 +16,11 @@
 // it is released when curl drops below 0.35. This keeps human pick/stack clips looking right
 // without a dexterous-hand controller; human clips carry no actions, so nothing learns from it.
 //
-// Thread-safety: a World is not thread-safe; different Worlds may be used on different threads.
+// Thread-safety: a World is not thread-safe; different Worlds may be used on different threads
+// (model compilation is serialized internally).
+//
+// Errors: the first World installs process-wide MuJoCo error/warning handlers that raise
+// dojo::Error / log a warning instead of exiting or writing MUJOCO_LOG.TXT.
 #pragma once
 
 #include <array>

@@ -44,7 +44,7 @@ int changed_pixels(const std::vector<uint8_t>& a, const std::vector<uint8_t>& b)
 TEST(SimRenderer, ImagesHaveTheRequestedSizeAndContent) {
   Renderer r;
   for (Embodiment e : {Embodiment::kHuman, Embodiment::kRobot}) {
-    for (auto [w, h] : {std::pair{64, 64}, std::pair{320, 240}}) {
+    for (auto [w, h] : {std::pair{64, 64}, std::pair{320, 240}, std::pair{640, 480}}) {
       SceneSampling opt;
       opt.width = w;
       opt.height = h;
