@@ -68,6 +68,14 @@ EpisodeRecord run_episode(const EpisodeSpec& spec, Renderer* renderer) {
   m["embodiment"] = to_string(spec.scene.embodiment);
   m["task"] = controller->task_text();
   m["controller"] = controller->describe();
+  // Flat list of what happened: human skill names in order, or the robot behaviour.
+  nlohmann::json skills = nlohmann::json::array();
+  if (human) {
+    for (const auto& s : m["controller"]["skills"]) skills.push_back(s["skill"]);
+  } else {
+    skills.push_back(m["controller"]["behavior"]);
+  }
+  m["skills"] = skills;
   m["scene"] = to_json(spec.scene);
   m["background"] = spec.scene.background;
   m["novel_background"] = spec.scene.background >= kNumTrainBackgrounds;
@@ -80,8 +88,9 @@ EpisodeRecord run_episode(const EpisodeSpec& spec, Renderer* renderer) {
   m["height"] = spec.scene.height;
   m["action_names"] = human ? nlohmann::json::array() : nlohmann::json(world.command_names());
   m["state_names"] = human ? nlohmann::json::array() : nlohmann::json(world.state_names());
-  m["hidden_motion_names"] = human ? nlohmann::json(world.command_names())
-                                   : nlohmann::json({"grasp_x", "grasp_y", "grasp_z", "closing_yaw", "gripper"});
+  m["hidden_motion_names"] =
+      human ? nlohmann::json(world.command_names())
+            : nlohmann::json({"grasp_x", "grasp_y", "grasp_z", "closing_yaw", "gripper"});
   m["object_outcomes"] = object_outcomes(world, initial);
   m["success"] = std::isnan(rec.success) ? nlohmann::json(nullptr) : nlohmann::json(rec.success);
   return rec;

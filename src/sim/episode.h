@@ -40,24 +40,26 @@ struct ControllerSpec {
 struct EpisodeSpec {
   SceneSpec scene;
   ControllerSpec controller;
-  int num_steps = 64;       // T, the number of recorded frames
-  uint64_t seed = 0;        // controller randomness (the scene has its own seed)
-  bool render = true;       // false: frames stay empty (fast policy evaluation)
-  int settle_steps = 5;     // control steps before frame 0
+  int num_steps = 64;           // T, the number of recorded frames
+  uint64_t seed = 0;            // controller randomness (the scene has its own seed)
+  bool render = true;           // false: frames stay empty (fast policy evaluation)
+  int settle_steps = 5;         // control steps before frame 0
   int final_settle_steps = 20;  // steps after the last action before measuring success
 };
 
 struct EpisodeRecord {
   int width = 0;
   int height = 0;
-  std::vector<std::vector<uint8_t>> frames;      // T x [H, W, 3] uint8, top row first
-  std::vector<std::vector<float>> actions;       // robot: T x 6; human: empty
-  std::vector<std::vector<float>> states;        // robot: T x 6; human: empty
-  std::vector<std::vector<float>> hidden_motion; // T x 6 (human) / T x 5 (robot); never train on it
+  std::vector<std::vector<uint8_t>> frames;       // T x [H, W, 3] uint8, top row first
+  std::vector<std::vector<float>> actions;        // robot: T x 6; human: empty
+  std::vector<std::vector<float>> states;         // robot: T x 6; human: empty
+  std::vector<std::vector<float>> hidden_motion;  // T x 6 (human) / T x 5 (robot); never train on it
   // Robot scenes with a bin: bin_success() after the final settle; NaN otherwise.
   double success = std::numeric_limits<double>::quiet_NaN();
-  // embodiment, task, controller description, scene (incl. objects, background), fps, seeds,
-  // action/state/hidden_motion names, per-object outcomes, ood flag.
+  // embodiment, task (instruction text), skills (human skill names in order / robot behaviour),
+  // controller (full description with sampled parameters), scene (to_json, incl. objects and
+  // background), novel_background, ood_objects, fps, num_steps, seed, scene_seed, width, height,
+  // action_names, state_names, hidden_motion_names, object_outcomes, success (null for human).
   nlohmann::json meta;
 };
 

@@ -73,10 +73,11 @@ struct Renderer::Impl {
     has_gl = true;
     world_id = world.id();
     mjr_setBuffer(mjFB_OFFSCREEN, &gl);
-    if (gl.currentBuffer != mjFB_OFFSCREEN) throw Error("renderer: offscreen framebuffer not supported by OSMesa");
+    if (gl.currentBuffer != mjFB_OFFSCREEN)
+      throw Error("renderer: offscreen framebuffer not supported by OSMesa");
     if (gl.offWidth < w || gl.offHeight < h) {
-      throw Error("renderer: offscreen buffer " + std::to_string(gl.offWidth) + "x" + std::to_string(gl.offHeight) +
-                  " smaller than the requested image");
+      throw Error("renderer: offscreen buffer " + std::to_string(gl.offWidth) + "x" +
+                  std::to_string(gl.offHeight) + " smaller than the requested image");
     }
     // Shadows and reflections cost most of the software-rendering time and add little here.
     scene.flags[mjRND_SHADOW] = 0;

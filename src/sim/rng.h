@@ -19,7 +19,9 @@ class Rng {
   double uniform() { return static_cast<double>(engine_() >> 11) * 0x1.0p-53; }
   double uniform(double lo, double hi) { return lo + (hi - lo) * uniform(); }
   // Uniform integer in [lo, hi] (inclusive); the modulo bias is negligible for small ranges.
-  int randint(int lo, int hi) { return lo + static_cast<int>(engine_() % static_cast<uint64_t>(hi - lo + 1)); }
+  int randint(int lo, int hi) {
+    return lo + static_cast<int>(engine_() % static_cast<uint64_t>(hi - lo + 1));
+  }
   bool bernoulli(double p) { return uniform() < p; }
   // Standard normal via Box-Muller (one value per call; the pair's second value is discarded so
   // the stream position depends only on the number of calls).

@@ -41,10 +41,12 @@ bool solve_topdown_ik(const Point& p, double closing_yaw, Joints* q) {
     ok = false;
     d = dmin;
   }
-  const double c2 = std::clamp((d * d - kUpperLen * kUpperLen - kForeLen * kForeLen) / (2.0 * kUpperLen * kForeLen), -1.0, 1.0);
+  const double c2 = std::clamp(
+      (d * d - kUpperLen * kUpperLen - kForeLen * kForeLen) / (2.0 * kUpperLen * kForeLen), -1.0, 1.0);
   const double q2 = std::acos(c2);  // positive: elbow above the shoulder-wrist line
   // Angles are measured from vertical toward the forward direction.
-  const double q1 = std::atan2(wr, wz) - std::atan2(kForeLen * std::sin(q2), kUpperLen + kForeLen * std::cos(q2));
+  const double q1 =
+      std::atan2(wr, wz) - std::atan2(kForeLen * std::sin(q2), kUpperLen + kForeLen * std::cos(q2));
   const double q3 = M_PI - q1 - q2;
   const double q4 = wrap_angle(q0 - closing_yaw);
   *q = {q0, q1, q2, q3, q4};

@@ -24,24 +24,24 @@ constexpr int kActionDim = 6;  // 5 joint targets + gripper opening fraction
 // reaches in from the right and its raised elbow does not hide the workspace.
 constexpr double kBaseX = 0.34;
 constexpr double kBaseY = -0.10;
-constexpr double kYawHeight = 0.025;   // base plate thickness; the yaw joint sits on top
-constexpr double kShoulderZ = 0.16;    // height of the shoulder pitch axis above the table
-constexpr double kUpperLen = 0.30;     // shoulder -> elbow
-constexpr double kForeLen = 0.30;      // elbow -> wrist pitch axis
-constexpr double kGripLen = 0.105;     // wrist pitch axis -> grasp point
-constexpr double kFingerStart = 0.06;  // wrist pitch axis -> finger roots (palm underside)
-constexpr double kFingerLen = 0.06;    // finger length (tips 0.015 beyond the grasp point)
+constexpr double kYawHeight = 0.025;     // base plate thickness; the yaw joint sits on top
+constexpr double kShoulderZ = 0.16;      // height of the shoulder pitch axis above the table
+constexpr double kUpperLen = 0.30;       // shoulder -> elbow
+constexpr double kForeLen = 0.30;        // elbow -> wrist pitch axis
+constexpr double kGripLen = 0.105;       // wrist pitch axis -> grasp point
+constexpr double kFingerStart = 0.06;    // wrist pitch axis -> finger roots (palm underside)
+constexpr double kFingerLen = 0.06;      // finger length (tips 0.015 beyond the grasp point)
 constexpr double kFingerTravel = 0.045;  // per-finger opening at command 1
 
 struct Limits {
   double lo, hi;
 };
 constexpr std::array<Limits, kNumArmJoints> kJointLimits = {{
-    {-2.8, 2.8},   // base_yaw
-    {-1.2, 2.0},   // shoulder
-    {-0.3, 2.8},   // elbow
-    {-2.0, 2.6},   // wrist_pitch
-    {-3.1, 3.1},   // wrist_roll
+    {-2.8, 2.8},  // base_yaw
+    {-1.2, 2.0},  // shoulder
+    {-0.3, 2.8},  // elbow
+    {-2.0, 2.6},  // wrist_pitch
+    {-3.1, 3.1},  // wrist_roll
 }};
 
 // Grasp point in world coordinates for the given joint angles.

@@ -37,14 +37,17 @@ const std::vector<NamedColor>& human_only_colors() {
 }
 
 const std::vector<Rgba>& skin_tones() {
-  static const std::vector<Rgba> tones = {{0.94, 0.76, 0.64, 1}, {0.87, 0.67, 0.53, 1}, {0.76, 0.56, 0.42, 1},
-                                          {0.6, 0.42, 0.3, 1},   {0.42, 0.29, 0.2, 1}};
+  static const std::vector<Rgba> tones = {{0.94, 0.76, 0.64, 1},
+                                          {0.87, 0.67, 0.53, 1},
+                                          {0.76, 0.56, 0.42, 1},
+                                          {0.6, 0.42, 0.3, 1},
+                                          {0.42, 0.29, 0.2, 1}};
   return tones;
 }
 
 const std::vector<Rgba>& sleeve_colors() {
-  static const std::vector<Rgba> colors = {{0.2, 0.3, 0.55, 1},  {0.15, 0.15, 0.17, 1}, {0.55, 0.55, 0.58, 1},
-                                           {0.5, 0.15, 0.2, 1},  {0.25, 0.4, 0.3, 1},   {0.85, 0.85, 0.82, 1}};
+  static const std::vector<Rgba> colors = {{0.2, 0.3, 0.55, 1}, {0.15, 0.15, 0.17, 1}, {0.55, 0.55, 0.58, 1},
+                                           {0.5, 0.15, 0.2, 1}, {0.25, 0.4, 0.3, 1},   {0.85, 0.85, 0.82, 1}};
   return colors;
 }
 
@@ -56,8 +59,8 @@ struct TextureDef {
   Vec3 rgb1, rgb2;
   const char* mark;  // "none", "edge", "cross", "random"
   Vec3 markrgb;
-  double random;     // fraction of random marks
-  double repeat;     // texrepeat
+  double random;  // fraction of random marks
+  double repeat;  // texrepeat
 };
 
 struct BackgroundDef {
@@ -74,40 +77,49 @@ const std::vector<BackgroundDef>& backgrounds() {
       {"oak",
        {"flat", {0.62, 0.45, 0.3}, {0.62, 0.45, 0.3}, "random", {0.5, 0.35, 0.22}, 0.05, 4},
        {"flat", {0.42, 0.42, 0.44}, {0.42, 0.42, 0.44}, "none", {0, 0, 0}, 0, 1},
-       1.0, {1.0, 0.97, 0.92}},
+       1.0,
+       {1.0, 0.97, 0.92}},
       {"grey-white",
        {"flat", {0.8, 0.8, 0.78}, {0.8, 0.8, 0.78}, "none", {0, 0, 0}, 0, 1},
        {"checker", {0.25, 0.25, 0.27}, {0.35, 0.35, 0.37}, "none", {0, 0, 0}, 0, 8},
-       0.9, {1.0, 1.0, 1.0}},
+       0.9,
+       {1.0, 1.0, 1.0}},
       {"checker-beige",
        {"checker", {0.86, 0.8, 0.68}, {0.7, 0.63, 0.52}, "none", {0, 0, 0}, 0, 5},
        {"flat", {0.45, 0.33, 0.24}, {0.45, 0.33, 0.24}, "none", {0, 0, 0}, 0, 1},
-       1.0, {1.0, 0.98, 0.95}},
+       1.0,
+       {1.0, 0.98, 0.95}},
       {"green-felt",
        {"flat", {0.2, 0.45, 0.26}, {0.2, 0.45, 0.26}, "random", {0.16, 0.38, 0.21}, 0.08, 6},
        {"flat", {0.5, 0.36, 0.24}, {0.5, 0.36, 0.24}, "random", {0.4, 0.28, 0.18}, 0.05, 4},
-       1.05, {1.0, 1.0, 0.95}},
+       1.05,
+       {1.0, 1.0, 0.95}},
       {"blue-gradient",
        {"gradient", {0.38, 0.52, 0.75}, {0.16, 0.22, 0.38}, "none", {0, 0, 0}, 0, 1},
        {"flat", {0.55, 0.55, 0.55}, {0.55, 0.55, 0.55}, "none", {0, 0, 0}, 0, 1},
-       1.0, {0.95, 0.97, 1.0}},
+       1.0,
+       {0.95, 0.97, 1.0}},
       {"slate",
        {"flat", {0.27, 0.29, 0.32}, {0.27, 0.29, 0.32}, "random", {0.33, 0.35, 0.38}, 0.03, 3},
        {"checker", {0.75, 0.7, 0.6}, {0.6, 0.55, 0.47}, "none", {0, 0, 0}, 0, 10},
-       1.15, {1.0, 0.95, 0.88}},
+       1.15,
+       {1.0, 0.95, 0.88}},
       // Novel backgrounds (6-8), reserved for evaluation.
       {"red-checker",
        {"checker", {0.8, 0.2, 0.2}, {0.95, 0.95, 0.95}, "none", {0, 0, 0}, 0, 8},
        {"flat", {0.12, 0.16, 0.35}, {0.12, 0.16, 0.35}, "none", {0, 0, 0}, 0, 1},
-       1.0, {1.0, 1.0, 1.0}},
+       1.0,
+       {1.0, 1.0, 1.0}},
       {"purple-gradient",
        {"gradient", {0.62, 0.34, 0.72}, {0.22, 0.1, 0.3}, "none", {0, 0, 0}, 0, 1},
        {"checker", {0.1, 0.1, 0.1}, {0.2, 0.45, 0.2}, "none", {0, 0, 0}, 0, 10},
-       0.95, {1.0, 0.92, 1.0}},
+       0.95,
+       {1.0, 0.92, 1.0}},
       {"yellow-grid",
        {"flat", {0.9, 0.8, 0.35}, {0.9, 0.8, 0.35}, "edge", {0.3, 0.25, 0.1}, 0, 6},
        {"flat", {0.45, 0.18, 0.12}, {0.45, 0.18, 0.12}, "none", {0, 0, 0}, 0, 1},
-       0.85, {1.0, 0.9, 0.8}},
+       0.85,
+       {1.0, 0.9, 0.8}},
   };
   return defs;
 }
@@ -136,8 +148,8 @@ Vec3 cross(const Vec3& a, const Vec3& b) {
 }
 
 void write_texture(std::ostringstream& x, const std::string& name, const TextureDef& t) {
-  x << "    <texture name=\"" << name << "\" type=\"2d\" builtin=\"" << t.builtin << "\" rgb1=\"" << vec(t.rgb1)
-    << "\" rgb2=\"" << vec(t.rgb2) << "\" width=\"256\" height=\"256\"";
+  x << "    <texture name=\"" << name << "\" type=\"2d\" builtin=\"" << t.builtin << "\" rgb1=\""
+    << vec(t.rgb1) << "\" rgb2=\"" << vec(t.rgb2) << "\" width=\"256\" height=\"256\"";
   if (std::string(t.mark) != "none") {
     x << " mark=\"" << t.mark << "\" markrgb=\"" << vec(t.markrgb) << "\"";
     if (t.random > 0) x << " random=\"" << num(t.random) << "\"";
@@ -162,8 +174,8 @@ void write_object(std::ostringstream& x, const ObjectSpec& o, int index) {
   const double hh = object_half_height(o);
   const double z = hh + 0.001;
   const double c = std::cos(o.yaw / 2), s = std::sin(o.yaw / 2);
-  x << "    <body name=\"obj" << index << "\" pos=\"" << num(o.pos[0]) << " " << num(o.pos[1]) << " " << num(z)
-    << "\" quat=\"" << num(c) << " 0 0 " << num(s) << "\">\n";
+  x << "    <body name=\"obj" << index << "\" pos=\"" << num(o.pos[0]) << " " << num(o.pos[1]) << " "
+    << num(z) << "\" quat=\"" << num(c) << " 0 0 " << num(s) << "\">\n";
   x << "      <freejoint name=\"obj" << index << "_joint\"/>\n";
   const std::string common = std::string(kWorldCollide) + " rgba=\"" + rgba(o.rgba) + "\" condim=\"" +
                              (is_round(o.shape) ? "6" : "4") + "\" friction=\"0.9 0.01 " +
@@ -179,9 +191,9 @@ void write_object(std::ostringstream& x, const ObjectSpec& o, int index) {
     for (int k = 0; k < 8; ++k) {
       const double a = 2 * M_PI * k / 8;
       for (double zs : {-1.0, 1.0}) {
-        x << "      <geom type=\"sphere\" size=\"" << num(rho) << "\" pos=\"" << num((r - rho) * std::cos(a)) << " "
-          << num((r - rho) * std::sin(a)) << " " << num(z0 + zs * (h - rho)) << "\" mass=\"0\" group=\"3\" " << common
-          << "/>\n";
+        x << "      <geom type=\"sphere\" size=\"" << num(rho) << "\" pos=\"" << num((r - rho) * std::cos(a))
+          << " " << num((r - rho) * std::sin(a)) << " " << num(z0 + zs * (h - rho))
+          << "\" mass=\"0\" group=\"3\" " << common << "/>\n";
       }
     }
   };
@@ -200,7 +212,9 @@ void write_object(std::ostringstream& x, const ObjectSpec& o, int index) {
       rim_spheres(sz[0], sz[1], 0.0);
       break;
     case Shape::kCapsule:
-      geom("type=\"capsule\" fromto=\"" + fromto(-sz[1], 0, 0, sz[1], 0, 0) + "\" size=\"" + num(sz[0]) + "\"", m);
+      geom(
+          "type=\"capsule\" fromto=\"" + fromto(-sz[1], 0, 0, sz[1], 0, 0) + "\" size=\"" + num(sz[0]) + "\"",
+          m);
       break;
     case Shape::kEllipsoid:
       geom("type=\"ellipsoid\" size=\"" + vec(sz) + "\"", m);
@@ -209,19 +223,24 @@ void write_object(std::ostringstream& x, const ObjectSpec& o, int index) {
       const double r = sz[0], h = sz[1];
       geom("type=\"cylinder\" size=\"" + num(r) + " " + num(h) + "\"", 0.85 * m);
       rim_spheres(r, h, 0.0);
-      geom("type=\"cylinder\" pos=\"0 0 " + num(h + 0.25 * h) + "\" size=\"" + num(0.45 * r) + " " + num(0.25 * h) + "\"",
+      geom("type=\"cylinder\" pos=\"0 0 " + num(h + 0.25 * h) + "\" size=\"" + num(0.45 * r) + " " +
+               num(0.25 * h) + "\"",
            0.1 * m);
-      x << "      <geom type=\"cylinder\" pos=\"0 0 " << num(h + 0.5 * h + 0.006) << "\" size=\"" << num(0.5 * r)
-        << " 0.006\" mass=\"" << num(0.05 * m) << "\" " << kWorldCollide << " rgba=\"0.95 0.95 0.95 1\"/>\n";
+      x << "      <geom type=\"cylinder\" pos=\"0 0 " << num(h + 0.5 * h + 0.006) << "\" size=\""
+        << num(0.5 * r) << " 0.006\" mass=\"" << num(0.05 * m) << "\" " << kWorldCollide
+        << " rgba=\"0.95 0.95 0.95 1\"/>\n";
       break;
     }
     case Shape::kDumbbell: {
       const double cube = sz[0], d = sz[1];
-      geom("type=\"box\" pos=\"" + num(-d) + " 0 0\" size=\"" + num(cube) + " " + num(cube) + " " + num(cube) + "\"",
+      geom("type=\"box\" pos=\"" + num(-d) + " 0 0\" size=\"" + num(cube) + " " + num(cube) + " " +
+               num(cube) + "\"",
            0.42 * m);
-      geom("type=\"box\" pos=\"" + num(d) + " 0 0\" size=\"" + num(cube) + " " + num(cube) + " " + num(cube) + "\"",
+      geom("type=\"box\" pos=\"" + num(d) + " 0 0\" size=\"" + num(cube) + " " + num(cube) + " " + num(cube) +
+               "\"",
            0.42 * m);
-      geom("type=\"capsule\" fromto=\"" + fromto(-d, 0, 0, d, 0, 0) + "\" size=\"" + num(0.4 * cube) + "\"", 0.16 * m);
+      geom("type=\"capsule\" fromto=\"" + fromto(-d, 0, 0, d, 0, 0) + "\" size=\"" + num(0.4 * cube) + "\"",
+           0.16 * m);
       break;
     }
     case Shape::kRing: {
@@ -230,8 +249,8 @@ void write_object(std::ostringstream& x, const ObjectSpec& o, int index) {
       for (int k = 0; k < n; ++k) {
         const double a0 = 2 * M_PI * k / n, a1 = 2 * M_PI * (k + 1) / n;
         geom("type=\"capsule\" fromto=\"" +
-                 fromto(R * std::cos(a0), R * std::sin(a0), 0, R * std::cos(a1), R * std::sin(a1), 0) + "\" size=\"" +
-                 num(t) + "\"",
+                 fromto(R * std::cos(a0), R * std::sin(a0), 0, R * std::cos(a1), R * std::sin(a1), 0) +
+                 "\" size=\"" + num(t) + "\"",
              m / n);
       }
       break;
@@ -240,9 +259,12 @@ void write_object(std::ostringstream& x, const ObjectSpec& o, int index) {
       const double r = sz[0], h = sz[1], hz = 0.55 * h, hx = 1.5 * r, t = 0.16 * r;
       geom("type=\"cylinder\" size=\"" + num(r) + " " + num(h) + "\"", 0.85 * m);
       rim_spheres(r, h, 0.0);
-      geom("type=\"capsule\" fromto=\"" + fromto(0.9 * r, 0, hz, hx, 0, hz) + "\" size=\"" + num(t) + "\"", 0.05 * m);
-      geom("type=\"capsule\" fromto=\"" + fromto(hx, 0, hz, hx, 0, -hz) + "\" size=\"" + num(t) + "\"", 0.05 * m);
-      geom("type=\"capsule\" fromto=\"" + fromto(hx, 0, -hz, 0.9 * r, 0, -hz) + "\" size=\"" + num(t) + "\"", 0.05 * m);
+      geom("type=\"capsule\" fromto=\"" + fromto(0.9 * r, 0, hz, hx, 0, hz) + "\" size=\"" + num(t) + "\"",
+           0.05 * m);
+      geom("type=\"capsule\" fromto=\"" + fromto(hx, 0, hz, hx, 0, -hz) + "\" size=\"" + num(t) + "\"",
+           0.05 * m);
+      geom("type=\"capsule\" fromto=\"" + fromto(hx, 0, -hz, 0.9 * r, 0, -hz) + "\" size=\"" + num(t) + "\"",
+           0.05 * m);
       // The dark disc on top reads as the mug's opening; it is visual only.
       x << "      <geom type=\"cylinder\" pos=\"0 0 " << num(h) << "\" size=\"" << num(0.82 * r)
         << " 0.0008\" " << kNoCollide << " mass=\"0\" rgba=\"0.15 0.1 0.08 1\"/>\n";
@@ -260,27 +282,27 @@ void write_robot(std::ostringstream& x) {
   auto range = [&](int j) { return "range=\"" + num(L[j].lo) + " " + num(L[j].hi) + "\""; };
   const double column = kShoulderZ - kYawHeight;
   x << "    <body name=\"arm_base\" pos=\"" << num(kBaseX) << " " << num(kBaseY) << " 0\">\n"
-    << "      <geom type=\"cylinder\" size=\"0.065 " << num(kYawHeight / 2) << "\" pos=\"0 0 " << num(kYawHeight / 2)
-    << "\" " << dark << " " << kBodyCollide << "/>\n"
+    << "      <geom type=\"cylinder\" size=\"0.065 " << num(kYawHeight / 2) << "\" pos=\"0 0 "
+    << num(kYawHeight / 2) << "\" " << dark << " " << kBodyCollide << "/>\n"
     << "      <body name=\"arm_link0\" pos=\"0 0 " << num(kYawHeight) << "\">\n"
     << "        <joint name=\"base_yaw\" axis=\"0 0 1\" limited=\"true\" " << range(0)
     << " damping=\"8\" armature=\"0.02\"/>\n"
-    << "        <geom type=\"cylinder\" size=\"0.042 " << num(column / 2) << "\" pos=\"0 0 " << num(column / 2) << "\" "
-    << light << " " << kBodyCollide << "/>\n"
+    << "        <geom type=\"cylinder\" size=\"0.042 " << num(column / 2) << "\" pos=\"0 0 "
+    << num(column / 2) << "\" " << light << " " << kBodyCollide << "/>\n"
     << "        <body name=\"arm_upper\" pos=\"0 0 " << num(column) << "\">\n"
     << "          <joint name=\"shoulder\" axis=\"-1 0 0\" limited=\"true\" " << range(1)
     << " damping=\"15\" armature=\"0.02\"/>\n"
     << "          <geom type=\"cylinder\" fromto=\"-0.04 0 0 0.04 0 0\" size=\"0.036\" " << dark << " "
     << kBodyCollide << "/>\n"
-    << "          <geom type=\"capsule\" fromto=\"0 0 0 0 0 " << num(kUpperLen) << "\" size=\"0.026\" " << light
-    << " " << kBodyCollide << "/>\n"
+    << "          <geom type=\"capsule\" fromto=\"0 0 0 0 0 " << num(kUpperLen) << "\" size=\"0.026\" "
+    << light << " " << kBodyCollide << "/>\n"
     << "          <body name=\"arm_fore\" pos=\"0 0 " << num(kUpperLen) << "\">\n"
     << "            <joint name=\"elbow\" axis=\"-1 0 0\" limited=\"true\" " << range(2)
     << " damping=\"10\" armature=\"0.02\"/>\n"
     << "            <geom type=\"cylinder\" fromto=\"-0.034 0 0 0.034 0 0\" size=\"0.03\" " << dark << " "
     << kBodyCollide << "/>\n"
-    << "            <geom type=\"capsule\" fromto=\"0 0 0 0 0 " << num(kForeLen) << "\" size=\"0.021\" " << light
-    << " " << kBodyCollide << "/>\n"
+    << "            <geom type=\"capsule\" fromto=\"0 0 0 0 0 " << num(kForeLen) << "\" size=\"0.021\" "
+    << light << " " << kBodyCollide << "/>\n"
     << "            <body name=\"arm_wrist\" pos=\"0 0 " << num(kForeLen) << "\">\n"
     << "              <joint name=\"wrist_pitch\" axis=\"-1 0 0\" limited=\"true\" " << range(3)
     << " damping=\"3\" armature=\"0.005\"/>\n"
@@ -298,13 +320,15 @@ void write_robot(std::ostringstream& x) {
     const double sign = side == 0 ? -1.0 : 1.0;
     x << "                <body name=\"" << name << "\" pos=\"0 0 " << num(kFingerStart) << "\">\n"
       << "                  <joint name=\"" << name << "\" type=\"slide\" axis=\"" << num(sign)
-      << " 0 0\" limited=\"true\" range=\"0 " << num(kFingerTravel) << "\" damping=\"5\" armature=\"0.01\"/>\n"
+      << " 0 0\" limited=\"true\" range=\"0 " << num(kFingerTravel)
+      << "\" damping=\"5\" armature=\"0.01\"/>\n"
       << "                  <geom type=\"box\" pos=\"" << num(sign * 0.006) << " 0 " << num(kFingerLen / 2)
       << "\" size=\"0.006 0.012 " << num(kFingerLen / 2) << "\" rgba=\"0.3 0.31 0.34 1\" " << kBodyCollide
       << " condim=\"4\" friction=\"1.5 0.02 0.0001\" mass=\"0.03\"/>\n"
       << "                </body>\n";
   }
-  x << "                <site name=\"grasp\" pos=\"0 0 " << num(kGripLen) << "\" size=\"0.004\" rgba=\"1 1 1 0\"/>\n"
+  x << "                <site name=\"grasp\" pos=\"0 0 " << num(kGripLen)
+    << "\" size=\"0.004\" rgba=\"1 1 1 0\"/>\n"
     << "              </body>\n"
     << "            </body>\n"
     << "          </body>\n"
@@ -318,66 +342,77 @@ void write_robot(std::ostringstream& x) {
 struct FingerDef {
   double x, len1, len2, radius;
 };
-const FingerDef kFingers[4] = {
-    {-0.029, 0.042, 0.032, 0.0088}, {-0.0095, 0.046, 0.035, 0.009}, {0.0095, 0.043, 0.033, 0.0088},
-    {0.029, 0.034, 0.026, 0.0078}};
+const FingerDef kFingers[4] = {{-0.029, 0.042, 0.032, 0.0088},
+                               {-0.0095, 0.046, 0.035, 0.009},
+                               {0.0095, 0.043, 0.033, 0.0088},
+                               {0.029, 0.034, 0.026, 0.0078}};
 
 void write_hand(std::ostringstream& x, const SceneSpec& spec) {
   const std::string skin = "rgba=\"" + rgba(spec.skin) + "\"";
   const std::string sleeve = "rgba=\"" + rgba(spec.sleeve) + "\"";
   x << "    <body name=\"hand\" pos=\"0 0 0\">\n"
-    << "      <joint name=\"hand_x\" type=\"slide\" axis=\"1 0 0\" limited=\"true\" range=\"-0.45 0.45\" damping=\"40\"/>\n"
-    << "      <joint name=\"hand_y\" type=\"slide\" axis=\"0 1 0\" limited=\"true\" range=\"-0.5 0.4\" damping=\"40\"/>\n"
-    << "      <joint name=\"hand_z\" type=\"slide\" axis=\"0 0 1\" limited=\"true\" range=\"0 0.5\" damping=\"40\"/>\n"
+    << "      <joint name=\"hand_x\" type=\"slide\" axis=\"1 0 0\" limited=\"true\" range=\"-0.45 0.45\" "
+       "damping=\"40\"/>\n"
+    << "      <joint name=\"hand_y\" type=\"slide\" axis=\"0 1 0\" limited=\"true\" range=\"-0.5 0.4\" "
+       "damping=\"40\"/>\n"
+    << "      <joint name=\"hand_z\" type=\"slide\" axis=\"0 0 1\" limited=\"true\" range=\"0 0.5\" "
+       "damping=\"40\"/>\n"
     << "      <joint name=\"hand_yaw\" axis=\"0 0 1\" limited=\"true\" range=\"-2.6 2.6\" damping=\"1.5\" "
        "armature=\"0.005\"/>\n"
     << "      <joint name=\"hand_pitch\" axis=\"-1 0 0\" limited=\"true\" range=\"-0.6 1.3\" damping=\"1.5\" "
        "armature=\"0.005\"/>\n"
-    << "      <geom name=\"palm\" type=\"box\" size=\"0.039 0.044 0.011\" mass=\"0.35\" " << skin << " " << kBodyCollide
-    << " friction=\"1.2 0.02 0.0001\"/>\n"
-    << "      <geom type=\"capsule\" fromto=\"-0.038 0.044 0 0.038 0.044 0\" size=\"0.011\" mass=\"0.02\" " << skin
-    << " " << kBodyCollide << "/>\n"
-    << "      <geom type=\"capsule\" fromto=\"0.039 -0.04 0 0.039 0.04 0\" size=\"0.0105\" mass=\"0.02\" " << skin
-    << " " << kBodyCollide << "/>\n"
+    << "      <geom name=\"palm\" type=\"box\" size=\"0.039 0.044 0.011\" mass=\"0.35\" " << skin << " "
+    << kBodyCollide << " friction=\"1.2 0.02 0.0001\"/>\n"
+    << "      <geom type=\"capsule\" fromto=\"-0.038 0.044 0 0.038 0.044 0\" size=\"0.011\" mass=\"0.02\" "
+    << skin << " " << kBodyCollide << "/>\n"
+    << "      <geom type=\"capsule\" fromto=\"0.039 -0.04 0 0.039 0.04 0\" size=\"0.0105\" mass=\"0.02\" "
+    << skin << " " << kBodyCollide
+    << "/>\n"
     // The wrist stub is visual only; the forearm and upper arm are separate mocap bodies that
     // World poses each step to connect the wrist to a shoulder beside the camera.
-    << "      <geom type=\"capsule\" fromto=\"0 -0.036 0.003 0.002 -0.07 0.008\" size=\"0.026\" mass=\"0.01\" " << skin
-    << " " << kNoCollide << "/>\n";
+    << "      <geom type=\"capsule\" fromto=\"0 -0.036 0.003 0.002 -0.07 0.008\" size=\"0.026\" "
+       "mass=\"0.01\" "
+    << skin << " " << kNoCollide << "/>\n";
   for (int i = 0; i < 4; ++i) {
     const FingerDef& f = kFingers[i];
     x << "      <body name=\"f" << i << "_prox\" pos=\"" << num(f.x) << " 0.046 0\">\n"
-      << "        <joint name=\"f" << i << "_j1\" axis=\"-1 0 0\" limited=\"true\" range=\"-0.15 1.6\" damping=\"0.02\" "
+      << "        <joint name=\"f" << i
+      << "_j1\" axis=\"-1 0 0\" limited=\"true\" range=\"-0.15 1.6\" damping=\"0.02\" "
          "armature=\"0.0005\"/>\n"
       << "        <geom type=\"capsule\" fromto=\"0 0 0 0 " << num(f.len1) << " 0\" size=\"" << num(f.radius)
       << "\" mass=\"0.012\" " << skin << " " << kBodyCollide << " friction=\"1.2 0.02 0.0001\"/>\n"
       << "        <body name=\"f" << i << "_dist\" pos=\"0 " << num(f.len1) << " 0\">\n"
-      << "          <joint name=\"f" << i << "_j2\" axis=\"-1 0 0\" limited=\"true\" range=\"-0.1 1.8\" damping=\"0.02\" "
+      << "          <joint name=\"f" << i
+      << "_j2\" axis=\"-1 0 0\" limited=\"true\" range=\"-0.1 1.8\" damping=\"0.02\" "
          "armature=\"0.0005\"/>\n"
-      << "          <geom type=\"capsule\" fromto=\"0 0 0 0 " << num(f.len2) << " -0.002\" size=\"" << num(0.92 * f.radius)
-      << "\" mass=\"0.008\" " << skin << " " << kBodyCollide << " friction=\"1.2 0.02 0.0001\"/>\n"
+      << "          <geom type=\"capsule\" fromto=\"0 0 0 0 " << num(f.len2) << " -0.002\" size=\""
+      << num(0.92 * f.radius) << "\" mass=\"0.008\" " << skin << " " << kBodyCollide
+      << " friction=\"1.2 0.02 0.0001\"/>\n"
       << "        </body>\n"
       << "      </body>\n";
   }
   x << "      <body name=\"thumb_prox\" pos=\"-0.036 -0.016 -0.003\">\n"
-    << "        <joint name=\"thumb_j1\" axis=\"0.2 -1 0\" limited=\"true\" range=\"-0.2 1.4\" damping=\"0.02\" "
+    << "        <joint name=\"thumb_j1\" axis=\"0.2 -1 0\" limited=\"true\" range=\"-0.2 1.4\" "
+       "damping=\"0.02\" "
        "armature=\"0.0005\"/>\n"
-    << "        <geom type=\"capsule\" fromto=\"0 0 0 -0.024 0.03 -0.006\" size=\"0.0105\" mass=\"0.012\" " << skin
-    << " " << kBodyCollide << " friction=\"1.2 0.02 0.0001\"/>\n"
+    << "        <geom type=\"capsule\" fromto=\"0 0 0 -0.024 0.03 -0.006\" size=\"0.0105\" mass=\"0.012\" "
+    << skin << " " << kBodyCollide << " friction=\"1.2 0.02 0.0001\"/>\n"
     << "        <body name=\"thumb_dist\" pos=\"-0.024 0.03 -0.006\">\n"
-    << "          <joint name=\"thumb_j2\" axis=\"0.2 -1 0\" limited=\"true\" range=\"-0.2 1.4\" damping=\"0.02\" "
+    << "          <joint name=\"thumb_j2\" axis=\"0.2 -1 0\" limited=\"true\" range=\"-0.2 1.4\" "
+       "damping=\"0.02\" "
        "armature=\"0.0005\"/>\n"
-    << "          <geom type=\"capsule\" fromto=\"0 0 0 -0.006 0.028 -0.004\" size=\"0.0095\" mass=\"0.008\" " << skin
-    << " " << kBodyCollide << " friction=\"1.2 0.02 0.0001\"/>\n"
+    << "          <geom type=\"capsule\" fromto=\"0 0 0 -0.006 0.028 -0.004\" size=\"0.0095\" mass=\"0.008\" "
+    << skin << " " << kBodyCollide << " friction=\"1.2 0.02 0.0001\"/>\n"
     << "        </body>\n"
     << "      </body>\n"
     << "    </body>\n"
     << "    <body name=\"forearm_vis\" mocap=\"true\">\n"
-    << "      <geom type=\"capsule\" fromto=\"0 0 0 0 0 " << num(kHumanForearmLen) << "\" size=\"0.03\" " << skin << " "
-    << kNoCollide << "/>\n"
+    << "      <geom type=\"capsule\" fromto=\"0 0 0 0 0 " << num(kHumanForearmLen) << "\" size=\"0.03\" "
+    << skin << " " << kNoCollide << "/>\n"
     << "    </body>\n"
     << "    <body name=\"upper_arm_vis\" mocap=\"true\">\n"
-    << "      <geom type=\"capsule\" fromto=\"0 0 0 0 0 " << num(kHumanUpperArmLen) << "\" size=\"0.042\" " << sleeve << " "
-    << kNoCollide << "/>\n"
+    << "      <geom type=\"capsule\" fromto=\"0 0 0 0 0 " << num(kHumanUpperArmLen) << "\" size=\"0.042\" "
+    << sleeve << " " << kNoCollide << "/>\n"
     << "    </body>\n";
 }
 
@@ -385,16 +420,21 @@ void write_bin(std::ostringstream& x, const BinSpec& b) {
   const double t = b.wall_thickness, h = b.wall_height;
   const std::string col = std::string(kWorldCollide) + " rgba=\"" + rgba(b.rgba) + "\"";
   const Vec3& c = b.center;
-  x << "    <geom name=\"bin_floor\" type=\"box\" pos=\"" << num(c[0]) << " " << num(c[1]) << " 0.002\" size=\""
-    << num(b.half_x + 2 * t) << " " << num(b.half_y + 2 * t) << " 0.002\" " << col << "/>\n";
-  x << "    <geom name=\"bin_wall_xn\" type=\"box\" pos=\"" << num(c[0] - b.half_x - t) << " " << num(c[1]) << " "
-    << num(h / 2) << "\" size=\"" << num(t) << " " << num(b.half_y + 2 * t) << " " << num(h / 2) << "\" " << col << "/>\n";
-  x << "    <geom name=\"bin_wall_xp\" type=\"box\" pos=\"" << num(c[0] + b.half_x + t) << " " << num(c[1]) << " "
-    << num(h / 2) << "\" size=\"" << num(t) << " " << num(b.half_y + 2 * t) << " " << num(h / 2) << "\" " << col << "/>\n";
-  x << "    <geom name=\"bin_wall_yn\" type=\"box\" pos=\"" << num(c[0]) << " " << num(c[1] - b.half_y - t) << " "
-    << num(h / 2) << "\" size=\"" << num(b.half_x) << " " << num(t) << " " << num(h / 2) << "\" " << col << "/>\n";
-  x << "    <geom name=\"bin_wall_yp\" type=\"box\" pos=\"" << num(c[0]) << " " << num(c[1] + b.half_y + t) << " "
-    << num(h / 2) << "\" size=\"" << num(b.half_x) << " " << num(t) << " " << num(h / 2) << "\" " << col << "/>\n";
+  x << "    <geom name=\"bin_floor\" type=\"box\" pos=\"" << num(c[0]) << " " << num(c[1])
+    << " 0.002\" size=\"" << num(b.half_x + 2 * t) << " " << num(b.half_y + 2 * t) << " 0.002\" " << col
+    << "/>\n";
+  x << "    <geom name=\"bin_wall_xn\" type=\"box\" pos=\"" << num(c[0] - b.half_x - t) << " " << num(c[1])
+    << " " << num(h / 2) << "\" size=\"" << num(t) << " " << num(b.half_y + 2 * t) << " " << num(h / 2)
+    << "\" " << col << "/>\n";
+  x << "    <geom name=\"bin_wall_xp\" type=\"box\" pos=\"" << num(c[0] + b.half_x + t) << " " << num(c[1])
+    << " " << num(h / 2) << "\" size=\"" << num(t) << " " << num(b.half_y + 2 * t) << " " << num(h / 2)
+    << "\" " << col << "/>\n";
+  x << "    <geom name=\"bin_wall_yn\" type=\"box\" pos=\"" << num(c[0]) << " " << num(c[1] - b.half_y - t)
+    << " " << num(h / 2) << "\" size=\"" << num(b.half_x) << " " << num(t) << " " << num(h / 2) << "\" "
+    << col << "/>\n";
+  x << "    <geom name=\"bin_wall_yp\" type=\"box\" pos=\"" << num(c[0]) << " " << num(c[1] + b.half_y + t)
+    << " " << num(h / 2) << "\" size=\"" << num(b.half_x) << " " << num(t) << " " << num(h / 2) << "\" "
+    << col << "/>\n";
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -443,7 +483,8 @@ ObjectSpec sample_object(Rng& rng, Shape shape, const NamedColor& color, bool gr
       volume = 16 * std::pow(o.size[0], 3);
       break;
     case Shape::kRing:
-      o.size = {graspable ? rng.uniform(0.028, 0.034) : rng.uniform(0.03, 0.045), rng.uniform(0.006, 0.009), 0};
+      o.size = {graspable ? rng.uniform(0.028, 0.034) : rng.uniform(0.03, 0.045), rng.uniform(0.006, 0.009),
+                0};
       volume = 2 * M_PI * o.size[0] * M_PI * o.size[1] * o.size[1];
       break;
     case Shape::kMug:
@@ -482,16 +523,26 @@ const char* to_string(Embodiment e) { return e == Embodiment::kHuman ? "human" :
 
 const char* to_string(Shape s) {
   switch (s) {
-    case Shape::kBox: return "box";
-    case Shape::kSphere: return "sphere";
-    case Shape::kCylinder: return "cylinder";
-    case Shape::kCapsule: return "capsule";
-    case Shape::kEllipsoid: return "ellipsoid";
-    case Shape::kPlate: return "plate";
-    case Shape::kBottle: return "bottle";
-    case Shape::kDumbbell: return "dumbbell";
-    case Shape::kRing: return "ring";
-    case Shape::kMug: return "mug";
+    case Shape::kBox:
+      return "box";
+    case Shape::kSphere:
+      return "sphere";
+    case Shape::kCylinder:
+      return "cylinder";
+    case Shape::kCapsule:
+      return "capsule";
+    case Shape::kEllipsoid:
+      return "ellipsoid";
+    case Shape::kPlate:
+      return "plate";
+    case Shape::kBottle:
+      return "bottle";
+    case Shape::kDumbbell:
+      return "dumbbell";
+    case Shape::kRing:
+      return "ring";
+    case Shape::kMug:
+      return "mug";
   }
   return "?";
 }
@@ -512,31 +563,43 @@ Shape parse_shape(const std::string& name) {
 double object_half_height(const ObjectSpec& o) {
   switch (o.shape) {
     case Shape::kBox:
-    case Shape::kEllipsoid: return o.size[2];
+    case Shape::kEllipsoid:
+      return o.size[2];
     case Shape::kSphere:
-    case Shape::kCapsule: return o.size[0];
+    case Shape::kCapsule:
+      return o.size[0];
     case Shape::kCylinder:
     case Shape::kPlate:
     case Shape::kBottle:
-    case Shape::kMug: return o.size[1];
-    case Shape::kDumbbell: return o.size[0];
-    case Shape::kRing: return o.size[1];
+    case Shape::kMug:
+      return o.size[1];
+    case Shape::kDumbbell:
+      return o.size[0];
+    case Shape::kRing:
+      return o.size[1];
   }
   return 0.0;
 }
 
 double object_footprint_radius(const ObjectSpec& o) {
   switch (o.shape) {
-    case Shape::kBox: return std::hypot(o.size[0], o.size[1]);
-    case Shape::kEllipsoid: return std::max(o.size[0], o.size[1]);
+    case Shape::kBox:
+      return std::hypot(o.size[0], o.size[1]);
+    case Shape::kEllipsoid:
+      return std::max(o.size[0], o.size[1]);
     case Shape::kSphere:
     case Shape::kCylinder:
     case Shape::kPlate:
-    case Shape::kBottle: return o.size[0];
-    case Shape::kCapsule: return o.size[0] + o.size[1];
-    case Shape::kDumbbell: return o.size[1] + o.size[0] * 1.42;
-    case Shape::kRing: return o.size[0] + o.size[1];
-    case Shape::kMug: return 1.5 * o.size[0] + 0.16 * o.size[0];
+    case Shape::kBottle:
+      return o.size[0];
+    case Shape::kCapsule:
+      return o.size[0] + o.size[1];
+    case Shape::kDumbbell:
+      return o.size[1] + o.size[0] * 1.42;
+    case Shape::kRing:
+      return o.size[0] + o.size[1];
+    case Shape::kMug:
+      return 1.5 * o.size[0] + 0.16 * o.size[0];
   }
   return 0.05;
 }
@@ -548,7 +611,6 @@ bool in_robot_set(const ObjectSpec& o) {
                     std::fabs(o.size[0] - o.size[2]) < 1e-9;
   return color_ok && (cube || o.shape == Shape::kCylinder);
 }
-
 
 std::string object_description(const ObjectSpec& o) {
   std::string noun = to_string(o.shape);
@@ -564,8 +626,9 @@ std::string object_description(const ObjectSpec& o) {
 }
 
 std::string background_name(int background) {
-  DOJO_CHECK(background >= 0 && background < kNumBackgrounds,
-             "background id " + std::to_string(background) + " out of range 0.." + std::to_string(kNumBackgrounds - 1));
+  DOJO_CHECK(background >= 0 && background < kNumBackgrounds, "background id " + std::to_string(background) +
+                                                                  " out of range 0.." +
+                                                                  std::to_string(kNumBackgrounds - 1));
   return backgrounds()[background].name;
 }
 
@@ -574,12 +637,12 @@ SceneSpec sample_scene(Embodiment embodiment, const SceneSampling& opt, uint64_t
   const int min_objects = opt.min_objects >= 0 ? opt.min_objects : 1;
   const int max_objects = opt.max_objects >= 0 ? opt.max_objects : (robot ? 3 : 4);
   if (min_objects > max_objects || max_objects > 8) {
-    throw UsageError("scene sampling: need 0 <= min_objects <= max_objects <= 8, got " + std::to_string(min_objects) +
-                     ".." + std::to_string(max_objects));
+    throw UsageError("scene sampling: need 0 <= min_objects <= max_objects <= 8, got " +
+                     std::to_string(min_objects) + ".." + std::to_string(max_objects));
   }
   if (opt.width < 16 || opt.height < 16 || opt.width > 4096 || opt.height > 4096) {
-    throw UsageError("scene sampling: image size " + std::to_string(opt.width) + "x" + std::to_string(opt.height) +
-                     " out of range 16..4096");
+    throw UsageError("scene sampling: image size " + std::to_string(opt.width) + "x" +
+                     std::to_string(opt.height) + " out of range 16..4096");
   }
   Rng rng(seed * 0x2545F4914F6CDD1DULL + (robot ? 17 : 29));
   SceneSpec spec;
@@ -645,8 +708,9 @@ SceneSpec sample_scene(Embodiment embodiment, const SceneSampling& opt, uint64_t
       const Shape shape = static_cast<Shape>(rng.randint(0, kNumShapes - 1));
       o = sample_object(rng, shape, rng.pick(all_colors), robot);
     } else {
-      static const std::vector<Shape> shapes = {Shape::kSphere, Shape::kCapsule, Shape::kEllipsoid, Shape::kBottle,
-                                                Shape::kDumbbell, Shape::kRing,    Shape::kMug,       Shape::kBox};
+      static const std::vector<Shape> shapes = {Shape::kSphere, Shape::kCapsule,  Shape::kEllipsoid,
+                                                Shape::kBottle, Shape::kDumbbell, Shape::kRing,
+                                                Shape::kMug,    Shape::kBox};
       o = sample_object(rng, rng.pick(shapes), rng.pick(human_only_colors()), true);
     }
     spec.objects.push_back(o);
@@ -663,7 +727,8 @@ SceneSpec sample_scene(Embodiment embodiment, const SceneSampling& opt, uint64_t
       o.pos = {rng.uniform(x_lo + r, x_hi - r), rng.uniform(y_lo + r, y_hi - r), 0.0};
       ok = true;
       for (const auto& p : placed) {
-        if (std::hypot(o.pos[0] - p.pos[0], o.pos[1] - p.pos[1]) < r + object_footprint_radius(p) + 0.02) ok = false;
+        if (std::hypot(o.pos[0] - p.pos[0], o.pos[1] - p.pos[1]) < r + object_footprint_radius(p) + 0.02)
+          ok = false;
       }
       if (spec.bin.enabled) {
         const auto& b = spec.bin;
@@ -680,8 +745,12 @@ SceneSpec sample_scene(Embodiment embodiment, const SceneSampling& opt, uint64_t
   if (!robot) {
     spec.skin = rng.pick(skin_tones());
     spec.sleeve = rng.pick(sleeve_colors());
-    spec.initial_command = {rng.uniform(0.06, 0.16), rng.uniform(-0.24, -0.17), rng.uniform(0.12, 0.17),
-                            rng.uniform(0.05, 0.45), 0.0,                      0.25};
+    spec.initial_command = {rng.uniform(0.06, 0.16),
+                            rng.uniform(-0.24, -0.17),
+                            rng.uniform(0.12, 0.17),
+                            rng.uniform(0.05, 0.45),
+                            0.0,
+                            0.25};
   }
   return spec;
 }
@@ -697,7 +766,7 @@ std::string build_mjcf(const SceneSpec& spec) {
     << "  <compiler angle=\"radian\"/>\n"
     << "  <option timestep=\"" << num(spec.timestep)
     << "\" cone=\"elliptic\" impratio=\"10\" iterations=\"50\" tolerance=\"1e-8\"/>\n"
-    << "  <size njmax=\"3000\" nconmax=\"500\"/>\n"
+    << "  <size njmax=\"1000\" nconmax=\"200\"/>\n"
     << "  <visual>\n"
     << "    <global offwidth=\"" << spec.width << "\" offheight=\"" << spec.height << "\"/>\n"
     << "    <quality offsamples=\"" << spec.msaa_samples << "\" shadowsize=\"0\"/>\n"
@@ -708,7 +777,8 @@ std::string build_mjcf(const SceneSpec& spec) {
     << "  <asset>\n";
   write_texture(x, "table_tex", bg.table);
   write_texture(x, "floor_tex", bg.floor);
-  x << "    <texture name=\"sky\" type=\"skybox\" builtin=\"gradient\" rgb1=\"0.75 0.75 0.72\" rgb2=\"0.45 0.45 0.43\" "
+  x << "    <texture name=\"sky\" type=\"skybox\" builtin=\"gradient\" rgb1=\"0.75 0.75 0.72\" rgb2=\"0.45 "
+       "0.45 0.43\" "
        "width=\"32\" height=\"32\"/>\n"
     << "    <material name=\"table_mat\" texture=\"table_tex\" texrepeat=\"" << num(bg.table.repeat) << " "
     << num(bg.table.repeat) << "\" specular=\"0.15\" shininess=\"0.2\"/>\n"
@@ -721,12 +791,13 @@ std::string build_mjcf(const SceneSpec& spec) {
     << "\" specular=\"0.15 0.15 0.15\" castshadow=\"false\"/>\n"
     << "    <geom name=\"floor\" type=\"plane\" pos=\"0 0 -0.75\" size=\"6 6 0.05\" material=\"floor_mat\" "
     << kWorldCollide << "/>\n"
-    << "    <geom name=\"table\" type=\"box\" pos=\"0 0 -0.025\" size=\"0.55 0.42 0.025\" material=\"table_mat\" "
+    << "    <geom name=\"table\" type=\"box\" pos=\"0 0 -0.025\" size=\"0.55 0.42 0.025\" "
+       "material=\"table_mat\" "
     << kWorldCollide << " friction=\"0.8 0.01 0.0001\"/>\n";
   for (double lx : {-0.5, 0.5}) {
     for (double ly : {-0.37, 0.37}) {
-      x << "    <geom type=\"box\" pos=\"" << num(lx) << " " << num(ly) << " -0.4\" size=\"0.025 0.025 0.35\" "
-        << kNoCollide << " rgba=\"0.3 0.25 0.2 1\"/>\n";
+      x << "    <geom type=\"box\" pos=\"" << num(lx) << " " << num(ly)
+        << " -0.4\" size=\"0.025 0.025 0.35\" " << kNoCollide << " rgba=\"0.3 0.25 0.2 1\"/>\n";
     }
   }
   if (spec.bin.enabled) write_bin(x, spec.bin);
@@ -738,11 +809,12 @@ std::string build_mjcf(const SceneSpec& spec) {
   }
   // Egocentric camera: MuJoCo cameras look along their -z axis; x is image-right, y image-up.
   const Vec3& p = spec.camera.pos;
-  const Vec3 f = normalized({spec.camera.lookat[0] - p[0], spec.camera.lookat[1] - p[1], spec.camera.lookat[2] - p[2]});
+  const Vec3 f =
+      normalized({spec.camera.lookat[0] - p[0], spec.camera.lookat[1] - p[1], spec.camera.lookat[2] - p[2]});
   const Vec3 right = normalized(cross(f, {0, 0, 1}));
   const Vec3 up = cross(right, f);
-  x << "    <camera name=\"ego\" pos=\"" << vec(p) << "\" xyaxes=\"" << vec(right) << " " << vec(up) << "\" fovy=\""
-    << num(spec.camera.fovy) << "\"/>\n"
+  x << "    <camera name=\"ego\" pos=\"" << vec(p) << "\" xyaxes=\"" << vec(right) << " " << vec(up)
+    << "\" fovy=\"" << num(spec.camera.fovy) << "\"/>\n"
     << "  </worldbody>\n";
 
   if (spec.embodiment == Embodiment::kHuman && !spec.objects.empty()) {
@@ -788,8 +860,14 @@ std::string build_mjcf(const SceneSpec& spec) {
 // JSON
 
 nlohmann::json to_json(const ObjectSpec& o) {
-  return {{"shape", to_string(o.shape)}, {"size", o.size}, {"rgba", o.rgba}, {"color", o.color},
-          {"mass", o.mass},              {"pos", o.pos},   {"yaw", o.yaw},   {"description", object_description(o)}};
+  return {{"shape", to_string(o.shape)},
+          {"size", o.size},
+          {"rgba", o.rgba},
+          {"color", o.color},
+          {"mass", o.mass},
+          {"pos", o.pos},
+          {"yaw", o.yaw},
+          {"description", object_description(o)}};
 }
 
 nlohmann::json to_json(const SceneSpec& s) {
@@ -827,7 +905,8 @@ nlohmann::json to_json(const SceneSpec& s) {
 
 SceneSpec scene_from_json(const nlohmann::json& j) {
   auto field = [&](const nlohmann::json& obj, const char* key) -> const nlohmann::json& {
-    if (!obj.is_object() || !obj.contains(key)) throw Error(std::string("scene json: missing field '") + key + "'");
+    if (!obj.is_object() || !obj.contains(key))
+      throw Error(std::string("scene json: missing field '") + key + "'");
     return obj.at(key);
   };
   try {
@@ -872,7 +951,8 @@ SceneSpec scene_from_json(const nlohmann::json& j) {
     s.timestep = field(j, "timestep").get<double>();
     s.substeps = field(j, "substeps").get<int>();
     s.msaa_samples = field(j, "msaa_samples").get<int>();
-    DOJO_CHECK(s.background >= 0 && s.background < kNumBackgrounds, "scene json: field 'background' out of range");
+    DOJO_CHECK(s.background >= 0 && s.background < kNumBackgrounds,
+               "scene json: field 'background' out of range");
     return s;
   } catch (const nlohmann::json::exception& e) {
     throw Error(std::string("scene json: bad field type: ") + e.what());

@@ -73,7 +73,7 @@ struct LightSpec {
   Vec3 pos{0.3, -0.3, 1.5};
   Vec3 dir{-0.2, 0.2, -1.0};
   Vec3 diffuse{0.7, 0.7, 0.7};
-  Vec3 ambient{0.3, 0.3, 0.3};  // headlight ambient
+  Vec3 ambient{0.3, 0.3, 0.3};       // headlight ambient
   Vec3 headlight{0.25, 0.25, 0.25};  // headlight diffuse
 };
 
@@ -110,8 +110,8 @@ struct SceneSpec {
   // Initial command (see World::step); empty = the embodiment's default rest pose.
   std::vector<double> initial_command;
   // Physics: control runs at 1 / (timestep * substeps) Hz = 10 Hz by default.
-  double timestep = 0.002;
-  int substeps = 50;
+  double timestep = 0.004;
+  int substeps = 25;
   // Anti-aliasing samples of the offscreen buffer (0 = off).
   int msaa_samples = 4;
 };

@@ -224,25 +224,37 @@ class HumanController : public Controller {
     HumanSkill skill = rng_.pick(options_.skills);
     const int n = w.num_objects();
     int target = -1;
-    if (n > 0) target = (log_.empty() && options_.target_object >= 0 && options_.target_object < n)
-                            ? options_.target_object
-                            : rng_.randint(0, n - 1);
+    if (n > 0)
+      target = (log_.empty() && options_.target_object >= 0 && options_.target_object < n)
+                   ? options_.target_object
+                   : rng_.randint(0, n - 1);
     if (n == 0) skill = HumanSkill::kReach;
     if (skill == HumanSkill::kStack && n < 2) skill = HumanSkill::kPickPlace;
     std::string text;
     nlohmann::json params;
     switch (skill) {
-      case HumanSkill::kPush: text = plan_push(object_info(w, target), &params); break;
-      case HumanSkill::kPoke: text = plan_poke(object_info(w, target), &params); break;
-      case HumanSkill::kPat: text = plan_pat(object_info(w, target), &params); break;
-      case HumanSkill::kSweep: text = plan_sweep(object_info(w, target), &params); break;
-      case HumanSkill::kPickPlace: text = plan_pick_place(w, object_info(w, target), &params); break;
+      case HumanSkill::kPush:
+        text = plan_push(object_info(w, target), &params);
+        break;
+      case HumanSkill::kPoke:
+        text = plan_poke(object_info(w, target), &params);
+        break;
+      case HumanSkill::kPat:
+        text = plan_pat(object_info(w, target), &params);
+        break;
+      case HumanSkill::kSweep:
+        text = plan_sweep(object_info(w, target), &params);
+        break;
+      case HumanSkill::kPickPlace:
+        text = plan_pick_place(w, object_info(w, target), &params);
+        break;
       case HumanSkill::kStack: {
         // Stack onto an object with a flat top, other than the one carried.
         std::vector<int> bases;
         for (int j = 0; j < n; ++j) {
           const Shape s = w.spec().objects[j].shape;
-          if (j != target && (s == Shape::kBox || s == Shape::kCylinder || s == Shape::kPlate || s == Shape::kMug)) {
+          if (j != target &&
+              (s == Shape::kBox || s == Shape::kCylinder || s == Shape::kPlate || s == Shape::kMug)) {
             bases.push_back(j);
           }
         }
@@ -251,7 +263,7 @@ class HumanController : public Controller {
           text = plan_pick_place(w, object_info(w, target), &params);
         } else {
           const int base = rng_.pick(bases);
-          text = plan_stack(object_info(w, target), object_info(w, base), &params);
+          text = plan_stack(w, object_info(w, target), object_info(w, base), &params);
         }
         break;
       }
@@ -273,7 +285,9 @@ class HumanController : public Controller {
       case HumanSkill::kReach:
         text = n > 0 ? plan_reach(object_info(w, target), &params) : plan_wave(&params);
         break;
-      case HumanSkill::kLiftDrop: text = plan_lift_drop(object_info(w, target), &params); break;
+      case HumanSkill::kLiftDrop:
+        text = plan_lift_drop(w, object_info(w, target), &params);
+        break;
     }
     texts_.push_back(text);
     log_.push_back({{"skill", to_string(skill)},
@@ -287,8 +301,8 @@ class HumanController : public Controller {
   // for a hand yaw: the palm plus fingers, roughly a 9 x 17 cm rectangle.
   static double hand_extent(double yaw, double dx, double dy) {
     const auto u = along(yaw);
-    const double a = u[0] * dx + u[1] * dy;     // along the fingers
-    const double c = u[1] * dx - u[0] * dy;     // across (toward the pinky, +x at yaw 0)
+    const double a = u[0] * dx + u[1] * dy;  // along the fingers
+    const double c = u[1] * dx - u[0] * dy;  // across (toward the pinky, +x at yaw 0)
     return (a > 0 ? a * kFingerReach : -a * 0.045) + std::fabs(c) * 0.045;
   }
 
@@ -300,7 +314,8 @@ class HumanController : public Controller {
     const double dx = std::cos(phi), dy = std::sin(phi);
     const double yaw = std::clamp(yaw_toward(dx, dy), -1.0, 0.8) + rng_.uniform(-0.15, 0.15);
     const double curl = rng_.uniform(0.05, 0.2);
-    const double z = std::max(0.028, o.bottom + std::clamp(0.5 * (o.top - o.bottom), 0.012, 0.035));
+    // Low enough to catch flat objects (plates, rings) with the palm's edge.
+    const double z = std::max(0.014, o.bottom + std::clamp(0.5 * (o.top - o.bottom), 0.005, 0.035));
     const double back = o.radius + 0.02 + hand_extent(yaw, dx, dy);
     const double sx = o.pos[0] - dx * back, sy = o.pos[1] - dy * back;
     double dist = rng_.uniform(0.06, 0.14);
@@ -321,13 +336,15 @@ class HumanController : public Controller {
     const double yaw = yaw_toward(dx, dy);
     const double pitch = rng_.uniform(0.55, 0.8), curl = rng_.uniform(0.0, 0.1);
     const double reach = kFingerReach * std::cos(pitch), drop = kFingerReach * std::sin(pitch);
-    const double contact = o.bottom + std::clamp(0.6 * (o.top - o.bottom), 0.012, 0.04);
+    const double contact = std::max(0.009, o.bottom + std::min(0.6 * (o.top - o.bottom), 0.04));
     // Fingertip positions: pulled back, and pressed 1.2 cm into the object's side.
     const double side = std::max(0.6 * o.radius, 0.012);
     const double bx = o.pos[0] - dx * (side + 0.045), by = o.pos[1] - dy * (side + 0.045);
     const double ix = o.pos[0] - dx * (side - 0.012), iy = o.pos[1] - dy * (side - 0.012);
     const double z = contact + drop;
-    auto palm = [&](double tx, double ty, double tz) { return pose(tx - dx * reach, ty - dy * reach, tz, yaw, pitch, curl); };
+    auto palm = [&](double tx, double ty, double tz) {
+      return pose(tx - dx * reach, ty - dy * reach, tz, yaw, pitch, curl);
+    };
     move(palm(bx, by, z + 0.06));
     timed(palm(bx, by, z), 0.35);
     const int jabs = rng_.randint(1, 3);
@@ -363,7 +380,7 @@ class HumanController : public Controller {
     if (o.pos[0] < -0.15) side = 1.0;
     const double yaw = rng_.uniform(-0.2, 0.3), curl = rng_.uniform(0.1, 0.3);
     const double y = o.pos[1] - rng_.uniform(0.0, 0.07);
-    const double z = 0.022;
+    const double z = 0.015;
     const double x0 = o.pos[0] - side * (o.radius + 0.07), x1 = o.pos[0] + side * rng_.uniform(0.08, 0.16);
     move(pose(x0, y, 0.08, yaw, 0.05, curl));
     timed(pose(x0, y, z, yaw, 0.05, curl), 0.35);
@@ -378,9 +395,38 @@ class HumanController : public Controller {
   struct Grasp {
     double x, y, z, yaw, ux, uy;
   };
-  Grasp plan_grasp(const ObjInfo& o) {
+  // Clearance between the flat hand's outline (palm + fingers) at (x, y, yaw) and every object
+  // other than `target`; negative when the hand would land on one of them.
+  static double hand_clearance(const World& w, int target, double x, double y, double yaw) {
+    const auto u = along(yaw);
+    double clearance = 1.0;
+    for (int j = 0; j < w.num_objects(); ++j) {
+      if (j == target) continue;
+      const ObjInfo other = object_info(w, j);
+      const double dx = other.pos[0] - x, dy = other.pos[1] - y;
+      const double a = dx * u[0] + dy * u[1], c = dx * u[1] - dy * u[0];
+      const double da = std::max({-0.05 - a, a - (kFingerReach + 0.01), 0.0}),
+                   dc = std::max(std::fabs(c) - 0.05, 0.0);
+      clearance = std::min(clearance, std::hypot(da, dc) - other.radius);
+    }
+    return clearance;
+  }
+
+  Grasp plan_grasp(const World& w, const ObjInfo& o) {
     Grasp g;
-    g.yaw = rng_.uniform(-0.3, 0.5);
+    // A natural yaw whose fingers do not land on a neighbouring object.
+    double best = -1e9;
+    for (int k = 0; k < 8; ++k) {
+      const double yaw = rng_.uniform(-0.5, 0.7);
+      const auto v = along(yaw);
+      const double clearance =
+          hand_clearance(w, o.index, o.pos[0] - v[0] * 0.012, o.pos[1] - v[1] * 0.012, yaw);
+      const double score = std::min(clearance, 0.02) - 0.01 * std::fabs(yaw - 0.1);
+      if (score > best) {
+        best = score;
+        g.yaw = yaw;
+      }
+    }
     const auto u = along(g.yaw);
     g.ux = u[0];
     g.uy = u[1];
@@ -424,14 +470,14 @@ class HumanController : public Controller {
       ty = o.pos[1];
       text = "pick up the " + o.name + " and put it back down";
     }
-    const Grasp g = plan_grasp(o);
+    const Grasp g = plan_grasp(w, o);
     place(o, g, tx, ty, surface, rng_.uniform(0.08, 0.12));
     *params = {{"target", {tx, ty}}};
     return text;
   }
 
-  std::string plan_stack(const ObjInfo& o, const ObjInfo& base, nlohmann::json* params) {
-    const Grasp g = plan_grasp(o);
+  std::string plan_stack(const World& w, const ObjInfo& o, const ObjInfo& base, nlohmann::json* params) {
+    const Grasp g = plan_grasp(w, o);
     const double lift = std::max(rng_.uniform(0.08, 0.12), base.top - o.bottom + 0.05);
     place(o, g, base.pos[0], base.pos[1], base.top, lift);
     *params = {{"base", base.index}};
@@ -489,8 +535,8 @@ class HumanController : public Controller {
     return "wave over the table";
   }
 
-  std::string plan_lift_drop(const ObjInfo& o, nlohmann::json* params) {
-    const Grasp g = plan_grasp(o);
+  std::string plan_lift_drop(const World& w, const ObjInfo& o, nlohmann::json* params) {
+    const Grasp g = plan_grasp(w, o);
     const double lift = rng_.uniform(0.1, 0.16);
     timed(pose(g.x, g.y, g.z + lift, g.yaw, 0.0, 0.95), 0.6);
     script_.wait(rng_.uniform(0.1, 0.4));
@@ -513,8 +559,8 @@ class HumanController : public Controller {
 // ================================================================================================
 // Robot
 
-constexpr double kCarryZ = 0.16;   // grasp-point height while carrying
-constexpr double kHoverZ = 0.10;   // approach height above the grasp height
+constexpr double kCarryZ = 0.16;  // grasp-point height while carrying
+constexpr double kHoverZ = 0.10;  // approach height above the grasp height
 constexpr double kTipBelow = arm::kGripLen - arm::kFingerStart - arm::kFingerLen;  // negative
 
 class RobotController : public Controller {
@@ -591,7 +637,8 @@ class RobotController : public Controller {
   void timed(const Pose& p, double seconds) { script_.add(p, seconds / s()); }
   void move(const Pose& p, double base_speed = 0.3) {
     const Pose& from = script_.end();
-    const double dist = std::sqrt(std::pow(p[0] - from[0], 2) + std::pow(p[1] - from[1], 2) + std::pow(p[2] - from[2], 2));
+    const double dist =
+        std::sqrt(std::pow(p[0] - from[0], 2) + std::pow(p[1] - from[1], 2) + std::pow(p[2] - from[2], 2));
     script_.add(p, std::clamp(dist / (base_speed * s()), 0.6, 2.0));
   }
   // Wrist roll that aligns the fingers with a box's faces (or zero for round objects).
@@ -620,7 +667,9 @@ class RobotController : public Controller {
 
   void plan(const World& w, double now) {
     switch (options_.behavior) {
-      case RobotBehavior::kBinPick: plan_bin_attempt(w, now); break;
+      case RobotBehavior::kBinPick:
+        plan_bin_attempt(w, now);
+        break;
       case RobotBehavior::kPat:
       case RobotBehavior::kReachMiss:
       case RobotBehavior::kPush:
@@ -631,7 +680,9 @@ class RobotController : public Controller {
           script_.wait(1.0);
         }
         break;
-      case RobotBehavior::kRandomMotion: plan_random(w, now); break;
+      case RobotBehavior::kRandomMotion:
+        plan_random(w, now);
+        break;
     }
   }
 
@@ -649,7 +700,8 @@ class RobotController : public Controller {
       if (n > 0 && n <= 3) {
         text_ = "put the ";
         for (int i = 0; i < n; ++i) {
-          text_ += (i == 0 ? "" : (i + 1 == n ? " and the " : ", the ")) + object_description(w.spec().objects[i]);
+          text_ +=
+              (i == 0 ? "" : (i + 1 == n ? " and the " : ", the ")) + object_description(w.spec().objects[i]);
         }
         text_ += " in the bin";
       }
@@ -664,7 +716,8 @@ class RobotController : public Controller {
     double best = 1e9;
     for (int i = 0; i < n; ++i) {
       const ObjInfo o = object_info(w, i);
-      if (object_in_bin(w, i) || attempts_[i] >= 3 || o.bottom < -0.02 || !on_table(o.pos[0], o.pos[1])) continue;
+      if (object_in_bin(w, i) || attempts_[i] >= 3 || o.bottom < -0.02 || !on_table(o.pos[0], o.pos[1]))
+        continue;
       const double d = std::hypot(o.pos[0] - g[0], o.pos[1] - g[1]);
       if (d < best) {
         best = d;
@@ -727,7 +780,8 @@ class RobotController : public Controller {
   // The spot in the bin farthest from the objects already in it (among random candidates).
   void free_bin_spot(const World& w, int carried, double radius, double* x, double* y) {
     const BinSpec& bin = w.spec().bin;
-    const double mx = std::max(0.0, bin.half_x - radius - 0.015), my = std::max(0.0, bin.half_y - radius - 0.015);
+    const double mx = std::max(0.0, bin.half_x - radius - 0.015),
+                 my = std::max(0.0, bin.half_y - radius - 0.015);
     double best = -1e9;
     for (int k = 0; k < 24; ++k) {
       const double cx = bin.center[0] + rng_.uniform(-mx, mx), cy = bin.center[1] + rng_.uniform(-my, my);
@@ -735,10 +789,12 @@ class RobotController : public Controller {
       for (int j = 0; j < w.num_objects(); ++j) {
         if (j == carried || !object_in_bin(w, j)) continue;
         const ObjInfo other = object_info(w, j);
-        clearance = std::min(clearance, std::hypot(cx - other.pos[0], cy - other.pos[1]) - other.radius - radius);
+        clearance =
+            std::min(clearance, std::hypot(cx - other.pos[0], cy - other.pos[1]) - other.radius - radius);
       }
       // Prefer clearance, then the centre (small tie-break).
-      const double score = std::min(clearance, 0.03) - 0.1 * std::hypot(cx - bin.center[0], cy - bin.center[1]);
+      const double score =
+          std::min(clearance, 0.03) - 0.1 * std::hypot(cx - bin.center[0], cy - bin.center[1]);
       if (score > best) {
         best = score;
         *x = cx;
@@ -796,13 +852,15 @@ class RobotController : public Controller {
         while (dist > 0.02 && !on_table(o.pos[0] + dx * dist, o.pos[1] + dy * dist)) dist -= 0.01;
         move(cart(sx, sy, gz + 0.08, 0.0, 0.0));
         timed(cart(sx, sy, gz, 0.0, 0.0), 0.6);
-        script_.add(cart(sx + dx * (dist + 0.02), sy + dy * (dist + 0.02), gz, 0.0, 0.0), (dist + 0.02) / (0.08 * s()));
+        script_.add(cart(sx + dx * (dist + 0.02), sy + dy * (dist + 0.02), gz, 0.0, 0.0),
+                    (dist + 0.02) / (0.08 * s()));
         timed(cart(sx + dx * (dist + 0.02), sy + dy * (dist + 0.02), gz + 0.08, 0.0, 0.0), 0.5);
         entry["direction"] = {dx, dy};
         entry["distance"] = dist;
         break;
       }
-      default: break;
+      default:
+        break;
     }
     go_home();
     log_.push_back(entry);
@@ -817,7 +875,8 @@ class RobotController : public Controller {
       script_.start(w.last_command(), now);
     }
     arm::Joints q{};
-    arm::solve_topdown_ik({rng_.uniform(-0.2, 0.2), rng_.uniform(-0.12, 0.2), rng_.uniform(0.04, 0.25)}, 0.0, &q);
+    arm::solve_topdown_ik({rng_.uniform(-0.2, 0.2), rng_.uniform(-0.12, 0.2), rng_.uniform(0.04, 0.25)}, 0.0,
+                          &q);
     q[3] += rng_.uniform(-0.4, 0.3);
     q[4] = rng_.uniform(-1.5, 1.5);
     Pose target(q.begin(), q.end());
@@ -847,15 +906,24 @@ class RobotController : public Controller {
 
 const char* to_string(HumanSkill skill) {
   switch (skill) {
-    case HumanSkill::kPush: return "push";
-    case HumanSkill::kPoke: return "poke";
-    case HumanSkill::kPat: return "pat";
-    case HumanSkill::kSweep: return "sweep";
-    case HumanSkill::kPickPlace: return "pick_place";
-    case HumanSkill::kStack: return "stack";
-    case HumanSkill::kTopple: return "topple";
-    case HumanSkill::kReach: return "reach";
-    case HumanSkill::kLiftDrop: return "lift_drop";
+    case HumanSkill::kPush:
+      return "push";
+    case HumanSkill::kPoke:
+      return "poke";
+    case HumanSkill::kPat:
+      return "pat";
+    case HumanSkill::kSweep:
+      return "sweep";
+    case HumanSkill::kPickPlace:
+      return "pick_place";
+    case HumanSkill::kStack:
+      return "stack";
+    case HumanSkill::kTopple:
+      return "topple";
+    case HumanSkill::kReach:
+      return "reach";
+    case HumanSkill::kLiftDrop:
+      return "lift_drop";
   }
   return "?";
 }
@@ -902,19 +970,27 @@ PolicyQuality PolicyQuality::preset(const std::string& name) {
 }
 
 nlohmann::json PolicyQuality::to_json() const {
-  return {{"noise_std", noise_std},         {"delay_steps", delay_steps},
-          {"miss_prob", miss_prob},         {"wrong_target_prob", wrong_target_prob},
-          {"wrong_object_prob", wrong_object_prob}, {"early_release_prob", early_release_prob},
+  return {{"noise_std", noise_std},
+          {"delay_steps", delay_steps},
+          {"miss_prob", miss_prob},
+          {"wrong_target_prob", wrong_target_prob},
+          {"wrong_object_prob", wrong_object_prob},
+          {"early_release_prob", early_release_prob},
           {"speed", speed}};
 }
 
 const char* to_string(RobotBehavior behavior) {
   switch (behavior) {
-    case RobotBehavior::kBinPick: return "bin_pick";
-    case RobotBehavior::kPat: return "pat";
-    case RobotBehavior::kReachMiss: return "reach_miss";
-    case RobotBehavior::kPush: return "push";
-    case RobotBehavior::kRandomMotion: return "random_motion";
+    case RobotBehavior::kBinPick:
+      return "bin_pick";
+    case RobotBehavior::kPat:
+      return "pat";
+    case RobotBehavior::kReachMiss:
+      return "reach_miss";
+    case RobotBehavior::kPush:
+      return "push";
+    case RobotBehavior::kRandomMotion:
+      return "random_motion";
   }
   return "?";
 }
@@ -923,7 +999,8 @@ RobotBehavior parse_robot_behavior(const std::string& name) {
   for (int i = 0; i <= static_cast<int>(RobotBehavior::kRandomMotion); ++i) {
     if (name == to_string(static_cast<RobotBehavior>(i))) return static_cast<RobotBehavior>(i);
   }
-  throw UsageError("unknown robot behavior '" + name + "' (expected bin_pick, pat, reach_miss, push or random_motion)");
+  throw UsageError("unknown robot behavior '" + name +
+                   "' (expected bin_pick, pat, reach_miss, push or random_motion)");
 }
 
 std::unique_ptr<Controller> make_human_controller(const World& world, const HumanSkillOptions& options,
@@ -935,7 +1012,8 @@ std::unique_ptr<Controller> make_human_controller(const World& world, const Huma
 std::unique_ptr<Controller> make_robot_controller(const World& world, const RobotPolicyOptions& options,
                                                   uint64_t seed) {
   DOJO_CHECK(world.embodiment() == Embodiment::kRobot, "robot policies need a robot scene");
-  DOJO_CHECK(options.quality.speed > 0.1 && options.quality.speed < 10, "policy quality: speed must be in (0.1, 10)");
+  DOJO_CHECK(options.quality.speed > 0.1 && options.quality.speed < 10,
+             "policy quality: speed must be in (0.1, 10)");
   DOJO_CHECK(options.quality.delay_steps >= 0 && options.quality.delay_steps < 100,
              "policy quality: delay_steps must be in [0, 100)");
   return std::make_unique<RobotController>(world, options, seed);

@@ -57,18 +57,20 @@ double object_tilt_degrees(const ObjectPose& initial, const ObjectPose& now) {
 }
 
 nlohmann::json object_outcomes(const World& world, const std::vector<ObjectPose>& initial) {
-  DOJO_CHECK(static_cast<int>(initial.size()) == world.num_objects(), "object_outcomes: initial pose count mismatch");
+  DOJO_CHECK(static_cast<int>(initial.size()) == world.num_objects(),
+             "object_outcomes: initial pose count mismatch");
   nlohmann::json out = nlohmann::json::array();
   for (int i = 0; i < world.num_objects(); ++i) {
     const ObjectPose now = world.object_pose(i);
     const double tilt = object_tilt_degrees(initial[i], now);
     const auto z = world.object_z_range(i);
-    out.push_back({{"displacement", object_displacement(initial[i], now)},
-                   {"tilt_deg", tilt},
-                   {"toppled", tilt > 45.0},
-                   {"lifted", z[0] > 0.02 + (object_in_bin(world, i) ? 0.004 : 0.0)},
-                   {"in_bin", object_in_bin(world, i)},
-                   {"on_table", z[0] > -0.01 && std::fabs(now.pos[0]) < 0.55 && std::fabs(now.pos[1]) < 0.42}});
+    out.push_back(
+        {{"displacement", object_displacement(initial[i], now)},
+         {"tilt_deg", tilt},
+         {"toppled", tilt > 45.0},
+         {"lifted", z[0] > 0.02 + (object_in_bin(world, i) ? 0.004 : 0.0)},
+         {"in_bin", object_in_bin(world, i)},
+         {"on_table", z[0] > -0.01 && std::fabs(now.pos[0]) < 0.55 && std::fabs(now.pos[1]) < 0.42}});
   }
   return out;
 }

@@ -12,8 +12,8 @@
 namespace dojo::sim {
 
 // Speeds below which an object counts as resting.
-constexpr double kRestLinearSpeed = 0.05;   // m/s
-constexpr double kRestAngularSpeed = 0.8;   // rad/s
+constexpr double kRestLinearSpeed = 0.05;  // m/s
+constexpr double kRestAngularSpeed = 0.8;  // rad/s
 
 // How far above the rim an object's lowest point may be and still count as in the bin (an
 // object resting on top of another one inside the bin).

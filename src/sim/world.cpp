@@ -59,6 +59,8 @@ int require_id(const mjModel* m, int type, const std::string& name) {
 
 // Finger joint targets for a curl fraction (proximal, distal, thumb proximal, thumb distal).
 constexpr double kCurlJ1 = 1.35, kCurlJ2 = 1.5, kThumbJ1 = 1.0, kThumbJ2 = 0.7;
+// Grasp assist hysteresis on the commanded curl.
+constexpr double kGraspCurl = 0.5, kReleaseCurl = 0.35;
 
 // Relative pose of body b in the frame of body a: position and quaternion.
 void relative_pose(const mjData* d, int a, int b, mjtNum pos[3], mjtNum quat[4]) {
@@ -108,7 +110,8 @@ World::World(const SceneSpec& spec) : spec_(spec), id_(g_next_world_id.fetch_add
     root_body_ = require_id(m, mjOBJ_BODY, "hand");
     for (int g = 0; g < m->ngeom; ++g) {
       // The hand subtree: bodies whose root ancestor is the hand body.
-      if (m->body_rootid[m->geom_bodyid[g]] == root_body_ && m->geom_contype[g] != 0) effector_geoms_.push_back(g);
+      if (m->body_rootid[m->geom_bodyid[g]] == root_body_ && m->geom_contype[g] != 0)
+        effector_geoms_.push_back(g);
     }
     for (int i = 0; i < num_objects(); ++i) {
       weld_eq_.push_back(require_id(m, mjOBJ_EQUALITY, "grasp" + std::to_string(i)));
@@ -119,8 +122,8 @@ World::World(const SceneSpec& spec) : spec_(spec), id_(g_next_world_id.fetch_add
   }
   if (!spec_.initial_command.empty()) {
     DOJO_CHECK(static_cast<int>(spec_.initial_command.size()) == action_dim(),
-               "scene: initial_command has " + std::to_string(spec_.initial_command.size()) + " values, expected " +
-                   std::to_string(action_dim()));
+               "scene: initial_command has " + std::to_string(spec_.initial_command.size()) +
+                   " values, expected " + std::to_string(action_dim()));
     initial_command_ = spec_.initial_command;
   }
   initial_command_ = clamp_command(initial_command_);
@@ -258,20 +261,26 @@ void World::update_grasp_assist(const std::vector<double>& command) {
   mjModel* m = model_;
   const mjData* d = data_;
   const double curl = command[5];
-  if (grasped_ >= 0 && curl < 0.45) {
+  if (grasped_ >= 0 && curl < kReleaseCurl) {
     m->eq_active[weld_eq_[grasped_]] = 0;
     grasped_ = -1;
     return;
   }
-  if (grasped_ >= 0 || curl < 0.55) return;
+  if (grasped_ >= 0 || curl < kGraspCurl) return;
   int best = -1;
   double best_dist = 1e9;
+  const double palm_bottom = d->xpos[3 * root_body_ + 2] - 0.011;
   for (int i = 0; i < num_objects(); ++i) {
-    if (!touching(i)) continue;
+    // Touching the hand, or just below the palm: curling fingers on a flat object press on the
+    // table and lift the palm a few millimetres off it.
+    if (!touching(i) && object_z_range(i)[1] < palm_bottom - 0.015) continue;
     mjtNum local[3], quat[4];
     relative_pose(d, root_body_, object_body_[i], local, quat);
-    // Under the palm: within its footprint (with the fingers) and below it.
-    if (std::fabs(local[0]) > 0.07 || local[1] < -0.06 || local[1] > 0.11 || local[2] > 0.0 || local[2] < -0.1) continue;
+    // Under the palm, where the curled fingers and thumb close (not under the outstretched
+    // fingertips), and below it.
+    if (std::fabs(local[0]) > 0.06 || local[1] < -0.05 || local[1] > 0.065 || local[2] > 0.0 ||
+        local[2] < -0.1)
+      continue;
     const double dist = std::hypot(local[0], local[1] - 0.02);
     if (dist < best_dist) {
       best_dist = dist;
@@ -296,7 +305,8 @@ void World::step(const std::vector<double>& command_in) {
   DOJO_CHECK(static_cast<int>(command_in.size()) == action_dim(),
              "World::step: command has " + std::to_string(command_in.size()) + " values, expected " +
                  std::to_string(action_dim()));
-  for (double v : command_in) DOJO_CHECK(std::isfinite(v), "World::step: command contains a non-finite value");
+  for (double v : command_in)
+    DOJO_CHECK(std::isfinite(v), "World::step: command contains a non-finite value");
   const std::vector<double> command = clamp_command(command_in);
   update_grasp_assist(command);
   std::vector<double> from, to;
@@ -360,16 +370,20 @@ std::vector<double> World::effector_pose() const {
 
 Vec3 World::grasp_point() const {
   const mjData* d = data_;
-  if (grasp_site_ >= 0) return {d->site_xpos[3 * grasp_site_], d->site_xpos[3 * grasp_site_ + 1], d->site_xpos[3 * grasp_site_ + 2]};
+  if (grasp_site_ >= 0)
+    return {d->site_xpos[3 * grasp_site_], d->site_xpos[3 * grasp_site_ + 1],
+            d->site_xpos[3 * grasp_site_ + 2]};
   // Human: 3 cm below the palm centre, slightly toward the fingers.
   const mjtNum local[3] = {0.0, 0.015, -0.03};
   mjtNum world[3];
   mju_mulMatVec(world, d->xmat + 9 * root_body_, local, 3, 3);
-  return {d->xpos[3 * root_body_] + world[0], d->xpos[3 * root_body_ + 1] + world[1], d->xpos[3 * root_body_ + 2] + world[2]};
+  return {d->xpos[3 * root_body_] + world[0], d->xpos[3 * root_body_ + 1] + world[1],
+          d->xpos[3 * root_body_ + 2] + world[2]};
 }
 
 ObjectPose World::object_pose(int index) const {
-  DOJO_CHECK(index >= 0 && index < num_objects(), "World: object index " + std::to_string(index) + " out of range");
+  DOJO_CHECK(index >= 0 && index < num_objects(),
+             "World: object index " + std::to_string(index) + " out of range");
   const mjData* d = data_;
   const int b = object_body_[index];
   const int v = object_dof_[index];
@@ -390,7 +404,8 @@ std::vector<ObjectPose> World::object_poses() const {
 }
 
 std::array<double, 2> World::object_z_range(int index) const {
-  DOJO_CHECK(index >= 0 && index < num_objects(), "World: object index " + std::to_string(index) + " out of range");
+  DOJO_CHECK(index >= 0 && index < num_objects(),
+             "World: object index " + std::to_string(index) + " out of range");
   const mjModel* m = model_;
   const mjData* d = data_;
   const int body = object_body_[index];
@@ -402,14 +417,24 @@ std::array<double, 2> World::object_z_range(int index) const {
     const double ax = std::fabs(R[6]), ay = std::fabs(R[7]), az = std::fabs(R[8]);
     double extent = 0;
     switch (m->geom_type[g]) {
-      case mjGEOM_SPHERE: extent = size[0]; break;
-      case mjGEOM_CAPSULE: extent = az * size[1] + size[0]; break;
-      case mjGEOM_CYLINDER: extent = az * size[1] + size[0] * std::sqrt(std::max(0.0, 1 - az * az)); break;
+      case mjGEOM_SPHERE:
+        extent = size[0];
+        break;
+      case mjGEOM_CAPSULE:
+        extent = az * size[1] + size[0];
+        break;
+      case mjGEOM_CYLINDER:
+        extent = az * size[1] + size[0] * std::sqrt(std::max(0.0, 1 - az * az));
+        break;
       case mjGEOM_ELLIPSOID:
         extent = std::sqrt(std::pow(ax * size[0], 2) + std::pow(ay * size[1], 2) + std::pow(az * size[2], 2));
         break;
-      case mjGEOM_BOX: extent = ax * size[0] + ay * size[1] + az * size[2]; break;
-      default: extent = m->geom_rbound[g]; break;
+      case mjGEOM_BOX:
+        extent = ax * size[0] + ay * size[1] + az * size[2];
+        break;
+      default:
+        extent = m->geom_rbound[g];
+        break;
     }
     lo = std::min(lo, d->geom_xpos[3 * g + 2] - extent);
     hi = std::max(hi, d->geom_xpos[3 * g + 2] + extent);
@@ -418,7 +443,8 @@ std::array<double, 2> World::object_z_range(int index) const {
 }
 
 void World::set_object_pose(int index, const Vec3& pos, const std::array<double, 4>& quat) {
-  DOJO_CHECK(index >= 0 && index < num_objects(), "World: object index " + std::to_string(index) + " out of range");
+  DOJO_CHECK(index >= 0 && index < num_objects(),
+             "World: object index " + std::to_string(index) + " out of range");
   mjData* d = data_;
   const int q = object_qpos_[index];
   const int v = object_dof_[index];
@@ -438,7 +464,8 @@ bool World::touching(int index) const {
     int other = -1;
     if (m->geom_bodyid[g1] == body) other = g2;
     if (m->geom_bodyid[g2] == body) other = g1;
-    if (other >= 0 && std::find(effector_geoms_.begin(), effector_geoms_.end(), other) != effector_geoms_.end()) {
+    if (other >= 0 &&
+        std::find(effector_geoms_.begin(), effector_geoms_.end(), other) != effector_geoms_.end()) {
       return true;
     }
   }

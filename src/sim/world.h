@@ -11,12 +11,16 @@
 // (qfrc_applied = qfrc_bias each substep), so the position servos track without sag.
 //
 // Grasping. Robot grasps are purely frictional (finger pads squeeze the object). The human hand
-// has a grasp assist: when the commanded curl is >= 0.55 and an object touches the hand inside
+// has a grasp assist: when the commanded curl is >= 0.5 and an object touches the hand inside
 // the region under the palm, a weld equality fixes it to the hand at its current relative pose;
-// it is released when curl drops below 0.45. This keeps human pick/stack clips looking right
+// it is released when curl drops below 0.35. This keeps human pick/stack clips looking right
 // without a dexterous-hand controller; human clips carry no actions, so nothing learns from it.
 //
-// Thread-safety: a World is not thread-safe; different Worlds may be used on different threads.
+// Thread-safety: a World is not thread-safe; different Worlds may be used on different threads
+// (model compilation is serialized internally).
+//
+// Errors: the first World installs process-wide MuJoCo error/warning handlers that raise
+// dojo::Error / log a warning instead of exiting or writing MUJOCO_LOG.TXT.
 #pragma once
 
 #include <array>
@@ -32,10 +36,10 @@ struct mjData_;
 namespace dojo::sim {
 
 struct ObjectPose {
-  Vec3 pos{};                     // world position of the body frame (the object's centre)
-  std::array<double, 4> quat{};   // world orientation, MuJoCo order (w, x, y, z)
-  Vec3 linvel{};                  // world linear velocity, m/s
-  Vec3 angvel{};                  // angular velocity (body frame), rad/s
+  Vec3 pos{};                    // world position of the body frame (the object's centre)
+  std::array<double, 4> quat{};  // world orientation, MuJoCo order (w, x, y, z)
+  Vec3 linvel{};                 // world linear velocity, m/s
+  Vec3 angvel{};                 // angular velocity (body frame), rad/s
 };
 
 class World {
