@@ -42,7 +42,7 @@ CommandResult run_dojo(const std::string& args);
 }  // namespace dojo::test
 
 // GPU tests are named *_CUDA and start with this line, so they skip cleanly on CPU machines.
-#define DOJO_REQUIRE_CUDA()                                          \
-  do {                                                               \
+#define DOJO_REQUIRE_CUDA()                                                 \
+  do {                                                                      \
     if (!torch::cuda::is_available()) GTEST_SKIP() << "CUDA not available"; \
   } while (0)

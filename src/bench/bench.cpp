@@ -2,13 +2,13 @@
 
 #include <torch/torch.h>
 
+#include <unistd.h>
 #include <chrono>
 #include <cmath>
 #include <ctime>
+#include <filesystem>
 #include <nlohmann/json.hpp>
 #include <sstream>
-#include <unistd.h>
-#include <filesystem>
 
 #include "core/error.h"
 
@@ -64,7 +64,8 @@ const std::filesystem::path& scratch_dir() {
     std::filesystem::create_directories(d);
     std::atexit([] {
       std::error_code ec;
-      std::filesystem::remove_all(std::filesystem::temp_directory_path() / ("dojo_bench_" + std::to_string(::getpid())), ec);
+      std::filesystem::remove_all(
+          std::filesystem::temp_directory_path() / ("dojo_bench_" + std::to_string(::getpid())), ec);
     });
     return d;
   }();
@@ -141,7 +142,8 @@ BenchCase loader_case(int workers) {
       (void)sim::generate_dataset(dir, options);
     }
     auto mixture = std::make_shared<data::ClipMixture>();
-    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(dir), data::ClipConfig{}, "all"), 1.0);
+    mixture->add(
+        std::make_shared<data::ClipDataset>(data::EpisodeStore::open(dir), data::ClipConfig{}, "all"), 1.0);
     data::LoaderOptions options;
     options.batch_size = 4;
     options.workers = workers;
@@ -168,15 +170,17 @@ std::vector<BenchCase> builtin_cases(const BenchOptions& options) {
   if (!options.video_path.empty()) {
     const std::string path = options.video_path;
     const auto info = io::probe_video(path);
-    cases.push_back(decode_case("video_decode", [path] { return path; },
-                                std::filesystem::path(path).filename().string() + " " + info.codec + " " +
-                                    std::to_string(info.width) + "x" + std::to_string(info.height)));
+    cases.push_back(decode_case(
+        "video_decode", [path] { return path; },
+        std::filesystem::path(path).filename().string() + " " + info.codec + " " +
+            std::to_string(info.width) + "x" + std::to_string(info.height)));
   } else {
     cases.push_back(decode_case("video_decode", synthetic_clip, "synthetic h264 64x64, 96 frames"));
     const std::string camera_clip = "/usr/share/doc/opencv-doc/examples/data/vtest.avi";
     if (std::filesystem::exists(camera_clip))
-      cases.push_back(decode_case("video_decode_camera", [camera_clip] { return camera_clip; },
-                                  "opencv-doc vtest.avi mpeg4 768x576"));
+      cases.push_back(decode_case(
+          "video_decode_camera", [camera_clip] { return camera_clip; },
+          "opencv-doc vtest.avi mpeg4 768x576"));
   }
 #ifdef DOJO_WITH_SIM
   cases.push_back(sim_case("robot", 64, true));

@@ -9,8 +9,9 @@ namespace dojo::cli {
 
 void register_bench(CLI::App& app) {
   auto* cmd = app.add_subcommand(
-      "bench", "Measure throughput (matmul roofline, video decode, sim render, clip loading) and print a "
-               "markdown table of mean ± std over repeats after warm-up");
+      "bench",
+      "Measure throughput (matmul roofline, video decode, sim render, clip loading) and print a "
+      "markdown table of mean ± std over repeats after warm-up");
   auto options = std::make_shared<bench::BenchOptions>();
   auto json = std::make_shared<bool>(false);
   auto list = std::make_shared<bool>(false);
@@ -18,14 +19,16 @@ void register_bench(CLI::App& app) {
   cmd->add_option("--warmup", options->warmup, "Untimed warm-up runs per row")->capture_default_str();
   cmd->add_option("--device", options->device, "cpu, cuda, cuda:N or auto")->capture_default_str();
   cmd->add_option("--only", options->only, "Run only these rows (names from --list)");
-  cmd->add_option("--video", options->video_path, "Video file for the decode row (default: a generated clip)");
+  cmd->add_option("--video", options->video_path,
+                  "Video file for the decode row (default: a generated clip)");
   cmd->add_flag("--json", *json, "Print JSON instead of markdown");
   cmd->add_flag("--list", *list, "List the row names and exit");
   cmd->callback([=] {
     set_action([=] {
       const auto cases = bench::builtin_cases(*options);
       if (*list) {
-        for (const auto& c : cases) std::printf("%-24s %-16s %s\n", c.name.c_str(), c.unit.c_str(), c.params.c_str());
+        for (const auto& c : cases)
+          std::printf("%-24s %-16s %s\n", c.name.c_str(), c.unit.c_str(), c.params.c_str());
         return 0;
       }
       const auto rows = bench::run_cases(cases, *options);

@@ -41,8 +41,8 @@ void register_data(CLI::App& app) {
         std::printf("dataset      %s (%s)\n", info.name.c_str(), data::to_string(info.embodiment).c_str());
         std::printf("episodes     %zu, %lld frames at %.0f fps, %dx%d\n", info.episodes.size(),
                     static_cast<long long>(info.total_frames()), info.fps, info.height, info.width);
-        std::printf("actions      %d-d%s%s, state %d-d\n", info.action_dim, info.action_slot.empty() ? "" : " in slot ",
-                    info.action_slot.c_str(), info.state_dim);
+        std::printf("actions      %d-d%s%s, state %d-d\n", info.action_dim,
+                    info.action_slot.empty() ? "" : " in slot ", info.action_slot.c_str(), info.state_dim);
         for (const auto& [split, count] : info.split_counts())
           std::printf("split        %-18s %lld episodes\n", split.c_str(), static_cast<long long>(count));
       }
@@ -51,14 +51,16 @@ void register_data(CLI::App& app) {
   });
 
   auto* preview_cmd = data->add_subcommand(
-      "preview", "Write an mp4 showing several episodes side by side, labelled with their task, to look at a dataset");
+      "preview",
+      "Write an mp4 showing several episodes side by side, labelled with their task, to look at a dataset");
   auto preview_dir = std::make_shared<std::string>();
   auto preview_out = std::make_shared<std::string>();
   auto preview_count = std::make_shared<int>(4);
   auto preview_scale = std::make_shared<int>(2);
   preview_cmd->add_option("DIR", *preview_dir, "Dataset directory")->required();
   preview_cmd->add_option("--out,-o", *preview_out, "Output .mp4 path")->required();
-  preview_cmd->add_option("--episodes,-n", *preview_count, "How many episodes (the first N)")->capture_default_str();
+  preview_cmd->add_option("--episodes,-n", *preview_count, "How many episodes (the first N)")
+      ->capture_default_str();
   preview_cmd->add_option("--scale", *preview_scale, "Integer upscale of small frames (nearest neighbour)")
       ->check(CLI::Range(1, 8))
       ->capture_default_str();
@@ -84,7 +86,8 @@ void register_data(CLI::App& app) {
   });
 
   auto* check_cmd = data->add_subcommand(
-      "check", "Decode every episode and validate arrays (lengths, NaN, video frame counts); exit 1 on problems");
+      "check",
+      "Decode every episode and validate arrays (lengths, NaN, video frame counts); exit 1 on problems");
   auto check_dir = std::make_shared<std::string>();
   check_cmd->add_option("DIR", *check_dir, "Dataset directory")->required();
   check_cmd->callback([=] {

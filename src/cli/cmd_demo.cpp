@@ -1,12 +1,12 @@
 // `dojo demo`: the end-to-end job on the built-in world. It runs every stage of the pipeline
 // that exists, on DojoSim data small enough for a laptop CPU, and leaves files to look at.
+#include <torch/torch.h>
 #include <CLI/CLI.hpp>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <nlohmann/json.hpp>
-#include <torch/torch.h>
 
 #include "cli/commands.h"
 #include "core/atomic_file.h"
@@ -60,22 +60,28 @@ int run_demo(const DemoOptions& o) {
   robot.embodiment = "robot";
   robot.seed = o.seed + 1;
   const auto robot_summary = sim::generate_dataset(out / "robot", robot);
-  report["human"] = {{"episodes", o.episodes}, {"generated", human_summary.generated}, {"seconds", human_summary.seconds}};
+  report["human"] = {
+      {"episodes", o.episodes}, {"generated", human_summary.generated}, {"seconds", human_summary.seconds}};
   report["robot"] = {{"episodes", o.episodes},
                      {"generated", robot_summary.generated},
                      {"seconds", robot_summary.seconds},
                      {"mean_bin_success", robot_summary.mean_success}};
 
   // Stage 2: look at it.
-  LOG_INFO("[2/3] previews: ", (out / "preview_human.mp4").string(), ", ", (out / "preview_robot.mp4").string());
+  LOG_INFO("[2/3] previews: ", (out / "preview_human.mp4").string(), ", ",
+           (out / "preview_robot.mp4").string());
   write_preview(out / "human", out / "preview_human.mp4", 4);
   write_preview(out / "robot", out / "preview_robot.mp4", 4);
 
   // Stage 3: the clip pipeline every trainer consumes, as a 1:1 human/robot mixture.
   LOG_INFO("[3/3] clip pipeline: human:robot = 1:1 mixture, 13-frame clips, 384-d actions");
   auto mixture = std::make_shared<data::ClipMixture>();
-  mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "human"), data::ClipConfig{}, "all"), 1.0);
-  mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "robot"), data::ClipConfig{}, "train"), 1.0);
+  mixture->add(
+      std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "human"), data::ClipConfig{}, "all"),
+      1.0);
+  mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "robot"),
+                                                   data::ClipConfig{}, "train"),
+               1.0);
   data::LoaderOptions loader_options;
   loader_options.batch_size = 4;
   loader_options.workers = 2;
@@ -102,15 +108,17 @@ int run_demo(const DemoOptions& o) {
 
   std::printf("\nDreamDojo.cpp demo finished in %.1f s. Outputs in %s/\n", report["seconds"].get<double>(),
               out.string().c_str());
-  std::printf("  human/, robot/          DojoSim datasets (%d episodes each, %d frames, 64x64, 10 Hz)\n", o.episodes,
-              o.frames);
+  std::printf("  human/, robot/          DojoSim datasets (%d episodes each, %d frames, 64x64, 10 Hz)\n",
+              o.episodes, o.frames);
   std::printf("  preview_*.mp4           episodes side by side: open them in a browser or video player\n");
   if (!std::isnan(robot_summary.mean_success))
-    std::printf("  robot bin-task success  %.2f (scripted policies of mixed quality)\n", robot_summary.mean_success);
-  std::printf("  clip batches            video %s uint8, actions %s (%d robot / %d human clips, %.1f clips/s)\n",
-              nlohmann::json(batch.video.sizes().vec()).dump().c_str(),
-              nlohmann::json(batch.actions.sizes().vec()).dump().c_str(), with_actions, clips - with_actions,
-              clips / loader_seconds);
+    std::printf("  robot bin-task success  %.2f (scripted policies of mixed quality)\n",
+                robot_summary.mean_success);
+  std::printf(
+      "  clip batches            video %s uint8, actions %s (%d robot / %d human clips, %.1f clips/s)\n",
+      nlohmann::json(batch.video.sizes().vec()).dump().c_str(),
+      nlohmann::json(batch.actions.sizes().vec()).dump().c_str(), with_actions, clips - with_actions,
+      clips / loader_seconds);
   std::printf("  demo.json               this summary as JSON\n");
   std::printf("Re-running resumes: finished episodes are reused.\n");
   return 0;
@@ -119,16 +127,21 @@ int run_demo(const DemoOptions& o) {
 }  // namespace
 
 void register_demo(CLI::App& app) {
-  auto* cmd = app.add_subcommand(
-      "demo",
-      "Run the pipeline end to end on the built-in DojoSim world: generate human and robot episodes, write preview "
-      "videos, and draw training clips through the clip pipeline");
+  auto* cmd = app.add_subcommand("demo",
+                                 "Run the pipeline end to end on the built-in DojoSim world: generate human "
+                                 "and robot episodes, write preview "
+                                 "videos, and draw training clips through the clip pipeline");
   auto o = std::make_shared<DemoOptions>();
   cmd->add_option("--out,-o", o->out, "Output directory")->capture_default_str();
-  cmd->add_option("--episodes,-n", o->episodes, "Episodes per embodiment")->check(CLI::Range(1, 100000))->capture_default_str();
-  cmd->add_option("--frames", o->frames, "Frames per episode (10 Hz)")->check(CLI::Range(14, 100000))->capture_default_str();
+  cmd->add_option("--episodes,-n", o->episodes, "Episodes per embodiment")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
+  cmd->add_option("--frames", o->frames, "Frames per episode (10 Hz)")
+      ->check(CLI::Range(14, 100000))
+      ->capture_default_str();
   cmd->add_option("--seed", o->seed, "Random seed")->capture_default_str();
-  cmd->add_option("--workers,-j", o->workers, "Parallel generation workers (0 = all cores)")->capture_default_str();
+  cmd->add_option("--workers,-j", o->workers, "Parallel generation workers (0 = all cores)")
+      ->capture_default_str();
   cmd->callback([o] { set_action([o] { return run_demo(*o); }); });
 }
 

@@ -1,9 +1,9 @@
+#include <torch/torch.h>
 #include <CLI/CLI.hpp>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <nlohmann/json.hpp>
-#include <torch/torch.h>
 
 #include "cli/commands.h"
 #include "core/error.h"
@@ -32,10 +32,11 @@ std::string join(const std::vector<std::string>& items) {
 }
 
 void add_generate(CLI::App& sim) {
-  auto* cmd = sim.add_subcommand(
-      "generate",
-      "Generate a DojoSim dataset (mp4 + actions/states + meta per episode, info.json with statistics and splits). "
-      "Deterministic for a seed; re-running the same command resumes an interrupted run.");
+  auto* cmd =
+      sim.add_subcommand("generate",
+                         "Generate a DojoSim dataset (mp4 + actions/states + meta per episode, info.json "
+                         "with statistics and splits). "
+                         "Deterministic for a seed; re-running the same command resumes an interrupted run.");
   auto o = std::make_shared<sim::GenerateOptions>();
   auto out = std::make_shared<std::string>();
   auto size = std::make_shared<std::string>("64x64");
@@ -44,18 +45,22 @@ void add_generate(CLI::App& sim) {
   cmd->add_option("--embodiment", o->embodiment, "human (action-free video) or robot (joint actions)")
       ->check(CLI::IsMember({"human", "robot"}))
       ->capture_default_str();
-  cmd->add_option("--split", o->split, "train | " + join({"ood-objects", "counterfactual", "novel-background", "long-horizon"}) +
-                                           " (robot evaluation splits)")
+  cmd->add_option("--split", o->split,
+                  "train | " + join({"ood-objects", "counterfactual", "novel-background", "long-horizon"}) +
+                      " (robot evaluation splits)")
       ->capture_default_str();
   cmd->add_option("--episodes,-n", o->episodes, "Number of episodes")->capture_default_str();
-  cmd->add_option("--frames", o->frames, "Frames per episode at 10 Hz (0 = split default: 64, long-horizon 600)")
+  cmd->add_option("--frames", o->frames,
+                  "Frames per episode at 10 Hz (0 = split default: 64, long-horizon 600)")
       ->capture_default_str();
   cmd->add_option("--size", *size, "Frame size HEIGHTxWIDTH")->capture_default_str();
   cmd->add_option("--seed", o->seed, "Random seed: same seed, same bytes")->capture_default_str();
-  cmd->add_option("--workers,-j", o->workers, "Parallel episode workers (0 = all cores)")->capture_default_str();
+  cmd->add_option("--workers,-j", o->workers, "Parallel episode workers (0 = all cores)")
+      ->capture_default_str();
   cmd->add_option("--val-fraction", o->val_fraction, "Robot train split: share of episodes marked 'val'")
       ->capture_default_str();
-  cmd->add_option("--skills", o->skills, "Human: restrict to these skills (push, poke, pat, sweep, pick_place, ...)");
+  cmd->add_option("--skills", o->skills,
+                  "Human: restrict to these skills (push, poke, pat, sweep, pick_place, ...)");
   cmd->add_option("--quality", o->quality, "Robot bin policy: expert, good, medium, poor (default: a mix)");
   cmd->add_flag("--json", *json, "Print the summary as JSON");
   cmd->callback([=] {
@@ -64,20 +69,22 @@ void add_generate(CLI::App& sim) {
       o->height = h;
       o->width = w;
       const auto summary = sim::generate_dataset(*out, *o);
-      nlohmann::json j = {{"out", *out},
-                          {"generated", summary.generated},
-                          {"reused", summary.reused},
-                          {"frames", summary.frames},
-                          {"seconds", summary.seconds},
-                          {"frames_per_second", summary.seconds > 0 ? summary.frames / summary.seconds : 0.0}};
+      nlohmann::json j = {
+          {"out", *out},
+          {"generated", summary.generated},
+          {"reused", summary.reused},
+          {"frames", summary.frames},
+          {"seconds", summary.seconds},
+          {"frames_per_second", summary.seconds > 0 ? summary.frames / summary.seconds : 0.0}};
       if (!std::isnan(summary.mean_success)) j["mean_success"] = summary.mean_success;
       if (*json) {
         std::printf("%s\n", j.dump(2).c_str());
       } else {
-        std::printf("%s: %d episodes generated, %d reused, %lld frames in %.1f s (%.1f frames/s)\n", out->c_str(),
-                    summary.generated, summary.reused, static_cast<long long>(summary.frames), summary.seconds,
-                    summary.seconds > 0 ? summary.frames / summary.seconds : 0.0);
-        if (!std::isnan(summary.mean_success)) std::printf("mean bin-task success: %.3f\n", summary.mean_success);
+        std::printf("%s: %d episodes generated, %d reused, %lld frames in %.1f s (%.1f frames/s)\n",
+                    out->c_str(), summary.generated, summary.reused, static_cast<long long>(summary.frames),
+                    summary.seconds, summary.seconds > 0 ? summary.frames / summary.seconds : 0.0);
+        if (!std::isnan(summary.mean_success))
+          std::printf("mean bin-task success: %.3f\n", summary.mean_success);
       }
       return 0;
     });
@@ -85,7 +92,8 @@ void add_generate(CLI::App& sim) {
 }
 
 void add_render(CLI::App& sim) {
-  auto* cmd = sim.add_subcommand("render", "Run one episode and write it as an mp4 (and optionally PNG frames) to look at");
+  auto* cmd = sim.add_subcommand(
+      "render", "Run one episode and write it as an mp4 (and optionally PNG frames) to look at");
   auto embodiment = std::make_shared<std::string>("robot");
   auto out = std::make_shared<std::string>();
   auto size = std::make_shared<std::string>("240x320");
@@ -93,13 +101,17 @@ void add_render(CLI::App& sim) {
   auto steps = std::make_shared<int>(64);
   auto behavior = std::make_shared<std::string>("bin_pick");
   auto quality = std::make_shared<std::string>("expert");
-  cmd->add_option("--embodiment", *embodiment, "human or robot")->check(CLI::IsMember({"human", "robot"}))->capture_default_str();
+  cmd->add_option("--embodiment", *embodiment, "human or robot")
+      ->check(CLI::IsMember({"human", "robot"}))
+      ->capture_default_str();
   cmd->add_option("--out,-o", *out, "Output .mp4 path")->required();
   cmd->add_option("--size", *size, "Frame size HEIGHTxWIDTH")->capture_default_str();
   cmd->add_option("--seed", *seed, "Scene and controller seed")->capture_default_str();
   cmd->add_option("--steps", *steps, "Control steps (frames) at 10 Hz")->capture_default_str();
-  cmd->add_option("--behavior", *behavior, "Robot: bin_pick, pat, reach_miss, push, random_motion")->capture_default_str();
-  cmd->add_option("--quality", *quality, "Robot bin policy: expert, good, medium, poor")->capture_default_str();
+  cmd->add_option("--behavior", *behavior, "Robot: bin_pick, pat, reach_miss, push, random_motion")
+      ->capture_default_str();
+  cmd->add_option("--quality", *quality, "Robot bin policy: expert, good, medium, poor")
+      ->capture_default_str();
   cmd->callback([=] {
     set_action([=] {
       const auto [h, w] = parse_size(*size);
@@ -136,7 +148,8 @@ void add_render(CLI::App& sim) {
 }  // namespace
 
 void register_sim(CLI::App& app) {
-  auto* sim = app.add_subcommand("sim", "DojoSim: the built-in MuJoCo tabletop world (human hand and robot arm)");
+  auto* sim =
+      app.add_subcommand("sim", "DojoSim: the built-in MuJoCo tabletop world (human hand and robot arm)");
   sim->require_subcommand(1);
   add_generate(*sim);
   add_render(*sim);

@@ -18,8 +18,8 @@ void register_version(CLI::App& app) {
         std::printf("%s\n", info.dump(2).c_str());
       } else {
         for (const auto& [key, value] : info.items())
-          std::printf("%-18s %s\n", key.c_str(), value.is_string() ? value.get<std::string>().c_str()
-                                                                   : value.dump().c_str());
+          std::printf("%-18s %s\n", key.c_str(),
+                      value.is_string() ? value.get<std::string>().c_str() : value.dump().c_str());
       }
       return 0;
     });

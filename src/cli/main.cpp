@@ -1,7 +1,7 @@
 // The `dojo` command: parse, apply global options, run one subcommand inside an error boundary.
+#include <torch/torch.h>
 #include <CLI/CLI.hpp>
 #include <cstdio>
-#include <torch/torch.h>
 
 #include "cli/commands.h"
 #include "core/error.h"

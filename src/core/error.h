@@ -22,7 +22,7 @@ class UsageError : public Error {
 }  // namespace dojo
 
 // Throws dojo::Error(message) when cond is false. message may use operator+ on strings.
-#define DOJO_CHECK(cond, message)          \
-  do {                                     \
+#define DOJO_CHECK(cond, message)              \
+  do {                                         \
     if (!(cond)) throw ::dojo::Error(message); \
   } while (0)

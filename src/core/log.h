@@ -24,10 +24,10 @@ std::string concat(const Args&... args) {
 
 }  // namespace dojo
 
-#define DOJO_LOG(level, ...)                                                   \
-  do {                                                                         \
-    if (static_cast<int>(level) >= static_cast<int>(::dojo::log_level()))      \
-      ::dojo::log_message(level, ::dojo::detail::concat(__VA_ARGS__));         \
+#define DOJO_LOG(level, ...)                                              \
+  do {                                                                    \
+    if (static_cast<int>(level) >= static_cast<int>(::dojo::log_level())) \
+      ::dojo::log_message(level, ::dojo::detail::concat(__VA_ARGS__));    \
   } while (0)
 #define LOG_DEBUG(...) DOJO_LOG(::dojo::LogLevel::kDebug, __VA_ARGS__)
 #define LOG_INFO(...) DOJO_LOG(::dojo::LogLevel::kInfo, __VA_ARGS__)

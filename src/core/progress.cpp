@@ -83,8 +83,8 @@ void Progress::draw(bool force) {
                  format_duration(eta).c_str(), note_.c_str());
     std::fflush(stderr);
   } else {
-    LOG_INFO(label_, ": ", done_, "/", total_, " ", unit_, ", ", rate_text, ", ETA ",
-             format_duration(eta), note_.empty() ? "" : ", ", note_);
+    LOG_INFO(label_, ": ", done_, "/", total_, " ", unit_, ", ", rate_text, ", ETA ", format_duration(eta),
+             note_.empty() ? "" : ", ", note_);
   }
 }
 
@@ -95,8 +95,8 @@ void Progress::finish() {
   if (tty_ && done_ > 0) std::fprintf(stderr, "\n");
   char rate[48];
   std::snprintf(rate, sizeof rate, "%.2f", elapsed > 0 ? done_ / elapsed : 0.0);
-  LOG_INFO(label_, ": done ", done_, " ", unit_, " in ", format_duration(elapsed), " (", rate,
-           " ", unit_, "/s)", note_.empty() ? "" : ", ", note_);
+  LOG_INFO(label_, ": done ", done_, " ", unit_, " in ", format_duration(elapsed), " (", rate, " ", unit_,
+           "/s)", note_.empty() ? "" : ", ", note_);
 }
 
 }  // namespace dojo

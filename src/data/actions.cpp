@@ -10,9 +10,9 @@
 namespace dojo::data {
 
 const std::vector<ActionSlot>& all_slots() {
-  static const std::vector<ActionSlot> list = {slots::kGr1,   slots::kGr1Retargeted, slots::kG1,
-                                               slots::kYam,   slots::kAgibot,        slots::kDojoSimRobot,
-                                               slots::kMano,  slots::kLatent};
+  static const std::vector<ActionSlot> list = {slots::kGr1,  slots::kGr1Retargeted, slots::kG1,
+                                               slots::kYam,  slots::kAgibot,        slots::kDojoSimRobot,
+                                               slots::kMano, slots::kLatent};
   return list;
 }
 
@@ -87,8 +87,8 @@ namespace {
 std::pair<torch::Tensor, torch::Tensor> min_range(const ArrayStats& stats, int64_t dim) {
   DOJO_CHECK(stats.dim() == dim, "action width " + std::to_string(dim) + " does not match statistics width " +
                                      std::to_string(stats.dim()));
-  const auto lo = torch::tensor(stats.min);                                        // [D]
-  const auto range = torch::tensor(stats.max) - lo;                                // [D]
+  const auto lo = torch::tensor(stats.min);          // [D]
+  const auto range = torch::tensor(stats.max) - lo;  // [D]
   return {lo, range};
 }
 }  // namespace
@@ -99,13 +99,13 @@ at::Tensor normalize_min_max(const at::Tensor& actions, const ArrayStats& stats)
   const auto constant = range.le(0);
   // Dimensions that never move carry no information: pin them at 0 rather than divide by 0.
   const auto safe_range = torch::where(constant, torch::ones_like(range), range);
-  const auto normalized = 2.0 * (x - lo) / safe_range - 1.0;                     // [T, D]
+  const auto normalized = 2.0 * (x - lo) / safe_range - 1.0;  // [T, D]
   return torch::where(constant, torch::zeros_like(normalized), normalized);
 }
 
 at::Tensor denormalize_min_max(const at::Tensor& normalized, const ArrayStats& stats) {
   const auto [lo, range] = min_range(stats, normalized.size(-1));
-  return (normalized.to(torch::kFloat32) + 1.0) * 0.5 * range + lo;               // [T, D]
+  return (normalized.to(torch::kFloat32) + 1.0) * 0.5 * range + lo;  // [T, D]
 }
 
 at::Tensor chunk_relative(const at::Tensor& actions, int chunk) {
@@ -117,10 +117,10 @@ at::Tensor chunk_relative(const at::Tensor& actions, int chunk) {
   // the action after the clip's final frame, which no frame of the clip shows the effect of.
   const int64_t n = (actions.size(0) - 1) / chunk;
   const int64_t d = actions.size(1);
-  const auto body = actions.slice(0, 1, 1 + n * chunk).reshape({n, chunk, d});     // [n, chunk, D]
+  const auto body = actions.slice(0, 1, 1 + n * chunk).reshape({n, chunk, d});  // [n, chunk, D]
   // Baseline of chunk k is row chunk*k of the input (the last row before the chunk).
-  const auto baselines = actions.slice(0, 0, n * chunk, chunk).unsqueeze(1);      // [n, 1, D]
-  return (body - baselines).reshape({n * chunk, d});                               // [n*chunk, D]
+  const auto baselines = actions.slice(0, 0, n * chunk, chunk).unsqueeze(1);  // [n, 1, D]
+  return (body - baselines).reshape({n * chunk, d});                          // [n*chunk, D]
 }
 
 at::Tensor place_in_slot(const at::Tensor& actions, const ActionSlot& slot) {
@@ -134,7 +134,7 @@ at::Tensor place_in_slot(const at::Tensor& actions, const ActionSlot& slot) {
 }
 
 at::Tensor human_action_placeholder(int64_t rows) {
-  auto out = torch::zeros({rows, kUnifiedActionDim}, torch::kFloat32);             // [T, 384]
+  auto out = torch::zeros({rows, kUnifiedActionDim}, torch::kFloat32);  // [T, 384]
   out.slice(1, slots::kLatent.begin, slots::kLatent.end).fill_(1.0);
   return out;
 }

@@ -22,7 +22,8 @@ ClipDataset::ClipDataset(EpisodeStore store, ClipConfig config, const std::strin
     : store_(std::move(store)), config_(std::move(config)), skip_bad_(skip_bad) {
   const auto& info = store_.info();
   if (info.embodiment == Embodiment::kRobot) {
-    DOJO_CHECK(info.action_stats.has_value(), store_.dir().string() + ": robot dataset has no action statistics");
+    DOJO_CHECK(info.action_stats.has_value(),
+               store_.dir().string() + ": robot dataset has no action statistics");
     DOJO_CHECK(!info.action_slot.empty(), store_.dir().string() + ": robot dataset names no action_slot");
   }
   int64_t total = 0;
@@ -36,7 +37,8 @@ ClipDataset::ClipDataset(EpisodeStore store, ClipConfig config, const std::strin
     total += windows;
     cumulative_.push_back(total);
   }
-  DOJO_CHECK(!episodes_.empty(), store_.dir().string() + ": split '" + split + "' has no episode long enough for a " +
+  DOJO_CHECK(!episodes_.empty(), store_.dir().string() + ": split '" + split +
+                                     "' has no episode long enough for a " +
                                      std::to_string(config_.num_frames) + "-frame clip");
 }
 
@@ -48,33 +50,34 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
   clip.episode = episode;
   clip.window = window;
   const int64_t frames = info.episodes[episode].frames;
-  DOJO_CHECK(window.steps.back() < frames, where + ": clip window ends at " + std::to_string(window.steps.back()) +
-                                               " beyond " + std::to_string(frames) + " frames");
+  DOJO_CHECK(window.steps.back() < frames, where + ": clip window ends at " +
+                                               std::to_string(window.steps.back()) + " beyond " +
+                                               std::to_string(frames) + " frames");
 
   EpisodeData arrays = store_.load_arrays(episode);
-  const auto steps = torch::tensor(window.steps, torch::kLong);                     // [T + 1]
+  const auto steps = torch::tensor(window.steps, torch::kLong);  // [T + 1]
   {
     // One decoding thread per reader: the loader's parallelism comes from its workers.
     io::VideoReaderOptions reader_options;
     reader_options.threads = 1;
     io::VideoReader reader(store_.video_path(episode).string(), reader_options);
-    const auto raw = reader.read_frames(window.frame_indices());                    // [T, h, w, 3] u8
-    clip.video = io::resize_center_crop(raw, config_.height, config_.width);        // [T, H, W, 3] u8
+    const auto raw = reader.read_frames(window.frame_indices());              // [T, h, w, 3] u8
+    clip.video = io::resize_center_crop(raw, config_.height, config_.width);  // [T, H, W, 3] u8
   }
   const int64_t rows = config_.num_frames - 1;
   if (info.embodiment == Embodiment::kRobot) {
-    const auto absolute = arrays.actions.index_select(0, steps);                    // [T + 1, A]
-    const auto normalized = normalize_min_max(absolute, *info.action_stats);        // [T + 1, A]
-    const auto relative = chunk_relative(normalized, config_.action_chunk);         // [T - 1, A]
+    const auto absolute = arrays.actions.index_select(0, steps);              // [T + 1, A]
+    const auto normalized = normalize_min_max(absolute, *info.action_stats);  // [T + 1, A]
+    const auto relative = chunk_relative(normalized, config_.action_chunk);   // [T - 1, A]
     DOJO_CHECK(relative.size(0) == rows, where + ": clip length " + std::to_string(config_.num_frames) +
                                              " - 1 is not a multiple of the action chunk");
-    clip.actions = place_in_slot(relative, slot_by_name(info.action_slot));         // [T - 1, 384]
+    clip.actions = place_in_slot(relative, slot_by_name(info.action_slot));  // [T - 1, 384]
     clip.has_actions = true;
   } else {
-    clip.actions = human_action_placeholder(rows);                                  // [T - 1, 384]
+    clip.actions = human_action_placeholder(rows);  // [T - 1, 384]
   }
   if (arrays.hidden_motion.defined())
-    clip.hidden_motion = arrays.hidden_motion.index_select(0, steps.slice(0, 1));   // [T, M]
+    clip.hidden_motion = arrays.hidden_motion.index_select(0, steps.slice(0, 1));  // [T, M]
   return clip;
 }
 
@@ -111,8 +114,9 @@ void ClipMixture::add(std::shared_ptr<ClipDataset> dataset, double weight) {
   if (!datasets_.empty()) {
     const auto& a = datasets_.front()->config();
     const auto& b = dataset->config();
-    DOJO_CHECK(a.num_frames == b.num_frames && a.height == b.height && a.width == b.width,
-               dataset->store().dir().string() + ": clip geometry differs from the other datasets of the mixture");
+    DOJO_CHECK(
+        a.num_frames == b.num_frames && a.height == b.height && a.width == b.width,
+        dataset->store().dir().string() + ": clip geometry differs from the other datasets of the mixture");
   }
   datasets_.push_back(std::move(dataset));
   weights_.push_back(weight);
@@ -145,13 +149,14 @@ Batch collate(const std::vector<Clip>& clips) {
     has.push_back(c.has_actions ? 1 : 0);
     batch.datasets.push_back(c.dataset);
   }
-  batch.video = torch::stack(videos);                                                // [B, T, H, W, 3]
-  batch.actions = torch::stack(actions);                                             // [B, T - 1, 384]
+  batch.video = torch::stack(videos);     // [B, T, H, W, 3]
+  batch.actions = torch::stack(actions);  // [B, T - 1, 384]
   batch.has_actions = torch::tensor(std::vector<int64_t>(has.begin(), has.end())).to(torch::kBool);  // [B]
   return batch;
 }
 
-PrefetchLoader::PrefetchLoader(std::shared_ptr<const ClipMixture> mixture, LoaderOptions options, int64_t first_batch)
+PrefetchLoader::PrefetchLoader(std::shared_ptr<const ClipMixture> mixture, LoaderOptions options,
+                               int64_t first_batch)
     : mixture_(std::move(mixture)),
       options_(options),
       next_to_make_(first_batch),
@@ -178,7 +183,8 @@ void PrefetchLoader::worker_loop() {
     int64_t index;
     {
       std::unique_lock<std::mutex> lock(mutex_);
-      space_cv_.wait(lock, [&] { return stop_ || next_to_make_ < next_to_return_ + options_.prefetch_batches; });
+      space_cv_.wait(lock,
+                     [&] { return stop_ || next_to_make_ < next_to_return_ + options_.prefetch_batches; });
       if (stop_) return;
       index = next_to_make_++;
     }

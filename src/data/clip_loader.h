@@ -25,10 +25,10 @@
 namespace dojo::data {
 
 struct Clip {
-  at::Tensor video;           // [T, H, W, 3] uint8, T = num_frames
-  at::Tensor actions;         // [T - 1, 384] float32 unified action rows
-  at::Tensor hidden_motion;   // [T, M] float32 ground-truth motion at the frames, or undefined
-  bool has_actions = false;   // false for action-free (human) video: the latent slot holds the mask
+  at::Tensor video;          // [T, H, W, 3] uint8, T = num_frames
+  at::Tensor actions;        // [T - 1, 384] float32 unified action rows
+  at::Tensor hidden_motion;  // [T, M] float32 ground-truth motion at the frames, or undefined
+  bool has_actions = false;  // false for action-free (human) video: the latent slot holds the mask
   std::string dataset;
   size_t episode = 0;
   ClipWindow window;
@@ -38,7 +38,8 @@ struct Clip {
 class ClipDataset {
  public:
   // `skip_bad`: a broken episode is skipped and counted instead of failing the run.
-  ClipDataset(EpisodeStore store, ClipConfig config, const std::string& split = "train", bool skip_bad = false);
+  ClipDataset(EpisodeStore store, ClipConfig config, const std::string& split = "train",
+              bool skip_bad = false);
 
   const EpisodeStore& store() const { return store_; }
   const ClipConfig& config() const { return config_; }
@@ -55,8 +56,8 @@ class ClipDataset {
  private:
   EpisodeStore store_;
   ClipConfig config_;
-  std::vector<size_t> episodes_;      // usable episode indices of the split
-  std::vector<int64_t> cumulative_;   // cumulative window counts, for length-weighted sampling
+  std::vector<size_t> episodes_;     // usable episode indices of the split
+  std::vector<int64_t> cumulative_;  // cumulative window counts, for length-weighted sampling
   bool skip_bad_;
   mutable std::mutex bad_mutex_;
   mutable std::set<size_t> bad_;
@@ -77,11 +78,11 @@ class ClipMixture {
 };
 
 struct Batch {
-  at::Tensor video;          // [B, T, H, W, 3] uint8
-  at::Tensor actions;        // [B, T - 1, 384] float32
-  at::Tensor has_actions;    // [B] bool
+  at::Tensor video;        // [B, T, H, W, 3] uint8
+  at::Tensor actions;      // [B, T - 1, 384] float32
+  at::Tensor has_actions;  // [B] bool
   std::vector<std::string> datasets;
-  int64_t index = 0;         // position in the stream
+  int64_t index = 0;  // position in the stream
 };
 
 // Stacks clips into a batch.

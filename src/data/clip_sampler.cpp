@@ -27,7 +27,8 @@ uint64_t uniform_index(std::mt19937_64& rng, uint64_t n) {
   return x % n;
 }
 
-std::optional<ClipWindow> sample_window(int64_t episode_frames, const ClipConfig& config, std::mt19937_64& rng) {
+std::optional<ClipWindow> sample_window(int64_t episode_frames, const ClipConfig& config,
+                                        std::mt19937_64& rng) {
   std::vector<int> feasible;
   for (int stride : config.strides)
     if (window_fits(episode_frames, stride, config.num_frames)) feasible.push_back(stride);

@@ -11,10 +11,10 @@
 namespace dojo::data {
 
 struct ClipConfig {
-  int num_frames = 13;                   // 1 conditioning frame + 12 predicted
+  int num_frames = 13;  // 1 conditioning frame + 12 predicted
   std::vector<int> strides = {1, 2, 3, 4};
-  int action_chunk = 4;                  // actions per latent frame (the VAE's temporal factor)
-  int height = 64;                       // output size after centre crop + resize
+  int action_chunk = 4;  // actions per latent frame (the VAE's temporal factor)
+  int height = 64;       // output size after centre crop + resize
   int width = 64;
 };
 
@@ -40,7 +40,8 @@ uint64_t uniform_index(std::mt19937_64& rng, uint64_t n);
 
 // Picks a stride uniformly among those that fit, then a start uniformly among valid starts.
 // Returns nothing when the episode is too short for every stride.
-std::optional<ClipWindow> sample_window(int64_t episode_frames, const ClipConfig& config, std::mt19937_64& rng);
+std::optional<ClipWindow> sample_window(int64_t episode_frames, const ClipConfig& config,
+                                        std::mt19937_64& rng);
 
 // Every window of one stride, start advancing by `hop` (evaluation enumerates these).
 std::vector<ClipWindow> all_windows(int64_t episode_frames, int stride, int num_frames, int64_t hop);

@@ -71,7 +71,8 @@ void write_episode(const fs::path& dir, const EpisodeData& episode, double fps) 
     io::write_video((tmp / "video.mp4").string(), episode.frames, options);
   }
   NamedTensors arrays;
-  if (episode.actions.defined()) arrays.emplace_back("action", episode.actions.to(torch::kFloat32).contiguous());
+  if (episode.actions.defined())
+    arrays.emplace_back("action", episode.actions.to(torch::kFloat32).contiguous());
   if (episode.states.defined()) arrays.emplace_back("state", episode.states.to(torch::kFloat32).contiguous());
   if (episode.hidden_motion.defined())
     arrays.emplace_back("hidden_motion", episode.hidden_motion.to(torch::kFloat32).contiguous());
@@ -136,7 +137,8 @@ DatasetInfo DatasetInfo::from_json(const nlohmann::json& j, const std::string& w
     if (j.value("format", "") != "dojo-episodes")
       throw Error(where + ": field 'format' must be \"dojo-episodes\"");
     info.name = j.value("name", "");
-    info.embodiment = embodiment_from_string(j.at("embodiment").get<std::string>(), where + ": field 'embodiment'");
+    info.embodiment =
+        embodiment_from_string(j.at("embodiment").get<std::string>(), where + ": field 'embodiment'");
     info.action_slot = j.value("action_slot", "");
     if (!info.action_slot.empty()) (void)slot_by_name(info.action_slot);
     info.fps = j.at("fps").get<double>();
@@ -148,8 +150,10 @@ DatasetInfo DatasetInfo::from_json(const nlohmann::json& j, const std::string& w
     info.state_names = j.value("state_names", std::vector<std::string>{});
     if (j.contains("stats")) {
       const auto& stats = j.at("stats");
-      if (stats.contains("action")) info.action_stats = ArrayStats::from_json(stats.at("action"), where + ": stats.action");
-      if (stats.contains("state")) info.state_stats = ArrayStats::from_json(stats.at("state"), where + ": stats.state");
+      if (stats.contains("action"))
+        info.action_stats = ArrayStats::from_json(stats.at("action"), where + ": stats.action");
+      if (stats.contains("state"))
+        info.state_stats = ArrayStats::from_json(stats.at("state"), where + ": stats.state");
     }
     info.generator = j.value("generator", nlohmann::json::object());
     for (const auto& e : j.at("episodes")) {

@@ -44,9 +44,9 @@ void write_episode(const std::filesystem::path& dir, const EpisodeData& episode,
 
 // One row of info.json's episode table.
 struct EpisodeEntry {
-  std::string id;      // directory name under episodes/
+  std::string id;  // directory name under episodes/
   int64_t frames = 0;
-  std::string split;   // "train", "val", "ood_objects", ...
+  std::string split;  // "train", "val", "ood_objects", ...
   std::string task;
 };
 

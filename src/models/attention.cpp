@@ -27,7 +27,7 @@ at::Tensor causal_keep_mask(int64_t lq, int64_t lk, const at::Device& device) {
 at::Tensor attention_math(const at::Tensor& q, const at::Tensor& k, const at::Tensor& v,
                           const std::optional<at::Tensor>& mask, bool causal, std::optional<double> scale) {
   const double s = scale.value_or(1.0 / std::sqrt(static_cast<double>(q.size(-1))));
-  auto scores = torch::matmul(q, k.transpose(-2, -1)) * s;                          // [..., Lq, Lk]
+  auto scores = torch::matmul(q, k.transpose(-2, -1)) * s;  // [..., Lq, Lk]
   if (mask.has_value()) {
     if (mask->scalar_type() == torch::kBool)
       scores = scores.masked_fill(mask->logical_not(), -std::numeric_limits<float>::infinity());
@@ -40,7 +40,7 @@ at::Tensor attention_math(const at::Tensor& q, const at::Tensor& k, const at::Te
   }
   // Softmax in float32 even for half inputs: the row sums lose too much in bf16.
   const auto probs = torch::softmax(scores.to(torch::kFloat32), -1).to(v.scalar_type());  // [..., Lq, Lk]
-  return torch::matmul(probs, v);                                                   // [..., Lq, Dv]
+  return torch::matmul(probs, v);                                                         // [..., Lq, Dv]
 }
 
 at::Tensor attention(const at::Tensor& q, const at::Tensor& k, const at::Tensor& v,

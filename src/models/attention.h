@@ -24,7 +24,8 @@ bool fused_attention_available();
 // scale: defaults to 1/sqrt(D).
 at::Tensor attention(const at::Tensor& q, const at::Tensor& k, const at::Tensor& v,
                      const std::optional<at::Tensor>& mask = std::nullopt, bool causal = false,
-                     std::optional<double> scale = std::nullopt, AttentionBackend backend = AttentionBackend::kAuto);
+                     std::optional<double> scale = std::nullopt,
+                     AttentionBackend backend = AttentionBackend::kAuto);
 
 at::Tensor attention_math(const at::Tensor& q, const at::Tensor& k, const at::Tensor& v,
                           const std::optional<at::Tensor>& mask = std::nullopt, bool causal = false,

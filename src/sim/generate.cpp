@@ -34,9 +34,10 @@ const std::vector<std::string>& split_names() {
 
 nlohmann::json GenerateOptions::to_json() const {
   // Only what determines the bytes of the episodes: workers is deliberately absent.
-  return {{"embodiment", embodiment}, {"split", split},   {"episodes", episodes}, {"frames", frames},
-          {"width", width},           {"height", height}, {"seed", seed},         {"val_fraction", val_fraction},
-          {"skills", skills},         {"quality", quality}};
+  return {
+      {"embodiment", embodiment}, {"split", split},    {"episodes", episodes}, {"frames", frames},
+      {"width", width},           {"height", height},  {"seed", seed},         {"val_fraction", val_fraction},
+      {"skills", skills},         {"quality", quality}};
 }
 
 namespace {
@@ -63,7 +64,8 @@ PlannedEpisode plan_episode(const GenerateOptions& o, int index) {
   ControllerSpec controller = default_controller(embodiment);
 
   if (embodiment == Embodiment::kHuman) {
-    DOJO_CHECK(o.split == "train", "split '" + o.split + "' is a robot evaluation split; human data has only 'train'");
+    DOJO_CHECK(o.split == "train",
+               "split '" + o.split + "' is a robot evaluation split; human data has only 'train'");
     for (const auto& name : o.skills) controller.human.skills.push_back(parse_human_skill(name));
   } else {
     if (o.split == "ood-objects") {
@@ -74,8 +76,8 @@ PlannedEpisode plan_episode(const GenerateOptions& o, int index) {
       sampling.min_objects = 3;
       sampling.max_objects = 5;
     } else if (o.split == "counterfactual") {
-      static const RobotBehavior kBehaviors[] = {RobotBehavior::kPat, RobotBehavior::kReachMiss, RobotBehavior::kPush,
-                                                 RobotBehavior::kRandomMotion};
+      static const RobotBehavior kBehaviors[] = {RobotBehavior::kPat, RobotBehavior::kReachMiss,
+                                                 RobotBehavior::kPush, RobotBehavior::kRandomMotion};
       controller.robot.behavior = kBehaviors[index % 4];
     } else if (o.split != "train") {
       std::string names;
@@ -141,7 +143,8 @@ std::string episode_id(int index) {
 }
 
 bool episode_complete(const fs::path& dir) {
-  return fs::exists(dir / "meta.json") && fs::exists(dir / "data.safetensors") && fs::exists(dir / "video.mp4");
+  return fs::exists(dir / "meta.json") && fs::exists(dir / "data.safetensors") &&
+         fs::exists(dir / "video.mp4");
 }
 
 nlohmann::json read_json(const fs::path& path) {
@@ -237,11 +240,13 @@ GenerateSummary generate_dataset(const fs::path& out, const GenerateOptions& opt
     else
       todo.push_back(i);
   }
-  if (summary.reused > 0) LOG_INFO(out.string(), ": resuming, ", summary.reused, " episodes already complete");
+  if (summary.reused > 0)
+    LOG_INFO(out.string(), ": resuming, ", summary.reused, " episodes already complete");
 
-  const int workers = std::max(1, std::min<int>(options.workers > 0 ? options.workers
-                                                                    : static_cast<int>(std::thread::hardware_concurrency()),
-                                                static_cast<int>(todo.size())));
+  const int workers =
+      std::max(1, std::min<int>(options.workers > 0 ? options.workers
+                                                    : static_cast<int>(std::thread::hardware_concurrency()),
+                                static_cast<int>(todo.size())));
   Progress progress("generate " + options.embodiment + "/" + options.split, static_cast<int64_t>(todo.size()),
                     "episodes");
   std::mutex mutex;

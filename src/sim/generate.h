@@ -26,14 +26,14 @@ struct GenerateOptions {
   std::string embodiment = "robot";  // human | robot
   std::string split = "train";
   int episodes = 16;
-  int frames = 0;                    // 0: the split's default (64; long-horizon 600)
+  int frames = 0;  // 0: the split's default (64; long-horizon 600)
   int width = 64;
   int height = 64;
   uint64_t seed = 0;
-  int workers = 0;                   // 0: all cores
-  double val_fraction = 0.125;       // robot train split: share of episodes marked "val"
-  std::vector<std::string> skills;   // human: restrict to these skills (default: all)
-  std::string quality;               // robot bin policy preset; empty = mix of expert/good/medium
+  int workers = 0;                  // 0: all cores
+  double val_fraction = 0.125;      // robot train split: share of episodes marked "val"
+  std::vector<std::string> skills;  // human: restrict to these skills (default: all)
+  std::string quality;              // robot bin policy preset; empty = mix of expert/good/medium
 
   nlohmann::json to_json() const;
 };

@@ -40,8 +40,7 @@ TEST(Actions, ChunkRelativeTwelveActionsFromFourteenSteps) {
   const auto d = chunk_relative(a, 4);
   ASSERT_EQ(d.sizes(), (std::vector<int64_t>{12, 7}));
   // Row j uses baseline 4*(j/4): rows 0-3 -> 0, 4-7 -> 4, 8-11 -> 8 (input indices).
-  for (int j = 0; j < 12; ++j)
-    EXPECT_TRUE(torch::allclose(d[j], a[1 + j] - a[4 * (j / 4)])) << "row " << j;
+  for (int j = 0; j < 12; ++j) EXPECT_TRUE(torch::allclose(d[j], a[1 + j] - a[4 * (j / 4)])) << "row " << j;
   EXPECT_EQ(chunk_relative(torch::zeros({13, 2}), 4).size(0), 12);
   EXPECT_THROW(chunk_relative(torch::zeros({4, 2}), 4), Error);
 }

@@ -12,11 +12,17 @@ namespace {
 
 torch::Tensor frames_with_index(int64_t t, int64_t h = 32, int64_t w = 32) {
   // Each frame is a flat grey level encoding its index (robust to H.264).
-  return (torch::arange(t) * 8 + 16).clamp_max(255).to(torch::kUInt8).view({t, 1, 1, 1}).expand({t, h, w, 3}).contiguous();
+  return (torch::arange(t) * 8 + 16)
+      .clamp_max(255)
+      .to(torch::kUInt8)
+      .view({t, 1, 1, 1})
+      .expand({t, h, w, 3})
+      .contiguous();
 }
 
 // Robot dataset: action[t] = (t, 2t, 7); one human dataset without actions.
-std::filesystem::path make_dataset(const std::filesystem::path& dir, Embodiment embodiment, int episodes, int64_t frames) {
+std::filesystem::path make_dataset(const std::filesystem::path& dir, Embodiment embodiment, int episodes,
+                                   int64_t frames) {
   DatasetInfo info;
   info.name = dir.filename().string();
   info.embodiment = embodiment;
@@ -63,7 +69,8 @@ TEST(ClipLoader, RobotClipHandComputed) {
   const auto clip = dataset.read(0, make_window(2, 2, 13));  // steps 2, 4, ..., 28
   ASSERT_EQ(clip.video.sizes(), (std::vector<int64_t>{13, 16, 16, 3}));
   // Frame k of the clip is episode frame 4 + 2k: grey level 8 * (4 + 2k) + 16.
-  for (int k = 0; k < 13; ++k) EXPECT_NEAR(clip.video[k].to(torch::kFloat32).mean().item<float>(), 8 * (4 + 2 * k) + 16, 2.0) << k;
+  for (int k = 0; k < 13; ++k)
+    EXPECT_NEAR(clip.video[k].to(torch::kFloat32).mean().item<float>(), 8 * (4 + 2 * k) + 16, 2.0) << k;
   ASSERT_EQ(clip.actions.sizes(), (std::vector<int64_t>{12, 384}));
   EXPECT_TRUE(clip.has_actions);
   // Dim 0: min 0, max 39 -> a_n(t) = 2t/39 - 1. Row j: a_n(step 1+j) - a_n(baseline of its chunk).

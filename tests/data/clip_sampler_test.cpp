@@ -53,7 +53,8 @@ TEST(ClipSampler, ShortEpisodesUseOnlyStridesThatFit) {
 TEST(ClipSampler, DeterministicForSeed) {
   ClipConfig config;
   std::mt19937_64 a(42), b(42);
-  for (int i = 0; i < 50; ++i) EXPECT_EQ(sample_window(100, config, a)->steps, sample_window(100, config, b)->steps);
+  for (int i = 0; i < 50; ++i)
+    EXPECT_EQ(sample_window(100, config, a)->steps, sample_window(100, config, b)->steps);
 }
 
 TEST(ClipSampler, AllWindows) {

@@ -17,7 +17,7 @@ torch::Tensor moving_frames(int64_t t, int64_t h = 32, int64_t w = 32) {
   auto y = torch::arange(h).view({1, h, 1, 1});
   auto x = torch::arange(w).view({1, 1, w, 1});
   // Smooth ramps without wrap-around edges: what a codec reproduces well.
-  const auto base = (x * 3 + y * 2 + ti * 2 + 20).to(torch::kFloat32);  // [T, H, W, 1]
+  const auto base = (x * 3 + y * 2 + ti * 2 + 20).to(torch::kFloat32);                        // [T, H, W, 1]
   return torch::cat({base, base * 0.8 + 20, 255 - base}, 3).clamp(0, 255).to(torch::kUInt8);  // [T, H, W, 3]
 }
 
@@ -35,7 +35,8 @@ std::filesystem::path make_robot_dataset(const std::filesystem::path& dir, int64
   for (int e = 0; e < 2; ++e) {
     EpisodeData ep;
     ep.frames = moving_frames(frames);
-    ep.actions = torch::stack({torch::arange(frames).to(torch::kFloat32), torch::full({frames}, 3.f)}, 1);  // [T, 2]
+    ep.actions =
+        torch::stack({torch::arange(frames).to(torch::kFloat32), torch::full({frames}, 3.f)}, 1);  // [T, 2]
     ep.states = ep.actions.clone();
     ep.meta = {{"task", "toy task"}};
     char id[16];
@@ -103,7 +104,8 @@ TEST(EpisodeStore, BadEpisodesNameTheEpisode) {
   const auto ep_dir = store.episode_dir(1);
 
   // Actions shorter than the frame count.
-  save_safetensors(ep_dir / "data.safetensors", {{"action", torch::zeros({5, 2})}, {"state", torch::zeros({20, 2})}});
+  save_safetensors(ep_dir / "data.safetensors",
+                   {{"action", torch::zeros({5, 2})}, {"state", torch::zeros({20, 2})}});
   auto message = store.check_episode(1);
   EXPECT_NE(message.find("000001"), std::string::npos) << message;
   EXPECT_NE(message.find("rows"), std::string::npos) << message;
@@ -116,7 +118,8 @@ TEST(EpisodeStore, BadEpisodesNameTheEpisode) {
   EXPECT_NE(message.find("NaN"), std::string::npos) << message;
 
   // Corrupt video.
-  save_safetensors(ep_dir / "data.safetensors", {{"action", torch::zeros({20, 2})}, {"state", torch::zeros({20, 2})}});
+  save_safetensors(ep_dir / "data.safetensors",
+                   {{"action", torch::zeros({20, 2})}, {"state", torch::zeros({20, 2})}});
   std::ofstream(ep_dir / "video.mp4", std::ios::binary) << "this is not a video";
   message = store.check_episode(1);
   EXPECT_NE(message.find("000001"), std::string::npos) << message;

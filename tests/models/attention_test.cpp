@@ -7,7 +7,8 @@
 namespace dojo::models {
 
 // A direct loop-based reference for one head, independent of matmul broadcasting.
-static torch::Tensor naive(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v, bool causal) {
+static torch::Tensor naive(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v,
+                           bool causal) {
   const int64_t lq = q.size(0), lk = k.size(0);
   auto out = torch::zeros({lq, v.size(1)});
   for (int64_t i = 0; i < lq; ++i) {
@@ -38,13 +39,16 @@ TEST(Attention, BoolMaskEqualsAdditiveMask) {
 TEST(Attention, AutoAgreesWithMath) {
   // On libtorch 2.x this compares the fused kernel with the math path; on 1.13 auto is math.
   torch::manual_seed(2);
-  const auto q = torch::randn({2, 3, 5, 16}), k = torch::randn({2, 3, 9, 16}), v = torch::randn({2, 3, 9, 16});
+  const auto q = torch::randn({2, 3, 5, 16}), k = torch::randn({2, 3, 9, 16}),
+             v = torch::randn({2, 3, 9, 16});
   for (bool causal : {false, true}) {
     const auto a = attention(q, k, v, std::nullopt, causal);
     const auto b = attention_math(q, k, v, std::nullopt, causal);
     EXPECT_TRUE(torch::allclose(a, b, 1e-4, 1e-5)) << "causal=" << causal;
   }
-  if (!fused_attention_available()) EXPECT_THROW(attention(q, k, v, std::nullopt, false, std::nullopt, AttentionBackend::kFused), std::exception);
+  if (!fused_attention_available())
+    EXPECT_THROW(attention(q, k, v, std::nullopt, false, std::nullopt, AttentionBackend::kFused),
+                 std::exception);
 }
 
 TEST(Attention, FusedAgreesWithMath_CUDA) {

@@ -24,7 +24,8 @@ GenerateOptions small(const std::string& embodiment, int episodes) {
 std::map<std::string, std::string> snapshot(const std::filesystem::path& dir) {
   std::map<std::string, std::string> files;
   for (const auto& e : std::filesystem::recursive_directory_iterator(dir))
-    if (e.is_regular_file()) files[std::filesystem::relative(e.path(), dir).string()] = test::read_file(e.path());
+    if (e.is_regular_file())
+      files[std::filesystem::relative(e.path(), dir).string()] = test::read_file(e.path());
   return files;
 }
 
