@@ -67,7 +67,10 @@ void Progress::draw(bool force) {
   if (rate >= 1.0 || rate == 0.0) {
     std::snprintf(rate_text, sizeof rate_text, "%.2f %s/s", rate, unit_.c_str());
   } else {
-    std::snprintf(rate_text, sizeof rate_text, "%.2f s/%s", 1.0 / rate, unit_.c_str());
+    // "s/episode" reads better than "s/episodes".
+    std::string singular = unit_;
+    if (singular.size() > 2 && singular.back() == 's') singular.pop_back();
+    std::snprintf(rate_text, sizeof rate_text, "%.2f s/%s", 1.0 / rate, singular.c_str());
   }
   const double eta = rate > 0 && total_ > 0 ? (total_ - done_) / rate : NAN;
 
