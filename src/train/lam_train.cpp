@@ -165,11 +165,13 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
     LOG_INFO("lam train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
   }
 
-  // Two-frame clips at a uniformly random skip in {1, 2, 3, 4}, at the model's input size.
+  // Frame pairs at a uniformly random skip in {1, 2, 3, 4}, at the model's input size. The clip
+  // loader's action pipeline needs num_frames - 1 to be a whole number of action chunks, so clips
+  // of 5 frames (one chunk of 4) are read and their first two frames used.
   data::ClipConfig clip;
-  clip.num_frames = 2;
+  clip.num_frames = 5;
   clip.strides = {1, 2, 3, 4};
-  clip.action_chunk = 1;
+  clip.action_chunk = 4;
   clip.height = static_cast<int>(config.height);
   clip.width = static_cast<int>(config.width);
   auto mixture = std::make_shared<data::ClipMixture>();
@@ -208,7 +210,8 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   while (trainer.steps_done() < job.steps) {
     auto batch = loader.next();
     const auto t0 = std::chrono::steady_clock::now();
-    auto videos = augment_brightness(to_unit_float(batch.video), job.options.brightness, aug_gen);
+    auto videos =
+        augment_brightness(to_unit_float(batch.video.slice(1, 0, 2)), job.options.brightness, aug_gen);
     last = trainer.step(videos);
     const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     std::ostringstream row;
