@@ -307,6 +307,24 @@ torch::Tensor lam_latent_actions(LatentActionModel& model, const torch::Tensor& 
   return mu.reshape({P, B, L}).transpose(0, 1).contiguous();
 }
 
+double lam_forward_flops(const LamConfig& c) {
+  const double E = static_cast<double>(c.model_dim), P = static_cast<double>(c.patch_dim());
+  const double N = static_cast<double>((c.height / c.patch_size) * (c.width / c.patch_size));
+  const double S = N + 1, T = 2;  // encoder tokens per frame (prompt + patches), frames
+  const double enc_tokens = T * S;
+  double f = 0;
+  f += enc_tokens * 2 * P * E;                                            // encoder ffn.1
+  f += c.enc_blocks * (enc_tokens * (8 * E * E + 8 * E * E + 16 * E * E)  // spatial + temporal proj, FFN
+                       + T * 4 * S * S * E                                // spatial scores + values
+                       + S * 4 * T * T * E);                              // temporal scores + values
+  f += enc_tokens * 2 * E * E;                                            // encoder out
+  f += 2 * E * 2 * c.latent_dim;                                          // fc (one latent per pair)
+  f += N * (2 * P * E + 2 * c.latent_dim * E + 2 * E * E);  // patch_up, action_up, decoder ffn.1
+  f += c.dec_blocks * (N * (8 * E * E + 16 * E * E) + 4 * N * N * E);
+  f += N * 2 * E * P;  // decoder out
+  return f;
+}
+
 LamLoss lam_loss(const LamOutput& out, const torch::Tensor& videos, double beta) {
   LamLoss l;
   auto target = videos.slice(1, 1);

@@ -132,6 +132,11 @@ TORCH_MODULE(LatentActionModel);
 torch::Tensor lam_latent_actions(LatentActionModel& model, const torch::Tensor& lam_video,
                                  bool published_order = false);
 
+// Matmul FLOPs (2 per multiply-add) of one forward pass over one frame pair at the config's
+// input size: projections, attention scores/values, FFNs, in/out layers of both transformers.
+// A training step costs about 3x this per pair (forward + backward).
+double lam_forward_flops(const LamConfig& config);
+
 struct LamLoss {
   torch::Tensor total;  // mse + beta * kl
   torch::Tensor mse;    // mean over every pixel of (target - recon)^2

@@ -207,6 +207,8 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   torch::Generator aug_gen = at::make_generator<at::CPUGeneratorImpl>(job.seed + 7919 * trainer.steps_done());
   Progress progress("lam train", job.steps - trainer.steps_done(), "step");
   LamStepStats last;
+  int64_t seen_steps = 0, timed_steps = 0;
+  double timed_clips = 0, timed_seconds = 0;
   while (trainer.steps_done() < job.steps) {
     auto batch = loader.next();
     const auto t0 = std::chrono::steady_clock::now();
@@ -218,6 +220,11 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
     row << trainer.steps_done() << ',' << last.loss << ',' << last.mse << ',' << last.kl << ',' << last.psnr
         << ',' << last.grad_norm << ',' << batch.video.size(0) / secs;
     rows.push_back(row.str());
+    if (++seen_steps > 2) {  // the first steps warm up allocators and threads
+      ++timed_steps;
+      timed_clips += static_cast<double>(batch.video.size(0));
+      timed_seconds += secs;
+    }
     std::ostringstream note;
     note << "loss " << last.loss << " psnr " << last.psnr;
     progress.advance(1, note.str());
@@ -228,6 +235,11 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   }
   progress.finish();
   write_curve();
+  if (timed_steps > 0) {
+    const double clips_per_s = timed_clips / timed_seconds;
+    LOG_INFO("lam train: ", clips_per_s, " clips/s over ", timed_steps, " steps (",
+             clips_per_s * 3 * models::lam_forward_flops(config) / 1e9, " GFLOP/s of matmul work)");
+  }
   return last;
 }
 

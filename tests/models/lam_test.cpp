@@ -183,4 +183,17 @@ TEST(Lam, ReleasedSizeKeysAndShapesMatchReference) {
   EXPECT_NEAR(numel / 1e6, 709.8, 0.1);
 }
 
+TEST(Lam, ForwardFlopsCountsTheDominantMatmuls) {
+  // Released size: 710M params, most of them applied to ~600 encoder and 300 decoder tokens per
+  // pair, so ~2 * params * tokens as a rough lower bound on the count.
+  const auto c = LamConfig::released();
+  const double f = lam_forward_flops(c);
+  EXPECT_GT(f, 2.0 * 405e6 * 602 * 0.9);
+  EXPECT_LT(f, 2.0 * 710e6 * 602 * 1.5);
+  // Doubling the width roughly quadruples the projection work.
+  auto wide = LamConfig::tiny();
+  wide.model_dim *= 2;
+  EXPECT_GT(lam_forward_flops(wide), 2.5 * lam_forward_flops(LamConfig::tiny()));
+}
+
 }  // namespace dojo::models
