@@ -43,6 +43,7 @@ int main(int argc, char** argv) {
 #endif
   cli::register_data(app);
   cli::register_demo(app);
+  cli::register_lam(app);
 
   try {
     app.parse(argc, argv);
