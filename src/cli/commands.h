@@ -31,5 +31,6 @@ void register_bench(CLI::App& app);
 void register_sim(CLI::App& app);
 void register_data(CLI::App& app);
 void register_demo(CLI::App& app);
+void register_tokenizer(CLI::App& app);
 
 }  // namespace dojo::cli
