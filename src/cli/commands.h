@@ -32,5 +32,6 @@ void register_sim(CLI::App& app);
 void register_data(CLI::App& app);
 void register_demo(CLI::App& app);
 void register_lam(CLI::App& app);
+void register_tokenizer(CLI::App& app);
 
 }  // namespace dojo::cli

@@ -42,6 +42,7 @@ int main(int argc, char** argv) {
   cli::register_sim(app);
 #endif
   cli::register_data(app);
+  cli::register_tokenizer(app);
   cli::register_demo(app);
   cli::register_lam(app);
 

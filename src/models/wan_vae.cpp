@@ -139,7 +139,23 @@ torch::Tensor CausalConv3dImpl::forward(const torch::Tensor& x, const torch::Ten
   }
   if (pad_t > 0 || padding[1] > 0 || padding[2] > 0)
     in = torch::constant_pad_nd(in, {padding[2], padding[2], padding[1], padding[1], pad_t, 0});
-  return torch::conv3d(in, weight, bias, stride);  // [B, out, T', H', W']
+  if (conv3d_reference_path()) return torch::conv3d(in, weight, bias, stride);  // [B, out, T', H', W']
+  // Same result as conv3d, as one 2-D convolution per temporal tap over all output frames
+  // folded into the batch: CPU conv3d (vol2col) is several times slower, backward especially.
+  const int64_t b = in.size(0), t_out = (in.size(2) - kernel[0]) / stride[0] + 1;
+  torch::Tensor out;
+  for (int64_t k = 0; k < kernel[0]; ++k) {
+    const auto frames = in.slice(2, k, k + (t_out - 1) * stride[0] + 1, stride[0]);  // [B, C, T', H, W]
+    auto y = torch::conv2d(fold_time(frames), weight.select(2, k), k == 0 ? bias : torch::Tensor(),
+                           {stride[1], stride[2]});  // [B*T', out, H', W']
+    out = k == 0 ? y : out + y;
+  }
+  return unfold_time(out, b);  // [B, out, T', H', W']
+}
+
+bool& conv3d_reference_path() {
+  static bool reference = false;
+  return reference;
 }
 
 RmsNormImpl::RmsNormImpl(int64_t dim, bool images) : scale(std::sqrt(static_cast<double>(dim))) {

@@ -91,6 +91,10 @@ class CausalConv3dImpl : public torch::nn::Module {
 };
 TORCH_MODULE(CausalConv3d);
 
+// true: CausalConv3d runs torch::conv3d (the plain reference); false (default): per-tap conv2d.
+// Tests check both agree.
+bool& conv3d_reference_path();
+
 // x / ||x||_2 (over channels) * sqrt(C) * gamma.
 class RmsNormImpl : public torch::nn::Module {
  public:

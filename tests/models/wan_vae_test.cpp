@@ -30,9 +30,10 @@ WanVae load_fixture_model() {
   return vae;
 }
 
-#define SKIP_WITHOUT_GOLDEN()                                                                         \
-  if (!std::filesystem::exists(golden("wan21_vae_tiny_io.safetensors"))) GTEST_SKIP() << "no golden " \
-                                                                                         "fixtures"
+#define SKIP_WITHOUT_GOLDEN()                                            \
+  if (!std::filesystem::exists(golden("wan21_vae_tiny_io.safetensors"))) \
+  GTEST_SKIP() << "no golden "                                           \
+                  "fixtures"
 
 TEST(WanVae, GoldenParity) {
   SKIP_WITHOUT_GOLDEN();
@@ -115,6 +116,22 @@ TEST(WanVae, StreamingEqualsWholeClip) {
   }
   EXPECT_LE(max_abs(torch::cat(frames, 2), dec_whole), 1e-4);
   EXPECT_LE(max_abs(vae->decode(mu_whole, true), dec_whole), 1e-4);
+}
+
+TEST(WanVae, Conv2dTapsEqualConv3dReference) {
+  torch::manual_seed(5);
+  for (auto stride : {std::vector<int64_t>{1, 1, 1}, std::vector<int64_t>{2, 1, 1}}) {
+    CausalConv3d conv(4, 6, std::vector<int64_t>{3, 3, 3}, stride,
+                      std::vector<int64_t>{stride[0] == 1 ? 1 : 0, 1, 1});
+    const auto x = torch::randn({2, 4, 5, 6, 7}), cache = torch::randn({2, 4, 2, 6, 7});
+    for (const auto& c : {torch::Tensor(), cache}) {
+      const auto fast = conv->forward(x, c);
+      conv3d_reference_path() = true;
+      const auto ref = conv->forward(x, c);
+      conv3d_reference_path() = false;
+      EXPECT_LE(max_abs(fast, ref), 1e-5);
+    }
+  }
 }
 
 TEST(WanVae, FullSizeKeyListMatchesRelease) {

@@ -1,0 +1,264 @@
+// `dojo tokenizer train|encode|eval`: small Wan2.1-architecture VAEs on DojoSim datasets.
+#include <sys/resource.h>
+#include <CLI/CLI.hpp>
+
+#include <chrono>
+#include <cstdio>
+#include <memory>
+#include <nlohmann/json.hpp>
+
+#include "cli/commands.h"
+#include "core/atomic_file.h"
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/progress.h"
+#include "core/safetensors.h"
+#include "data/clip_loader.h"
+#include "data/episode_store.h"
+#include "io/video.h"
+#include "models/wan_vae.h"
+#include "train/tokenizer_trainer.h"
+
+namespace dojo::cli {
+
+namespace {
+
+struct TrainArgs {
+  std::vector<std::string> data;
+  std::string out, split = "train";
+  int64_t steps = 2000, save_every = 200;
+  int batch = 4, frames = 5, size = 64, dim = 16, workers = 2;
+  double lr = 1e-3, kl = 1e-6;
+  uint64_t seed = 0;
+};
+
+struct EvalArgs {
+  std::string ckpt, data, split = "val", video, out;
+  int clips = 16, frames = 13, size = 0;
+  uint64_t seed = 0;
+  bool json = false;
+};
+
+int run_train(const TrainArgs& a) {
+  DOJO_CHECK((a.frames - 1) % 4 == 0, "--frames must be 1 + 4k (got " + std::to_string(a.frames) + ")");
+  DOJO_CHECK(a.size % 8 == 0, "--size must be a multiple of 8");
+  models::WanVaeConfig cfg;
+  cfg.dim = a.dim;
+  models::WanVae vae(cfg);
+  auto mixture = std::make_shared<data::ClipMixture>();
+  data::ClipConfig clip;
+  clip.num_frames = a.frames;
+  clip.strides = {1, 2};
+  clip.height = clip.width = a.size;
+  for (const auto& d : a.data)
+    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(d), clip, a.split), 1.0);
+  std::unique_ptr<data::PrefetchLoader> loader;
+  auto next = [&](int64_t step) {
+    if (!loader)  // started at the first requested step, so a resumed run continues the stream
+      loader = std::make_unique<data::PrefetchLoader>(
+          mixture, data::LoaderOptions{a.batch, a.workers, 4, a.seed}, step);
+    return train::video_to_model(loader->next().video);
+  };
+  train::TokenizerTrainOptions o;
+  o.steps = a.steps;
+  o.lr = a.lr;
+  o.kl_weight = a.kl;
+  o.save_every = a.save_every;
+  o.checkpoint_dir = a.out;
+  o.stats_batches = 8;
+  torch::manual_seed(a.seed);
+  const auto r = train::train_tokenizer(vae, next, o);
+  std::printf("trained %lld steps in %.1f s, recon mse %.5f -> %.5f, checkpoint %s\n",
+              static_cast<long long>(r.steps_done), r.seconds, r.first_loss, r.last_loss, a.out.c_str());
+  return 0;
+}
+
+int run_eval(const EvalArgs& a) {
+  auto vae = train::load_tokenizer(a.ckpt);
+  auto store = data::EpisodeStore::open(a.data);
+  data::ClipConfig clip;
+  clip.num_frames = a.frames;
+  clip.strides = {1};
+  clip.height = a.size > 0 ? a.size : store.info().height;
+  clip.width = a.size > 0 ? a.size : store.info().width;
+  data::ClipDataset dataset(store, clip, a.split);
+  DOJO_CHECK(!dataset.episodes().empty(), a.data + ": no episodes in split '" + a.split + "'");
+  double psnr_sum = 0, ssim_sum = 0;
+  std::vector<at::Tensor> originals, recons;
+  Progress progress("tokenizer eval", a.clips, "clip");
+  for (int i = 0; i < a.clips; ++i) {
+    auto rng = data::stream_rng(a.seed, static_cast<uint64_t>(i));
+    const auto clip_u8 = dataset.sample(rng).video.unsqueeze(0);  // [1, T, H, W, 3]
+    const auto x = train::video_to_model(clip_u8);
+    const auto y = train::reconstruct(vae, x);
+    psnr_sum += train::psnr(y, x);
+    ssim_sum += train::ssim(y, x);
+    if (originals.size() < 4) {
+      originals.push_back(clip_u8[0]);
+      recons.push_back(train::model_to_video(y)[0]);
+    }
+    progress.advance();
+  }
+  progress.finish();
+  nlohmann::json j = {{"psnr", psnr_sum / a.clips}, {"ssim", ssim_sum / a.clips}, {"clips", a.clips},
+                      {"frames", a.frames},         {"split", a.split},           {"checkpoint", a.ckpt}};
+  if (!a.video.empty()) {
+    // Top row: originals side by side; bottom: reconstructions.
+    std::vector<at::Tensor> rows = {torch::cat(originals, 2), torch::cat(recons, 2)};
+    io::write_comparison_video(a.video, {torch::cat(rows, 1)}, {"original (top) / reconstruction (bottom)"},
+                               store.info().fps);
+    j["video"] = a.video;
+  }
+  if (!a.out.empty()) write_file_atomic(a.out, j.dump(2) + "\n");
+  if (a.json)
+    std::printf("%s\n", j.dump(2).c_str());
+  else
+    std::printf("PSNR %.2f dB  SSIM %.4f  over %d clips of %d frames (%s)\n", psnr_sum / a.clips,
+                ssim_sum / a.clips, a.clips, a.frames, a.split.c_str());
+  return 0;
+}
+
+int run_encode(const std::string& ckpt, const std::string& dir, const std::string& out,
+               const std::string& split) {
+  auto vae = train::load_tokenizer(ckpt);
+  const auto store = data::EpisodeStore::open(dir);
+  const auto indices = store.split_indices(split);
+  std::filesystem::create_directories(out);
+  nlohmann::json index = {{"checkpoint", ckpt},
+                          {"dataset", dir},
+                          {"normalised", true},
+                          {"temporal_factor", 4},
+                          {"spatial_factor", vae->config().spatial_factor()},
+                          {"episodes", nlohmann::json::array()}};
+  Progress progress("tokenizer encode", static_cast<int64_t>(indices.size()), "episode");
+  torch::NoGradGuard no_grad;
+  for (size_t i : indices) {
+    const auto& entry = store.info().episodes[i];
+    const auto frames = store.load(i).frames;  // [T, H, W, 3]
+    const int64_t t = models::wan_pixel_frames(models::wan_latent_frames(frames.size(0)));
+    // Streamed in chunks so long episodes encode with bounded memory.
+    models::WanVaeStreamEncoder enc(vae);
+    std::vector<torch::Tensor> mus;
+    for (int64_t s = 0; s < t; s += 16)
+      mus.push_back(
+          enc.push(train::video_to_model(frames.narrow(0, s, std::min<int64_t>(16, t - s)).unsqueeze(0))));
+    const auto z = vae->normalize(torch::cat(mus, 2))[0].contiguous();  // [z, T_lat, h, w]
+    save_safetensors(std::filesystem::path(out) / (entry.id + ".safetensors"), {{"z", z}},
+                     {{"episode", entry.id}, {"pixel_frames", std::to_string(t)}});
+    index["episodes"].push_back(
+        {{"id", entry.id}, {"split", entry.split}, {"pixel_frames", t}, {"latent_frames", z.size(1)}});
+    progress.advance();
+  }
+  progress.finish();
+  write_file_atomic(std::filesystem::path(out) / "index.json", index.dump(2) + "\n");
+  std::printf("encoded %zu episodes into %s\n", indices.size(), out.c_str());
+  return 0;
+}
+
+long peak_rss_mib() {
+  struct rusage u;
+  getrusage(RUSAGE_SELF, &u);
+  return u.ru_maxrss / 1024;  // Linux reports KiB
+}
+
+// Encode / decode throughput of the chunked streaming path and the decoder cache size as the
+// rollout grows (it must stay flat: bounded memory).
+int run_bench(int dim, int height, int width, int frames, const std::string& ckpt) {
+  torch::NoGradGuard no_grad;
+  models::WanVaeConfig cfg;
+  cfg.dim = dim;
+  models::WanVae vae = ckpt.empty() ? models::WanVae(cfg) : train::load_tokenizer(ckpt);
+  vae->eval();
+  const auto x = torch::rand({1, 3, frames, height, width}) * 2 - 1;
+  using clock = std::chrono::steady_clock;
+  auto t0 = clock::now();
+  const auto mu = vae->encode(x).mu;
+  const double enc_s = std::chrono::duration<double>(clock::now() - t0).count();
+  models::WanVaeStreamDecoder dec(vae);
+  std::vector<int64_t> cache_bytes;
+  t0 = clock::now();
+  int64_t out_frames = 0;
+  for (int64_t i = 0; i < mu.size(2); ++i) {
+    out_frames += dec.push(mu.narrow(2, i, 1)).size(2);
+    cache_bytes.push_back(dec.cache().bytes());
+  }
+  const double dec_s = std::chrono::duration<double>(clock::now() - t0).count();
+  nlohmann::json j = {{"dim", vae->config().dim},
+                      {"height", height},
+                      {"width", width},
+                      {"frames", frames},
+                      {"threads", torch::get_num_threads()},
+                      {"encode_fps", frames / enc_s},
+                      {"decode_fps", out_frames / dec_s},
+                      {"decoder_cache_bytes_per_latent", cache_bytes},
+                      {"peak_rss_mib", peak_rss_mib()}};
+  std::printf("%s\n", j.dump(2).c_str());
+  return 0;
+}
+
+}  // namespace
+
+void register_tokenizer(CLI::App& app) {
+  auto* tok =
+      app.add_subcommand("tokenizer", "Train, evaluate and run the Wan2.1-architecture video tokenizer");
+  tok->require_subcommand(1);
+
+  auto* train_cmd =
+      tok->add_subcommand("train", "Train a small VAE on DojoSim datasets (resumes from --out)");
+  auto ta = std::make_shared<TrainArgs>();
+  train_cmd->add_option("--data", ta->data, "Dataset directories (repeatable)")->required();
+  train_cmd->add_option("--out,-o", ta->out, "Checkpoint directory")->required();
+  train_cmd->add_option("--split", ta->split, "Split to train on")->capture_default_str();
+  train_cmd->add_option("--steps", ta->steps, "Optimisation steps")->capture_default_str();
+  train_cmd->add_option("--batch", ta->batch, "Clips per batch")->capture_default_str();
+  train_cmd->add_option("--frames", ta->frames, "Frames per clip (1 + 4k)")->capture_default_str();
+  train_cmd->add_option("--size", ta->size, "Clip height and width (multiple of 8)")->capture_default_str();
+  train_cmd->add_option("--dim", ta->dim, "Base width (released: 96)")->capture_default_str();
+  train_cmd->add_option("--lr", ta->lr, "AdamW learning rate")->capture_default_str();
+  train_cmd->add_option("--kl", ta->kl, "KL weight")->capture_default_str();
+  train_cmd->add_option("--save-every", ta->save_every, "Checkpoint interval in steps")
+      ->capture_default_str();
+  train_cmd->add_option("--workers", ta->workers, "Loader threads")->capture_default_str();
+  train_cmd->add_option("--seed", ta->seed, "Seed")->capture_default_str();
+  train_cmd->callback([=] { set_action([=] { return run_train(*ta); }); });
+
+  auto* eval_cmd =
+      tok->add_subcommand("eval", "Reconstruction PSNR/SSIM on a split, optional side-by-side video");
+  auto ea = std::make_shared<EvalArgs>();
+  eval_cmd->add_option("--ckpt", ea->ckpt, "Tokenizer checkpoint directory")->required();
+  eval_cmd->add_option("--data", ea->data, "Dataset directory")->required();
+  eval_cmd->add_option("--split", ea->split, "Split")->capture_default_str();
+  eval_cmd->add_option("--clips", ea->clips, "Clips to evaluate")->capture_default_str();
+  eval_cmd->add_option("--frames", ea->frames, "Frames per clip (1 + 4k)")->capture_default_str();
+  eval_cmd->add_option("--size", ea->size, "Clip size (0: dataset size)")->capture_default_str();
+  eval_cmd->add_option("--video", ea->video, "Write original vs reconstruction .mp4 here");
+  eval_cmd->add_option("--out", ea->out, "Write the JSON result here");
+  eval_cmd->add_option("--seed", ea->seed, "Clip sampling seed")->capture_default_str();
+  eval_cmd->add_flag("--json", ea->json, "Print JSON");
+  eval_cmd->callback([=] { set_action([=] { return run_eval(*ea); }); });
+
+  auto* enc_cmd =
+      tok->add_subcommand("encode", "Cache normalised latents of every episode (one .safetensors each)");
+  auto ckpt = std::make_shared<std::string>(), dir = std::make_shared<std::string>(),
+       out = std::make_shared<std::string>(), split = std::make_shared<std::string>("all");
+  enc_cmd->add_option("--ckpt", *ckpt, "Tokenizer checkpoint directory")->required();
+  enc_cmd->add_option("--data", *dir, "Dataset directory")->required();
+  enc_cmd->add_option("--out,-o", *out, "Latent cache directory")->required();
+  enc_cmd->add_option("--split", *split, "Split (all: every episode)")->capture_default_str();
+  enc_cmd->callback([=] { set_action([=] { return run_encode(*ckpt, *dir, *out, *split); }); });
+
+  auto* bench_cmd =
+      tok->add_subcommand("bench", "Encode/decode frames/s, peak memory, decoder cache vs rollout length");
+  auto bdim = std::make_shared<int>(96), bh = std::make_shared<int>(64), bw = std::make_shared<int>(64),
+       bt = std::make_shared<int>(13);
+  auto bckpt = std::make_shared<std::string>();
+  bench_cmd->add_option("--dim", *bdim, "Base width of a random-init model (96: released)")
+      ->capture_default_str();
+  bench_cmd->add_option("--height", *bh, "Frame height")->capture_default_str();
+  bench_cmd->add_option("--width", *bw, "Frame width")->capture_default_str();
+  bench_cmd->add_option("--frames", *bt, "Frames (1 + 4k)")->capture_default_str();
+  bench_cmd->add_option("--ckpt", *bckpt, "Use this checkpoint instead of a random model");
+  bench_cmd->callback([=] { set_action([=] { return run_bench(*bdim, *bh, *bw, *bt, *bckpt); }); });
+}
+
+}  // namespace dojo::cli

@@ -1,0 +1,207 @@
+#include "train/tokenizer_trainer.h"
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/progress.h"
+#include "core/state_dict.h"
+
+namespace dojo::train {
+
+using models::WanVae;
+
+TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, double kl_weight,
+                             bool sample_posterior) {
+  auto enc = vae->encode(video, /*chunked=*/false);     // mu, log_var: [B, z, T', h, w]
+  const auto log_var = enc.log_var.clamp(-30.0, 20.0);  // the release's clamp
+  auto z = enc.mu;
+  if (sample_posterior) z = z + torch::exp(0.5 * log_var) * torch::randn_like(z);
+  const auto recon = vae->decode(z, /*chunked=*/false);  // [B, 3, T, H, W]
+  TokenizerLoss loss;
+  loss.recon = torch::mse_loss(recon, video);
+  // KL(N(mu, sigma) || N(0, 1)), mean over latent elements.
+  loss.kl = 0.5 * (enc.mu.pow(2) + log_var.exp() - 1.0 - log_var).mean();
+  loss.total = loss.recon + kl_weight * loss.kl;
+  return loss;
+}
+
+namespace {
+
+// Adam moments as named tensors ("adam.<i>.exp_avg", ...), in parameter order.
+NamedTensors adam_state(torch::optim::AdamW& opt, const std::vector<torch::Tensor>& params) {
+  NamedTensors out;
+  for (size_t i = 0; i < params.size(); ++i) {
+    const auto key = c10::guts::to_string(params[i].unsafeGetTensorImpl());
+    auto it = opt.state().find(key);
+    if (it == opt.state().end()) continue;
+    auto& s = static_cast<torch::optim::AdamWParamState&>(*it->second);
+    const auto p = "adam." + std::to_string(i) + ".";
+    out.emplace_back(p + "exp_avg", s.exp_avg());
+    out.emplace_back(p + "exp_avg_sq", s.exp_avg_sq());
+    out.emplace_back(p + "step", torch::tensor({s.step()}, torch::kInt64));
+  }
+  return out;
+}
+
+void restore_adam_state(torch::optim::AdamW& opt, const std::vector<torch::Tensor>& params,
+                        const SafetensorsFile& file) {
+  for (size_t i = 0; i < params.size(); ++i) {
+    const auto p = "adam." + std::to_string(i) + ".";
+    if (!file.contains(p + "exp_avg")) continue;
+    auto s = std::make_unique<torch::optim::AdamWParamState>();
+    s->exp_avg(file.tensor(p + "exp_avg", true));
+    s->exp_avg_sq(file.tensor(p + "exp_avg_sq", true));
+    s->step(file.tensor(p + "step").item<int64_t>());
+    opt.state()[c10::guts::to_string(params[i].unsafeGetTensorImpl())] = std::move(s);
+  }
+}
+
+void save_training_checkpoint(const std::filesystem::path& dir, WanVae& vae, torch::optim::AdamW& opt,
+                              const std::vector<torch::Tensor>& params, int64_t step) {
+  CheckpointData data;
+  data.config = {{"model", "wan21_vae"}, {"config", vae->config().to_json()}};
+  data.model = state_dict(*vae);
+  TrainerState t;
+  t.step = step;
+  t.tensors = adam_state(opt, params);
+  for (auto& r : capture_rng_state()) t.tensors.push_back(r);
+  data.trainer = t;
+  save_checkpoint(dir, data);
+}
+
+}  // namespace
+
+TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Tensor(int64_t)>& next_batch,
+                                     const TokenizerTrainOptions& o) {
+  vae->train();
+  std::vector<torch::Tensor> params = vae->parameters();
+  torch::optim::AdamW opt(params, torch::optim::AdamWOptions(o.lr).weight_decay(o.weight_decay));
+  int64_t start = 0;
+  const bool checkpoints = !o.checkpoint_dir.empty();
+  if (checkpoints && o.resume && std::filesystem::exists(o.checkpoint_dir)) {
+    const auto ck = Checkpoint::open(o.checkpoint_dir);
+    const auto report = load_state_dict(*vae, ck.model());
+    DOJO_CHECK(report.ok(), "resume " + o.checkpoint_dir.string() + ": " + report.to_string("; "));
+    if (ck.has_trainer_state()) {
+      start = ck.step();
+      if (ck.has_trainer_tensors()) {
+        restore_adam_state(opt, params, ck.trainer_tensors());
+        restore_rng_state(ck.trainer_tensors().tensors());
+      }
+      LOG_INFO("resuming tokenizer training at step " + std::to_string(start));
+    }
+  }
+  TokenizerTrainResult result;
+  const auto t0 = std::chrono::steady_clock::now();
+  std::optional<Progress> progress;
+  if (o.progress) progress.emplace("tokenizer train", o.steps - start, "step");
+  bool first = true;
+  for (int64_t step = start; step < o.steps; ++step) {
+    const auto video = next_batch(step);
+    auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior);
+    opt.zero_grad();
+    loss.total.backward();
+    if (o.grad_clip > 0) torch::nn::utils::clip_grad_norm_(params, o.grad_clip);
+    opt.step();
+    const double recon = loss.recon.item<double>();
+    if (first) result.first_loss = recon, first = false;
+    result.last_loss = recon;
+    if (progress) {
+      char note[96];
+      std::snprintf(note, sizeof note, "recon %.5f kl %.3f", recon, loss.kl.item<double>());
+      progress->advance(1, note);
+    }
+    const bool last = step + 1 == o.steps;
+    if (last && o.stats_batches > 0) {
+      std::vector<torch::Tensor> videos;
+      for (int64_t i = 0; i < o.stats_batches; ++i) videos.push_back(next_batch(o.steps + i));
+      fit_latent_stats(vae, videos);
+    }
+    if (checkpoints && (last || (o.save_every > 0 && (step + 1) % o.save_every == 0)))
+      save_training_checkpoint(o.checkpoint_dir, vae, opt, params, step + 1);
+    result.steps_done = step + 1;
+  }
+  if (progress) progress->finish();
+  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  vae->eval();
+  return result;
+}
+
+double psnr(const torch::Tensor& a, const torch::Tensor& b) {
+  const double mse = ((a - b) * 0.5).pow(2).mean().item<double>();  // on [0, 1]
+  return 10.0 * std::log10(1.0 / std::max(mse, 1e-12));
+}
+
+double ssim(const torch::Tensor& a, const torch::Tensor& b) {
+  // Frames as a batch of images [N, C, H, W] in [0, 1]; Gaussian window 11, sigma 1.5.
+  auto frames = [](const torch::Tensor& x) {
+    return ((x.to(torch::kFloat32) + 1) * 0.5)
+        .permute({0, 2, 1, 3, 4})
+        .reshape({-1, x.size(1), x.size(3), x.size(4)});
+  };
+  const auto x = frames(a), y = frames(b);
+  const int64_t c = x.size(1);
+  const int64_t k = std::min<int64_t>({11, x.size(2), x.size(3)});
+  auto g = torch::arange(k, torch::kFloat32) - (k - 1) / 2.0;
+  g = torch::exp(-g.pow(2) / (2 * 1.5 * 1.5));
+  g = g / g.sum();
+  const auto w = (g.view({-1, 1}) * g.view({1, -1})).expand({c, 1, k, k}).contiguous();  // depthwise
+  auto blur = [&](const torch::Tensor& t) {
+    const std::vector<int64_t> one = {1, 1}, zero = {0, 0};
+    return torch::conv2d(t, w, torch::Tensor(), one, zero, one, c);
+  };
+  const double c1 = 0.01 * 0.01, c2 = 0.03 * 0.03;
+  const auto mx = blur(x), my = blur(y);
+  const auto sxx = blur(x * x) - mx * mx, syy = blur(y * y) - my * my, sxy = blur(x * y) - mx * my;
+  const auto s_map = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2));
+  return s_map.mean().item<double>();
+}
+
+torch::Tensor reconstruct(WanVae& vae, const torch::Tensor& video) {
+  torch::NoGradGuard no_grad;
+  return vae->decode(vae->encode(video).mu).clamp(-1, 1);
+}
+
+void fit_latent_stats(WanVae& vae, const std::vector<torch::Tensor>& videos) {
+  torch::NoGradGuard no_grad;
+  std::vector<torch::Tensor> mus;
+  for (const auto& v : videos)
+    mus.push_back(vae->encode(v, false).mu.transpose(0, 1).reshape({vae->config().z_dim, -1}));
+  const auto all = torch::cat(mus, 1).to(torch::kFloat64);  // [z, N]
+  const auto mean = all.mean(1), stdv = all.std(1).clamp_min(1e-6);
+  std::vector<double> m(mean.data_ptr<double>(), mean.data_ptr<double>() + mean.numel());
+  std::vector<double> s(stdv.data_ptr<double>(), stdv.data_ptr<double>() + stdv.numel());
+  vae->set_latent_stats(m, s);
+}
+
+torch::Tensor video_to_model(const torch::Tensor& u8) {
+  return u8.permute({0, 4, 1, 2, 3}).to(torch::kFloat32) / 127.5 - 1.0;  // [B, 3, T, H, W]
+}
+
+torch::Tensor model_to_video(const torch::Tensor& x) {
+  return ((x.clamp(-1, 1) + 1) * 127.5).round().to(torch::kUInt8).permute({0, 2, 3, 4, 1}).contiguous();
+}
+
+void save_tokenizer(const std::filesystem::path& dir, WanVae& vae) {
+  CheckpointData data;
+  data.config = {{"model", "wan21_vae"}, {"config", vae->config().to_json()}};
+  data.model = state_dict(*vae);
+  save_checkpoint(dir, data);
+}
+
+WanVae load_tokenizer(const std::filesystem::path& dir) {
+  const auto ck = Checkpoint::open(dir);
+  const auto& cfg = ck.config();
+  DOJO_CHECK(cfg.contains("config"), ck.dir().string() + "/config.json: missing field 'config'");
+  WanVae vae(models::WanVaeConfig::from_json(cfg.at("config")));
+  const auto report = load_state_dict(*vae, ck.model());
+  DOJO_CHECK(report.ok(), ck.dir().string() + ": " + report.to_string("; "));
+  vae->eval();
+  return vae;
+}
+
+}  // namespace dojo::train

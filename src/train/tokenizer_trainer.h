@@ -1,0 +1,76 @@
+// Training and evaluation of small Wan2.1-architecture VAEs (the video tokenizer).
+// Loss: mean squared reconstruction error of the decoded posterior sample plus a small KL term
+// (the released VAE is a KL-regularised autoencoder; the tiny weight keeps latents near a
+// Gaussian without blurring reconstructions). Uses the whole-clip causal path, which equals
+// the chunked inference path (tested in wan_vae_test.cpp).
+#pragma once
+
+#include <torch/torch.h>
+
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <nlohmann/json.hpp>
+#include <optional>
+#include <string>
+
+#include "models/wan_vae.h"
+
+namespace dojo::train {
+
+struct TokenizerTrainOptions {
+  int64_t steps = 1000;
+  double lr = 1e-3;
+  double weight_decay = 0.0;
+  double kl_weight = 1e-6;
+  double grad_clip = 1.0;        // max global grad norm (0: off)
+  bool sample_posterior = true;  // decode mu + sigma * eps (false: decode mu)
+  int64_t log_every = 50;
+  int64_t save_every = 0;                // 0: only at the end (when checkpoint_dir is set)
+  std::filesystem::path checkpoint_dir;  // empty: no checkpoints
+  bool resume = true;                    // continue from checkpoint_dir when it holds trainer state
+  bool progress = true;                  // dojo::Progress line
+  // Batches (next_batch(steps + i), i < stats_batches) used after training to fit the latent
+  // normalisation constants before the final checkpoint (0: keep the configured constants).
+  int64_t stats_batches = 0;
+};
+
+struct TokenizerLoss {
+  torch::Tensor total, recon, kl;  // scalars (total has grad)
+};
+
+// video: [B, 3, T, H, W] in [-1, 1], T = 1 + 4k.
+TokenizerLoss tokenizer_loss(models::WanVae& vae, const torch::Tensor& video, double kl_weight,
+                             bool sample_posterior);
+
+struct TokenizerTrainResult {
+  int64_t steps_done = 0;                // total optimisation steps (including resumed ones)
+  double first_loss = 0, last_loss = 0;  // recon loss of the first / last logged step of this run
+  double seconds = 0;
+};
+
+// `next_batch(step)` returns the batch for that step ([B, 3, T, H, W] float in [-1, 1]).
+TokenizerTrainResult train_tokenizer(models::WanVae& vae,
+                                     const std::function<torch::Tensor(int64_t)>& next_batch,
+                                     const TokenizerTrainOptions& options);
+
+// Reconstruction metrics over videos in [-1, 1] (computed on [0, 1]).
+double psnr(const torch::Tensor& a, const torch::Tensor& b);  // dB over the whole tensor
+double ssim(const torch::Tensor& a, const torch::Tensor& b);  // mean 11x11 Gaussian SSIM per frame
+
+// Round trip through the model's chunked inference path, clamped to [-1, 1].
+torch::Tensor reconstruct(models::WanVae& vae, const torch::Tensor& video);
+
+// Per-channel mean/std of mu over the given videos, written into the config used for
+// normalisation (a freshly trained model's latents do not follow the published constants).
+void fit_latent_stats(models::WanVae& vae, const std::vector<torch::Tensor>& videos);
+
+// uint8 clips [B, T, H, W, 3] -> [B, 3, T, H, W] float in [-1, 1], and back.
+torch::Tensor video_to_model(const torch::Tensor& u8);
+torch::Tensor model_to_video(const torch::Tensor& x);
+
+// Checkpoint helpers: config.json holds {"model": "wan21_vae", "config": {...}}.
+void save_tokenizer(const std::filesystem::path& dir, models::WanVae& vae);
+models::WanVae load_tokenizer(const std::filesystem::path& dir);
+
+}  // namespace dojo::train
