@@ -109,7 +109,7 @@ BenchCase sim_case(const std::string& embodiment, int size, bool render) {
   BenchCase c;
   c.name = std::string("sim_") + (render ? "render_" : "physics_") + embodiment;
   c.unit = "steps/s";
-  c.params = render ? std::to_string(size) + "x" + std::to_string(size) + ", 10 Hz control" : "no rendering";
+  c.params = std::string(render ? std::to_string(size) + "x" + std::to_string(size) : "no rendering") + ", 48-step episode incl. world build";
   c.run_once = [embodiment, size, render] {
     sim::SceneSampling sampling;
     sampling.width = size;
@@ -180,7 +180,7 @@ std::vector<BenchCase> builtin_cases(const BenchOptions& options) {
     if (std::filesystem::exists(camera_clip))
       cases.push_back(decode_case(
           "video_decode_camera", [camera_clip] { return camera_clip; },
-          "opencv-doc vtest.avi mpeg4 768x576"));
+          "opencv-doc vtest.avi msmpeg4v3 768x576"));
   }
 #ifdef DOJO_WITH_SIM
   cases.push_back(sim_case("robot", 64, true));
