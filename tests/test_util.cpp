@@ -1,6 +1,10 @@
 #include "test_util.h"
 
+#include <signal.h>
+#include <sys/wait.h>
 #include <unistd.h>
+
+#include "core/atomic_file.h"
 
 #include <array>
 #include <cstdio>
@@ -43,6 +47,25 @@ std::string error_message(const std::function<void()>& fn) {
     return e.what();
   }
   return "(no error)";
+}
+
+int run_in_child_killed_at(int kill_at, const std::function<void()>& work) {
+  const pid_t pid = ::fork();
+  if (pid == 0) {
+    int seen = 0;
+    set_crash_hook([&](const char*) {
+      if (seen++ == kill_at) ::raise(SIGKILL);
+    });
+    try {
+      work();
+    } catch (...) {
+      ::_exit(3);
+    }
+    ::_exit(0);
+  }
+  int status = 0;
+  ::waitpid(pid, &status, 0);
+  return status;
 }
 
 CommandResult run_dojo(const std::string& args) {

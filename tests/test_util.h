@@ -36,6 +36,11 @@ struct CommandResult {
   int exit_code;
   std::string output;  // stdout and stderr together
 };
+// Forks a child that runs `work` and SIGKILLs itself at crash point number `kill_at` of
+// core/atomic_file.h (never, when kill_at < 0). The child exits 0 when `work` returns, 3 when it
+// throws. Returns the child's wait status.
+int run_in_child_killed_at(int kill_at, const std::function<void()>& work);
+
 // Runs the built `dojo` executable with the given argument string.
 CommandResult run_dojo(const std::string& args);
 

@@ -74,22 +74,7 @@ TEST(AtomicFile, CrashHookSeesEveryStep) {
 // A child process replaces `path` with `next` and is SIGKILLed at crash point number `kill_at`.
 // Returns the child's wait status.
 int write_and_die(const std::filesystem::path& path, const std::string& next, int kill_at) {
-  const pid_t pid = ::fork();
-  if (pid == 0) {
-    int seen = 0;
-    set_crash_hook([&](const char*) {
-      if (seen++ == kill_at) ::raise(SIGKILL);
-    });
-    try {
-      write_file_atomic(path, next);
-    } catch (...) {
-      ::_exit(3);
-    }
-    ::_exit(0);
-  }
-  int status = 0;
-  ::waitpid(pid, &status, 0);
-  return status;
+  return test::run_in_child_killed_at(kill_at, [&] { write_file_atomic(path, next); });
 }
 
 TEST(AtomicFile, KilledMidWriteLeavesThePreviousFileIntact) {

@@ -171,22 +171,7 @@ TEST(Checkpoint, RngStateRoundTrip) {
 // Forks a child that saves `data` to `dir` and SIGKILLs itself at crash point number `kill_at`
 // (or never, when kill_at < 0). Returns the wait status.
 int save_in_child(const fs::path& dir, const CheckpointData& data, int kill_at) {
-  const pid_t pid = ::fork();
-  if (pid == 0) {
-    int seen = 0;
-    set_crash_hook([&](const char*) {
-      if (seen++ == kill_at) ::raise(SIGKILL);
-    });
-    try {
-      save_checkpoint(dir, data);
-    } catch (...) {
-      ::_exit(3);
-    }
-    ::_exit(0);
-  }
-  int status = 0;
-  ::waitpid(pid, &status, 0);
-  return status;
+  return test::run_in_child_killed_at(kill_at, [&] { save_checkpoint(dir, data); });
 }
 
 TEST(Checkpoint, KilledAtEveryCrashPointLeavesACompleteCheckpoint) {
