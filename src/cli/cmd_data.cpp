@@ -6,7 +6,6 @@
 #include "core/error.h"
 #include "core/progress.h"
 #include "data/episode_store.h"
-#include "io/video.h"
 
 namespace dojo::cli {
 
@@ -68,18 +67,7 @@ void register_data(CLI::App& app) {
     set_action([=] {
       const auto store = data::EpisodeStore::open(*preview_dir);
       const size_t n = std::min<size_t>(store.size(), static_cast<size_t>(std::max(1, *preview_count)));
-      std::vector<at::Tensor> videos;
-      std::vector<std::string> labels;
-      for (size_t i = 0; i < n; ++i) {
-        auto frames = store.load(i).frames;  // [T, H, W, 3] u8
-        if (*preview_scale > 1)
-          frames = frames.repeat_interleave(*preview_scale, 1).repeat_interleave(*preview_scale, 2);
-        videos.push_back(frames);
-        std::string label = store.info().episodes[i].task;
-        if (label.empty()) label = store.info().episodes[i].id;
-        labels.push_back(label);
-      }
-      io::write_comparison_video(*preview_out, videos, labels, store.info().fps);
+      data::write_preview_video(store, *preview_out, n, *preview_scale);
       std::printf("%s: %zu episodes of %s\n", preview_out->c_str(), n, store.dir().string().c_str());
       return 0;
     });

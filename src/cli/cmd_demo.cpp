@@ -14,7 +14,6 @@
 #include "core/log.h"
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
-#include "io/video.h"
 #include "sim/generate.h"
 
 namespace fs = std::filesystem;
@@ -29,17 +28,6 @@ struct DemoOptions {
   uint64_t seed = 0;
   int workers = 0;
 };
-
-void write_preview(const fs::path& dataset, const fs::path& out, int count) {
-  const auto store = data::EpisodeStore::open(dataset);
-  std::vector<at::Tensor> videos;
-  std::vector<std::string> labels;
-  for (size_t i = 0; i < std::min<size_t>(store.size(), count); ++i) {
-    videos.push_back(store.load(i).frames.repeat_interleave(2, 1).repeat_interleave(2, 2));  // [T, 2H, 2W, 3]
-    labels.push_back(store.info().episodes[i].task);
-  }
-  io::write_comparison_video(out.string(), videos, labels, store.info().fps);
-}
 
 int run_demo(const DemoOptions& o) {
   const fs::path out = o.out;
@@ -70,8 +58,8 @@ int run_demo(const DemoOptions& o) {
   // Stage 2: look at it.
   LOG_INFO("[2/3] previews: ", (out / "preview_human.mp4").string(), ", ",
            (out / "preview_robot.mp4").string());
-  write_preview(out / "human", out / "preview_human.mp4", 4);
-  write_preview(out / "robot", out / "preview_robot.mp4", 4);
+  data::write_preview_video(data::EpisodeStore::open(out / "human"), out / "preview_human.mp4", 4, 2);
+  data::write_preview_video(data::EpisodeStore::open(out / "robot"), out / "preview_robot.mp4", 4, 2);
 
   // Stage 3: the clip pipeline every trainer consumes, as a 1:1 human/robot mixture.
   LOG_INFO("[3/3] clip pipeline: human:robot = 1:1 mixture, 13-frame clips, 384-d actions");

@@ -16,15 +16,6 @@
 namespace dojo::cli {
 namespace {
 
-// "64x64" or "480x640" (height x width).
-std::pair<int, int> parse_size(const std::string& text) {
-  int h = 0, w = 0;
-  char x = 0;
-  if (std::sscanf(text.c_str(), "%d%c%d", &h, &x, &w) != 3 || (x != 'x' && x != 'X') || h <= 0 || w <= 0)
-    throw UsageError("--size must look like HEIGHTxWIDTH, e.g. 64x64, got '" + text + "'");
-  return {h, w};
-}
-
 std::string join(const std::vector<std::string>& items) {
   std::string out;
   for (const auto& s : items) out += (out.empty() ? "" : ", ") + s;
@@ -66,8 +57,8 @@ void add_generate(CLI::App& sim) {
   cmd->callback([=] {
     set_action([=] {
       const auto [h, w] = parse_size(*size);
-      o->height = h;
-      o->width = w;
+      o->height = static_cast<int>(h);
+      o->width = static_cast<int>(w);
       const auto summary = sim::generate_dataset(*out, *o);
       nlohmann::json j = {
           {"out", *out},
@@ -116,8 +107,8 @@ void add_render(CLI::App& sim) {
     set_action([=] {
       const auto [h, w] = parse_size(*size);
       sim::SceneSampling sampling;
-      sampling.height = h;
-      sampling.width = w;
+      sampling.height = static_cast<int>(h);
+      sampling.width = static_cast<int>(w);
       const auto emb = sim::parse_embodiment(*embodiment);
       sim::EpisodeSpec spec;
       spec.scene = sim::sample_scene(emb, sampling, *seed);

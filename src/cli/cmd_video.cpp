@@ -14,21 +14,6 @@
 namespace dojo::cli {
 namespace {
 
-// "HxW" -> {H, W}.
-std::pair<int64_t, int64_t> parse_size(const std::string& text) {
-  const auto x = text.find_first_of("xX");
-  try {
-    if (x != std::string::npos) {
-      size_t used_h = 0, used_w = 0;
-      const int64_t h = std::stoll(text.substr(0, x), &used_h);
-      const int64_t w = std::stoll(text.substr(x + 1), &used_w);
-      if (used_h == x && used_w == text.size() - x - 1 && h > 0 && w > 0) return {h, w};
-    }
-  } catch (const std::exception&) {
-  }
-  throw UsageError("--size expects HxW with positive integers (e.g. 256x320), got '" + text + "'");
-}
-
 void register_info(CLI::App& video) {
   auto* cmd =
       video.add_subcommand("info", "Print frame count, size, fps, codec and duration of a video file");

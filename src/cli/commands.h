@@ -3,8 +3,10 @@
 // boundary so every failure becomes a one-line message and a non-zero exit.
 #pragma once
 
+#include <cstdint>
 #include <functional>
 #include <string>
+#include <utility>
 
 namespace CLI {
 class App;
@@ -20,6 +22,9 @@ struct GlobalOptions {
 };
 
 const GlobalOptions& global_options();
+
+// Parses a --size value "HxW" (positive integers) into {H, W}; throws dojo::UsageError.
+std::pair<int64_t, int64_t> parse_size(const std::string& text);
 
 // The callback to run once parsing succeeded. Commands set it from their parse callback.
 void set_action(std::function<int()> action);

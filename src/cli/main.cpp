@@ -17,6 +17,20 @@ std::function<int()> g_action;
 const GlobalOptions& global_options() { return g_options; }
 void set_action(std::function<int()> action) { g_action = std::move(action); }
 
+std::pair<int64_t, int64_t> parse_size(const std::string& text) {
+  const auto x = text.find_first_of("xX");
+  try {
+    if (x != std::string::npos) {
+      size_t used_h = 0, used_w = 0;
+      const int64_t h = std::stoll(text.substr(0, x), &used_h);
+      const int64_t w = std::stoll(text.substr(x + 1), &used_w);
+      if (used_h == x && used_w == text.size() - x - 1 && h > 0 && w > 0) return {h, w};
+    }
+  } catch (const std::exception&) {
+  }
+  throw UsageError("--size expects HxW with positive integers (e.g. 256x320), got '" + text + "'");
+}
+
 }  // namespace dojo::cli
 
 int main(int argc, char** argv) {

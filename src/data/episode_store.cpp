@@ -7,6 +7,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/json_file.h"
 #include "core/safetensors.h"
 #include "io/video.h"
 
@@ -23,16 +24,6 @@ Embodiment embodiment_from_string(const std::string& name, const std::string& wh
 }
 
 namespace {
-
-nlohmann::json read_json_file(const fs::path& path) {
-  std::ifstream in(path);
-  if (!in) throw Error(path.string() + ": cannot open");
-  try {
-    return nlohmann::json::parse(in);
-  } catch (const nlohmann::json::exception& e) {
-    throw Error(path.string() + ": invalid JSON (" + std::string(e.what()) + ")");
-  }
-}
 
 void check_finite(const at::Tensor& t, const std::string& what, const fs::path& where) {
   if (t.defined() && !torch::isfinite(t).all().item<bool>())
@@ -171,6 +162,21 @@ DatasetInfo DatasetInfo::from_json(const nlohmann::json& j, const std::string& w
     throw Error(where + ": stats.action width " + std::to_string(info.action_stats->dim()) +
                 " != action_dim " + std::to_string(info.action_dim));
   return info;
+}
+
+void write_preview_video(const EpisodeStore& store, const fs::path& out, size_t count, int scale) {
+  DOJO_CHECK(scale >= 1, "preview scale must be at least 1");
+  std::vector<at::Tensor> videos;
+  std::vector<std::string> labels;
+  for (size_t i = 0; i < std::min(store.size(), count); ++i) {
+    auto frames = store.load(i).frames;  // [T, H, W, 3] u8
+    if (scale > 1) frames = frames.repeat_interleave(scale, 1).repeat_interleave(scale, 2);
+    videos.push_back(frames);
+    const auto& entry = store.info().episodes[i];
+    labels.push_back(entry.task.empty() ? entry.id : entry.task);
+  }
+  DOJO_CHECK(!videos.empty(), store.dir().string() + ": no episodes to preview");
+  io::write_comparison_video(out.string(), videos, labels, store.info().fps);
 }
 
 void write_dataset_info(const fs::path& dir, const DatasetInfo& info) {

@@ -98,6 +98,11 @@ class EpisodeStore {
   DatasetInfo info_;
 };
 
+// Writes the first `count` episodes side by side into one mp4, each labelled with its task,
+// frames upscaled `scale` times (nearest neighbour) so small renders stay legible.
+void write_preview_video(const EpisodeStore& store, const std::filesystem::path& out, size_t count,
+                         int scale);
+
 // Writes info.json atomically.
 void write_dataset_info(const std::filesystem::path& dir, const DatasetInfo& info);
 

@@ -12,6 +12,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/json_file.h"
 #include "core/log.h"
 #include "core/progress.h"
 #include "core/safetensors.h"
@@ -147,23 +148,13 @@ bool episode_complete(const fs::path& dir) {
          fs::exists(dir / "video.mp4");
 }
 
-nlohmann::json read_json(const fs::path& path) {
-  std::ifstream in(path);
-  DOJO_CHECK(in.good(), path.string() + ": cannot open");
-  try {
-    return nlohmann::json::parse(in);
-  } catch (const nlohmann::json::exception& e) {
-    throw Error(path.string() + ": invalid JSON (" + std::string(e.what()) + ")");
-  }
-}
-
 // Refuses to mix two different runs in one directory; records the options of a new run.
 void claim_directory(const fs::path& out, const GenerateOptions& options) {
   fs::create_directories(out / "episodes");
   const fs::path record = out / "generate.json";
   const auto wanted = options.to_json();
   if (fs::exists(record)) {
-    const auto existing = read_json(record);
+    const auto existing = read_json_file(record);
     for (const auto& [key, value] : wanted.items())
       if (!existing.contains(key) || existing[key] != value)
         throw Error(out.string() + ": holds a run with different options (" + key + " = " +
@@ -189,7 +180,7 @@ data::DatasetInfo build_info(const fs::path& out, const GenerateOptions& options
   data::StatsAccumulator action_stats, state_stats;
   for (size_t i = 0; i < plans.size(); ++i) {
     const fs::path dir = out / "episodes" / episode_id(static_cast<int>(i));
-    const auto meta = read_json(dir / "meta.json");
+    const auto meta = read_json_file(dir / "meta.json");
     data::EpisodeEntry entry;
     entry.id = episode_id(static_cast<int>(i));
     entry.frames = meta.at("frames").get<int64_t>();
@@ -296,7 +287,7 @@ GenerateSummary generate_dataset(const fs::path& out, const GenerateOptions& opt
   double success_sum = 0;
   int success_count = 0;
   for (int i = 0; i < options.episodes; ++i) {
-    const auto meta = read_json(out / "episodes" / episode_id(i) / "meta.json");
+    const auto meta = read_json_file(out / "episodes" / episode_id(i) / "meta.json");
     if (meta.contains("success") && meta["success"].is_number()) {
       success_sum += meta["success"].get<double>();
       ++success_count;
