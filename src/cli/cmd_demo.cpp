@@ -1,20 +1,37 @@
-// `dojo demo`: the end-to-end job on the built-in world. It runs every stage of the pipeline
-// that exists, on DojoSim data small enough for a laptop CPU, and leaves files to look at.
+// `dojo demo`: the whole system on the built-in world, on a laptop CPU, with no data or weights
+// to download. DojoSim generates human and robot episodes; a small LAM learns latent actions
+// from video alone; a small tokenizer learns the latent space; the world model is pretrained on
+// human video with latent actions, post-trained on robot actions, rolled out on held-out and
+// out-of-distribution episodes and scored against a copy-the-first-frame baseline. Everything
+// lands in one directory with a self-contained HTML report. Every stage resumes: re-running
+// after an interruption continues where it stopped.
 #include <torch/torch.h>
 #include <CLI/CLI.hpp>
+
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <memory>
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
 #include "core/atomic_file.h"
+#include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
+#include "eval/html_report.h"
+#include "eval/wm_eval.h"
+#include "infer/world_model.h"
+#include "models/lam.h"
+#include "models/wan_vae.h"
 #include "sim/generate.h"
+#include "train/lam_train.h"
+#include "train/tokenizer_trainer.h"
+#include "train/train_util.h"
+#include "train/wm_train.h"
 
 namespace fs = std::filesystem;
 
@@ -23,92 +40,235 @@ namespace {
 
 struct DemoOptions {
   std::string out = "dojo_demo";
-  int episodes = 8;
+  double minutes = 30;  // training budget over all stages
+  int episodes = 32;    // human and robot training episodes each
+  int eval_episodes = 8;
   int frames = 64;
+  int sampler_steps = 35;
   uint64_t seed = 0;
   int workers = 0;
 };
+
+// Shares of the training budget; the rest (generation, caching, evaluation) is not budgeted.
+constexpr double kLamShare = 0.12, kTokenizerShare = 0.30, kPretrainShare = 0.24, kPosttrainShare = 0.24;
+
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+std::string fixed(double v, int digits = 2) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.*f", digits, v);
+  return buf;
+}
 
 int run_demo(const DemoOptions& o) {
   const fs::path out = o.out;
   fs::create_directories(out);
   const auto start = std::chrono::steady_clock::now();
+  const double budget_s = o.minutes * 60.0;
   nlohmann::json report;
+  std::vector<std::pair<std::string, double>> stage_seconds;
 
-  // Stage 1: the world. Human video without actions, robot episodes with joint actions.
-  LOG_INFO("[1/3] DojoSim: generating human and robot episodes into ", out.string());
-  sim::GenerateOptions human;
-  human.embodiment = "human";
-  human.episodes = o.episodes;
-  human.frames = o.frames;
-  human.seed = o.seed;
-  human.workers = o.workers;
-  const auto human_summary = sim::generate_dataset(out / "human", human);
-  sim::GenerateOptions robot = human;
-  robot.embodiment = "robot";
-  robot.seed = o.seed + 1;
-  const auto robot_summary = sim::generate_dataset(out / "robot", robot);
-  report["human"] = {
-      {"episodes", o.episodes}, {"generated", human_summary.generated}, {"seconds", human_summary.seconds}};
-  report["robot"] = {{"episodes", o.episodes},
-                     {"generated", robot_summary.generated},
-                     {"seconds", robot_summary.seconds},
-                     {"mean_bin_success", robot_summary.mean_success}};
-
-  // Stage 2: look at it.
-  LOG_INFO("[2/3] previews: ", (out / "preview_human.mp4").string(), ", ",
-           (out / "preview_robot.mp4").string());
+  // 1. The world.
+  LOG_INFO("[1/7] DojoSim: human and robot episodes into ", out.string());
+  auto t0 = std::chrono::steady_clock::now();
+  auto generate = [&](const std::string& name, const std::string& embodiment, const std::string& split,
+                      int episodes, uint64_t seed) {
+    sim::GenerateOptions g;
+    g.embodiment = embodiment;
+    g.split = split;
+    g.episodes = episodes;
+    g.frames = o.frames;
+    g.seed = seed;
+    g.workers = o.workers;
+    const auto s = sim::generate_dataset(out / name, g);
+    report["data"][name] = {{"episodes", episodes}, {"generated", s.generated}, {"seconds", s.seconds}};
+    if (!std::isnan(s.mean_success)) report["data"][name]["bin_success"] = s.mean_success;
+  };
+  generate("human", "human", "train", o.episodes, o.seed);
+  generate("robot", "robot", "train", o.episodes + o.eval_episodes, o.seed + 1);  // the val tail is held out
+  generate("robot_ood_objects", "robot", "ood-objects", o.eval_episodes, o.seed + 2);
+  generate("robot_counterfactual", "robot", "counterfactual", o.eval_episodes, o.seed + 3);
   data::write_preview_video(data::EpisodeStore::open(out / "human"), out / "preview_human.mp4", 4, 2);
   data::write_preview_video(data::EpisodeStore::open(out / "robot"), out / "preview_robot.mp4", 4, 2);
+  stage_seconds.emplace_back("generate DojoSim data", seconds_since(t0));
 
-  // Stage 3: the clip pipeline every trainer consumes, as a 1:1 human/robot mixture.
-  LOG_INFO("[3/3] clip pipeline: human:robot = 1:1 mixture, 13-frame clips, 384-d actions");
-  auto mixture = std::make_shared<data::ClipMixture>();
-  mixture->add(
-      std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "human"), data::ClipConfig{}, "all"),
-      1.0);
-  mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "robot"),
-                                                   data::ClipConfig{}, "train"),
-               1.0);
-  data::LoaderOptions loader_options;
-  loader_options.batch_size = 4;
-  loader_options.workers = 2;
-  loader_options.seed = o.seed;
-  data::PrefetchLoader loader(mixture, loader_options);
-  const auto loader_start = std::chrono::steady_clock::now();
-  int with_actions = 0, clips = 0;
-  data::Batch batch;
-  for (int i = 0; i < 8; ++i) {
-    batch = loader.next();
-    with_actions += batch.has_actions.sum().item<int>();
-    clips += static_cast<int>(batch.has_actions.size(0));
+  // 2. Latent action model on human and robot video (no actions used).
+  LOG_INFO("[2/7] LAM: latent actions from video alone (", fixed(budget_s * kLamShare / 60, 1), " min)");
+  t0 = std::chrono::steady_clock::now();
+  train::LamTrainJob lam;
+  lam.datasets = {{out / "human", 1.0}, {out / "robot", 1.0}};
+  lam.out = out / "lam";
+  lam.model = models::LamConfig::small();
+  lam.options.lr = 3e-4;  // small model, short run: the released 2.5e-5 is for 700 M parameters
+  lam.batch_size = 8;
+  lam.steps = 1000000;
+  lam.save_every = 100;
+  lam.seed = o.seed;
+  lam.time_budget_s = budget_s * kLamShare;
+  const auto lam_stats = train::run_lam_training(lam);
+  report["lam"] = {{"mse", lam_stats.mse}, {"psnr", lam_stats.psnr}};
+  stage_seconds.emplace_back("train LAM", seconds_since(t0));
+
+  // 3. Tokenizer.
+  LOG_INFO("[3/7] tokenizer: Wan2.1-architecture VAE (", fixed(budget_s * kTokenizerShare / 60, 1), " min)");
+  t0 = std::chrono::steady_clock::now();
+  {
+    models::WanVaeConfig cfg;
+    cfg.dim = 32;
+    models::WanVae vae(cfg);
+    auto mixture = std::make_shared<data::ClipMixture>();
+    data::ClipConfig clip;
+    clip.num_frames = 5;
+    clip.strides = {1, 2};
+    clip.height = clip.width = 64;
+    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "human"), clip, "all"), 1.0);
+    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "robot"), clip, "train"), 1.0);
+    std::unique_ptr<data::PrefetchLoader> loader;
+    auto next = [&](int64_t step) {
+      if (!loader) loader = std::make_unique<data::PrefetchLoader>(mixture, data::LoaderOptions{4, 1, 4, o.seed}, step);
+      return train::video_to_model(loader->next().video);
+    };
+    train::TokenizerTrainOptions t;
+    t.steps = 1000000;
+    t.lr = 1e-3;
+    t.save_every = 100;
+    t.checkpoint_dir = out / "tokenizer" / "checkpoint";
+    t.loss_curve = out / "tokenizer" / "loss.csv";
+    t.stats_batches = 8;
+    t.time_budget_s = budget_s * kTokenizerShare;
+    fs::create_directories(out / "tokenizer");
+    torch::manual_seed(o.seed);
+    const auto r = train::train_tokenizer(vae, next, t);
+    report["tokenizer"] = {{"steps", r.steps_done}, {"recon_first", r.first_loss}, {"recon_last", r.last_loss}};
   }
-  const double loader_seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - loader_start).count();
-  report["clips"] = {{"batches", 8},
-                     {"video_shape", batch.video.sizes().vec()},
-                     {"action_shape", batch.actions.sizes().vec()},
-                     {"robot_clips", with_actions},
-                     {"human_clips", clips - with_actions},
-                     {"clips_per_second", clips / loader_seconds}};
-  report["seconds"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  stage_seconds.emplace_back("train tokenizer", seconds_since(t0));
+  const fs::path tokenizer = out / "tokenizer" / "checkpoint";
+
+  // 4-5. World model: pretrain on human video with latent actions, post-train on robot actions.
+  auto wm_job = [&](train::WmStage stage, const fs::path& dataset, const std::string& split, train::ActionMode mode,
+                    const fs::path& dir, double seconds) {
+    train::WmTrainJob job;
+    job.stage = stage;
+    train::LatentCacheSpec spec;
+    spec.dataset = dataset;
+    spec.split = split;
+    spec.tokenizer = tokenizer;
+    spec.lam = out / "lam" / "checkpoint";
+    spec.mode = mode;
+    job.data = {spec};
+    job.out = dir;
+    if (stage == train::WmStage::kPosttrain) job.init = out / "wm_pretrain" / "checkpoint";
+    job.model = models::DitConfig::small();
+    job.options.lr = 3e-4;  // small network, few thousand steps
+    job.options.grad_clip = 1.0;
+    job.options.warmup_steps = 50;
+    job.batch_size = 8;
+    job.steps = 1000000;
+    job.time_budget_s = seconds;
+    job.save_every = 100;
+    job.seed = o.seed;
+    return train::run_wm_training(job);
+  };
+  LOG_INFO("[4/7] world model pretraining on human video with latent actions (",
+           fixed(budget_s * kPretrainShare / 60, 1), " min)");
+  t0 = std::chrono::steady_clock::now();
+  const auto pre = wm_job(train::WmStage::kPretrain, out / "human", "all", train::ActionMode::kLatent,
+                          out / "wm_pretrain", budget_s * kPretrainShare);
+  report["wm_pretrain"] = {{"steps", pre.steps},
+                           {"loss_first", pre.first_loss},
+                           {"loss_last", pre.last_loss},
+                           {"clips_per_second", pre.clips_per_second}};
+  stage_seconds.emplace_back("world model pretrain", seconds_since(t0));
+
+  LOG_INFO("[5/7] world model post-training on robot actions (", fixed(budget_s * kPosttrainShare / 60, 1),
+           " min)");
+  t0 = std::chrono::steady_clock::now();
+  const auto post = wm_job(train::WmStage::kPosttrain, out / "robot", "train", train::ActionMode::kDataset,
+                           out / "wm_posttrain", budget_s * kPosttrainShare);
+  report["wm_posttrain"] = {{"steps", post.steps},
+                            {"loss_first", post.first_loss},
+                            {"loss_last", post.last_loss},
+                            {"clips_per_second", post.clips_per_second}};
+  stage_seconds.emplace_back("world model post-train", seconds_since(t0));
+
+  // 6. Rollouts and evaluation.
+  LOG_INFO("[6/7] rollouts: 49 frames (4 chunks, 3 resets) on held-out and out-of-distribution robot episodes");
+  t0 = std::chrono::steady_clock::now();
+  auto model = infer::WorldModel::load(out / "wm_posttrain" / "checkpoint", tokenizer);
+  eval::WmEvalOptions eo;
+  eo.max_episodes = o.eval_episodes;
+  eo.sampler.steps = o.sampler_steps;
+  eo.seed = o.seed;
+  eo.video_dir = out / "rollouts";
+  eo.videos = 2;
+  std::vector<eval::WmEvalResult> results;
+  results.push_back(eval::evaluate_world_model(model, out / "robot", "val", eo));
+  results.push_back(eval::evaluate_world_model(model, out / "robot_ood_objects", "all", eo));
+  results.back().split = "ood-objects";
+  results.push_back(eval::evaluate_world_model(model, out / "robot_counterfactual", "all", eo));
+  results.back().split = "counterfactual";
+  nlohmann::json evals = nlohmann::json::array();
+  for (const auto& r : results) evals.push_back(r.to_json());
+  report["eval"] = evals;
+  write_file_atomic(out / "eval.md", eval::markdown_table(results));
+  stage_seconds.emplace_back("rollouts + evaluation", seconds_since(t0));
+
+  // 7. Report.
+  LOG_INFO("[7/7] report: ", (out / "report.html").string());
+  eval::HtmlReport html("DreamDojo.cpp demo on DojoSim");
+  html.paragraph(
+      "Everything below was made by `dojo demo` on this machine: DojoSim generated human and robot episodes; a "
+      "small latent action model learned actions from video alone; a small Wan2.1-architecture tokenizer learned "
+      "the latent space; the action-conditioned DiT was pretrained on human video with latent actions and "
+      "post-trained on robot actions; it then rolled out 49-frame videos (4 chunks of 12 actions, 3 autoregressive "
+      "resets) from the first frame and the recorded actions of episodes it never saw.");
+  html.heading("Rollouts vs ground truth");
+  html.paragraph(
+      "PSNR/SSIM per frame (piq conventions), mean per video, then over videos. The copy-frame-0 baseline repeats "
+      "the conditioning frame: a model that ignores the actions scores about that.");
+  std::vector<std::vector<std::string>> rows;
+  for (const auto& r : results)
+    rows.push_back({r.split, std::to_string(r.videos.size()), fixed(r.psnr), fixed(r.copy_psnr), fixed(r.ssim, 3),
+                    fixed(r.copy_ssim, 3), fixed(r.frames_per_second, 1)});
+  html.table({"split", "videos", "PSNR (dB)", "copy-frame PSNR", "SSIM", "copy-frame SSIM", "frames/s"}, rows);
+  for (const auto& r : results)
+    for (const auto& v : r.videos)
+      if (!v.video.empty())
+        html.video(v.video, r.split + " / " + v.episode + ": ground truth | world model | copy frame 0 (PSNR " +
+                                fixed(v.psnr) + " vs " + fixed(v.copy_psnr) + ")");
+  html.heading("Training");
+  html.line_chart("World model: flow-matching loss",
+                  {eval::read_csv_series(out / "wm_pretrain" / "loss.csv", "step", "loss", "pretrain (human, latent)"),
+                   eval::read_csv_series(out / "wm_posttrain" / "loss.csv", "step", "loss", "post-train (robot)")},
+                  "step", "loss", true, 20);
+  html.line_chart("Tokenizer: reconstruction MSE",
+                  {eval::read_csv_series(out / "tokenizer" / "loss.csv", "step", "recon", "recon")}, "step", "mse",
+                  true, 20);
+  html.line_chart("LAM: reconstruction PSNR",
+                  {eval::read_csv_series(out / "lam" / "loss.csv", "step", "psnr", "psnr")}, "step", "dB", false, 20);
+  html.heading("Data");
+  html.video(out / "preview_human.mp4", "human episodes (no actions)");
+  html.video(out / "preview_robot.mp4", "robot episodes");
+  html.heading("Time per stage");
+  std::vector<std::vector<std::string>> trows;
+  for (const auto& [name, s] : stage_seconds) trows.push_back({name, fixed(s, 1) + " s"});
+  trows.push_back({"total", fixed(seconds_since(start), 1) + " s"});
+  html.table({"stage", "time"}, trows);
+  html.write(out / "report.html");
+
+  report["stage_seconds"] = nlohmann::json::object();
+  for (const auto& [name, s] : stage_seconds) report["stage_seconds"][name] = s;
+  report["seconds"] = seconds_since(start);
   write_file_atomic(out / "demo.json", report.dump(2) + "\n");
 
-  std::printf("\nDreamDojo.cpp demo finished in %.1f s. Outputs in %s/\n", report["seconds"].get<double>(),
+  std::printf("\nDreamDojo.cpp demo finished in %.1f min. Open %s in a browser.\n\n%s\n",
+              report["seconds"].get<double>() / 60.0, (out / "report.html").string().c_str(),
+              eval::markdown_table(results).c_str());
+  std::printf("Outputs in %s/: datasets (human/, robot*/), lam/, tokenizer/, wm_pretrain/, wm_posttrain/, "
+              "rollouts/, eval.md, demo.json. Re-running resumes finished stages.\n",
               out.string().c_str());
-  std::printf("  human/, robot/          DojoSim datasets (%d episodes each, %d frames, 64x64, 10 Hz)\n",
-              o.episodes, o.frames);
-  std::printf("  preview_*.mp4           episodes side by side: open them in a browser or video player\n");
-  if (!std::isnan(robot_summary.mean_success))
-    std::printf("  robot bin-task success  %.2f (scripted policies of mixed quality)\n",
-                robot_summary.mean_success);
-  std::printf(
-      "  clip batches            video %s uint8, actions %s (%d robot / %d human clips, %.1f clips/s)\n",
-      nlohmann::json(batch.video.sizes().vec()).dump().c_str(),
-      nlohmann::json(batch.actions.sizes().vec()).dump().c_str(), with_actions, clips - with_actions,
-      clips / loader_seconds);
-  std::printf("  demo.json               this summary as JSON\n");
-  std::printf("Re-running resumes: finished episodes are reused.\n");
   return 0;
 }
 
@@ -116,20 +276,28 @@ int run_demo(const DemoOptions& o) {
 
 void register_demo(CLI::App& app) {
   auto* cmd = app.add_subcommand("demo",
-                                 "Run the pipeline end to end on the built-in DojoSim world: generate human "
-                                 "and robot episodes, write preview "
-                                 "videos, and draw training clips through the clip pipeline");
+                                 "The whole pipeline on the built-in DojoSim world: generate data, train LAM, "
+                                 "tokenizer and world model (pretrain + post-train), roll out, evaluate, and "
+                                 "write report.html");
   auto o = std::make_shared<DemoOptions>();
   cmd->add_option("--out,-o", o->out, "Output directory")->capture_default_str();
-  cmd->add_option("--episodes,-n", o->episodes, "Episodes per embodiment")
+  cmd->add_option("--minutes,-m", o->minutes, "Training time budget shared by the stages")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_option("--episodes,-n", o->episodes, "Training episodes per embodiment")
+      ->check(CLI::Range(2, 100000))
+      ->capture_default_str();
+  cmd->add_option("--eval-episodes", o->eval_episodes, "Held-out episodes per evaluation split")
       ->check(CLI::Range(1, 100000))
       ->capture_default_str();
-  cmd->add_option("--frames", o->frames, "Frames per episode (10 Hz)")
-      ->check(CLI::Range(14, 100000))
+  cmd->add_option("--frames", o->frames, "Frames per episode (10 Hz; at least 50 for the 49-frame protocol)")
+      ->check(CLI::Range(50, 100000))
+      ->capture_default_str();
+  cmd->add_option("--sampler-steps", o->sampler_steps, "UniPC steps per chunk")
+      ->check(CLI::Range(1, 1000))
       ->capture_default_str();
   cmd->add_option("--seed", o->seed, "Random seed")->capture_default_str();
-  cmd->add_option("--workers,-j", o->workers, "Parallel generation workers (0 = all cores)")
-      ->capture_default_str();
+  cmd->add_option("--workers,-j", o->workers, "Parallel generation workers (0 = all cores)")->capture_default_str();
   cmd->callback([o] { set_action([o] { return run_demo(*o); }); });
 }
 

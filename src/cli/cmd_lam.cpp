@@ -19,15 +19,6 @@
 namespace dojo::cli {
 namespace {
 
-models::LatentActionModel load_lam(const std::string& dir) {
-  auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
-  models::LatentActionModel model(models::LamConfig::from_json(ckpt.config()));
-  LoadOptions opts;
-  opts.prefix = "lam.";
-  load_state_dict(*model, ckpt.model(), opts);
-  model->eval();
-  return model;
-}
 
 // "DIR" or "DIR:WEIGHT".
 std::pair<std::filesystem::path, double> parse_dataset(const std::string& text) {
@@ -100,7 +91,7 @@ void add_label(CLI::App& lam) {
   cmd->add_option("--batch,-b", *batch, "Frame pairs per forward pass")->capture_default_str();
   cmd->callback([=] {
     set_action([=] {
-      auto model = load_lam(*ckpt);
+      auto model = train::load_lam(*ckpt);
       const auto s = train::label_lam_dataset(model, *dataset, *out, *batch);
       std::printf("lam label: %lld episodes, %lld new pairs in %.1f s\n", static_cast<long long>(s.episodes),
                   static_cast<long long>(s.pairs), s.seconds);
@@ -131,7 +122,7 @@ void add_probe(CLI::App& lam) {
   cmd->add_flag("--json", *json, "Print the result as JSON");
   cmd->callback([=] {
     set_action([=] {
-      auto model = load_lam(*ckpt);
+      auto model = train::load_lam(*ckpt);
       nlohmann::json result = {{"ckpt", *ckpt}, {"datasets", nlohmann::json::array()}};
       for (const auto& dir : *data) {
         auto store = data::EpisodeStore::open(dir);
@@ -203,7 +194,7 @@ void add_retrieve(CLI::App& lam) {
   cmd->callback([=] {
     set_action([=] {
       DOJO_CHECK(*queries > 0 && *k > 0, "lam retrieve: --queries and --k must be positive");
-      auto model = load_lam(*ckpt);
+      auto model = train::load_lam(*ckpt);
       const auto& c = model->config;
       struct Pairs {
         std::vector<torch::Tensor> frames;               // per episode [T, h, w, 3] uint8 at model size

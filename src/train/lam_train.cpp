@@ -18,6 +18,7 @@
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
 #include "io/video.h"
+#include "train/train_util.h"
 
 namespace dojo::train {
 
@@ -87,38 +88,10 @@ LamStepStats LamTrainer::step(const torch::Tensor& videos_in) {
   return s;
 }
 
-static std::string param_key(const torch::Tensor& p) { return c10::guts::to_string(p.unsafeGetTensorImpl()); }
-
-NamedTensors LamTrainer::optimizer_state() const {
-  NamedTensors out;
-  auto& state = optimizer_->state();
-  for (const auto& item : model_->named_parameters()) {
-    const auto& name = item.key();
-    const auto& p = item.value();
-    auto it = state.find(param_key(p));
-    if (it == state.end()) continue;
-    auto& st = static_cast<torch::optim::AdamWParamState&>(*it->second);
-    out.emplace_back("adamw." + name + ".exp_avg", st.exp_avg());
-    out.emplace_back("adamw." + name + ".exp_avg_sq", st.exp_avg_sq());
-    out.emplace_back("adamw." + name + ".step", torch::tensor(st.step(), torch::kLong));
-  }
-  return out;
-}
+NamedTensors LamTrainer::optimizer_state() const { return adamw_state(*optimizer_, *model_); }
 
 void LamTrainer::load_optimizer_state(const NamedTensors& tensors) {
-  std::map<std::string, torch::Tensor> by_name(tensors.begin(), tensors.end());
-  auto& state = optimizer_->state();
-  for (const auto& item : model_->named_parameters()) {
-    const auto& name = item.key();
-    const auto& p = item.value();
-    auto a = by_name.find("adamw." + name + ".exp_avg");
-    if (a == by_name.end()) continue;
-    auto st = std::make_unique<torch::optim::AdamWParamState>();
-    st->exp_avg(a->second.clone().to(p.device()));
-    st->exp_avg_sq(by_name.at("adamw." + name + ".exp_avg_sq").clone().to(p.device()));
-    st->step(by_name.at("adamw." + name + ".step").item<int64_t>());
-    state[param_key(p)] = std::move(st);
-  }
+  load_adamw_state(*optimizer_, *model_, tensors);
 }
 
 void LamTrainer::save(const std::filesystem::path& dir, const nlohmann::json& extra) const {
@@ -209,6 +182,7 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   LamStepStats last;
   int64_t seen_steps = 0, timed_steps = 0;
   double timed_clips = 0, timed_seconds = 0;
+  TimeBudget budget(job.time_budget_s);
   while (trainer.steps_done() < job.steps) {
     auto batch = loader.next();
     const auto t0 = std::chrono::steady_clock::now();
@@ -228,9 +202,14 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
     std::ostringstream note;
     note << "loss " << last.loss << " psnr " << last.psnr;
     progress.advance(1, note.str());
-    if (trainer.steps_done() % job.save_every == 0 || trainer.steps_done() == job.steps) {
+    const bool out_of_time = budget.expired();
+    if (trainer.steps_done() % job.save_every == 0 || trainer.steps_done() == job.steps || out_of_time) {
       trainer.save(ckpt_dir);
       write_curve();
+    }
+    if (out_of_time) {
+      LOG_INFO("lam train: time budget of ", job.time_budget_s, " s reached at step ", trainer.steps_done());
+      break;
     }
   }
   progress.finish();
@@ -246,6 +225,16 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
 }  // namespace dojo::train
 
 namespace dojo::train {
+
+models::LatentActionModel load_lam(const std::filesystem::path& dir) {
+  auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
+  models::LatentActionModel model(models::LamConfig::from_json(ckpt.config()));
+  LoadOptions opts;
+  opts.prefix = "lam.";
+  load_state_dict(*model, ckpt.model(), opts);
+  model->eval();
+  return model;
+}
 
 torch::Tensor lam_encode_episode(models::LatentActionModel& model, const torch::Tensor& frames,
                                  int64_t batch_pairs) {

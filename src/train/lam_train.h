@@ -73,6 +73,7 @@ struct LamTrainJob {
   int64_t save_every = 200;
   int workers = 1;
   uint64_t seed = 0;
+  double time_budget_s = 0;  // stop early (and checkpoint) after this long; 0: none
 };
 // Trains (resuming from out/checkpoint when present). Frame pairs are drawn with a uniformly
 // random skip in {1, 2, 3, 4}. Returns the stats of the last step.
@@ -81,6 +82,9 @@ LamStepStats run_lam_training(const LamTrainJob& job);
 }  // namespace dojo::train
 
 namespace dojo::train {
+
+// A checkpoint written by LamTrainer::save (or `dojo lam train`), in eval mode.
+models::LatentActionModel load_lam(const std::filesystem::path& dir);
 
 // Latent actions (z_mu) of every consecutive frame pair of one episode: frames [T, H, W, 3]
 // uint8 (any size; centre-cropped and resized to the model's input) -> [T - 1, latent].

@@ -9,6 +9,7 @@
 #include "core/log.h"
 #include "core/progress.h"
 #include "core/state_dict.h"
+#include "train/train_util.h"
 
 namespace dojo::train {
 
@@ -100,6 +101,9 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
   std::optional<Progress> progress;
   if (o.progress) progress.emplace("tokenizer train", o.steps - start, "step");
   bool first = true;
+  TimeBudget budget(o.time_budget_s);
+  std::optional<LossCurve> curve;
+  if (!o.loss_curve.empty()) curve.emplace(o.loss_curve, "step,recon,kl,seconds", start);
   for (int64_t step = start; step < o.steps; ++step) {
     const auto video = next_batch(step);
     auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior);
@@ -115,7 +119,14 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
       std::snprintf(note, sizeof note, "recon %.5f kl %.3f", recon, loss.kl.item<double>());
       progress->advance(1, note);
     }
-    const bool last = step + 1 == o.steps;
+    if (curve) {
+      char row[128];
+      std::snprintf(row, sizeof row, "%lld,%.6g,%.6g,%.2f", static_cast<long long>(step + 1), recon,
+                    loss.kl.item<double>(), budget.elapsed());
+      curve->add(row);
+    }
+    const bool out_of_time = budget.expired();
+    const bool last = step + 1 == o.steps || out_of_time;
     if (last && o.stats_batches > 0) {
       std::vector<torch::Tensor> videos;
       for (int64_t i = 0; i < o.stats_batches; ++i) videos.push_back(next_batch(o.steps + i));
@@ -123,7 +134,12 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
     }
     if (checkpoints && (last || (o.save_every > 0 && (step + 1) % o.save_every == 0)))
       save_training_checkpoint(o.checkpoint_dir, vae, opt, params, step + 1);
+    if (curve && (last || (o.save_every > 0 && (step + 1) % o.save_every == 0))) curve->write();
     result.steps_done = step + 1;
+    if (out_of_time) {
+      LOG_INFO("tokenizer train: time budget of ", o.time_budget_s, " s reached at step ", step + 1);
+      break;
+    }
   }
   if (progress) progress->finish();
   result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();

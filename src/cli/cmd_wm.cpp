@@ -1,0 +1,255 @@
+// `dojo wm train|rollout` and `dojo eval`: the action-conditioned world model.
+#include <CLI/CLI.hpp>
+
+#include <cstdio>
+#include <filesystem>
+#include <memory>
+#include <nlohmann/json.hpp>
+
+#include "cli/commands.h"
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/safetensors.h"
+#include "data/clip_loader.h"
+#include "data/episode_store.h"
+#include "eval/wm_eval.h"
+#include "infer/world_model.h"
+#include "io/video.h"
+#include "train/wm_train.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::cli {
+namespace {
+
+struct WmTrainArgs {
+  std::string stage = "pretrain", actions, split = "train", tokenizer, lam, init, out, model = "small",
+              temporal_axis = "time";
+  std::vector<std::string> data;
+  int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100;
+  int batch = 8;
+  double minutes = 0, lr = 1.6e-4, weight_decay = 0.1, grad_clip = 0.1, temporal_weight = 0.1;
+  uint64_t seed = 0;
+};
+
+models::DitConfig model_preset(const std::string& name) {
+  if (name == "small") return models::DitConfig::small();
+  if (name == "2b") return models::DitConfig::released_2b();
+  if (name == "14b") return models::DitConfig::released_14b();
+  throw UsageError("--model must be small, 2b or 14b (got '" + name + "')");
+}
+
+int run_wm_train(const WmTrainArgs& a) {
+  train::WmTrainJob job;
+  job.stage = train::parse_wm_stage(a.stage);
+  const auto mode = train::parse_action_mode(
+      !a.actions.empty() ? a.actions : (job.stage == train::WmStage::kPretrain ? "latent" : "dataset"));
+  for (const auto& d : a.data) {
+    train::LatentCacheSpec spec;
+    spec.dataset = d;
+    spec.split = a.split;
+    spec.tokenizer = a.tokenizer;
+    spec.lam = a.lam;
+    spec.mode = mode;
+    spec.hop = a.hop;
+    spec.max_clips = a.max_clips;
+    job.data.push_back(spec);
+  }
+  job.out = a.out;
+  job.init = a.init;
+  job.model = model_preset(a.model);
+  job.options.lr = a.lr;
+  job.options.weight_decay = a.weight_decay;
+  job.options.grad_clip = a.grad_clip;
+  job.options.warmup_steps = a.warmup;
+  job.options.flow.temporal_weight = a.temporal_weight;
+  job.options.flow.temporal_axis =
+      a.temporal_axis == "channel" ? diffusion::TemporalAxis::kChannel : diffusion::TemporalAxis::kTime;
+  job.batch_size = a.batch;
+  job.steps = a.steps;
+  job.time_budget_s = a.minutes * 60.0;
+  job.save_every = a.save_every;
+  job.seed = a.seed;
+  const auto r = train::run_wm_training(job);
+  std::printf(
+      "wm %s: %lld steps, loss %.4f -> %.4f, fixed-batch loss %.4f -> %.4f, %.1f clips/s, %lld cached clips\n"
+      "checkpoint %s/checkpoint, loss curve %s/loss.csv\n",
+      a.stage.c_str(), static_cast<long long>(r.steps), r.first_loss, r.last_loss, r.heldout_loss_start,
+      r.heldout_loss_end, r.clips_per_second, static_cast<long long>(r.clips), a.out.c_str(), a.out.c_str());
+  return 0;
+}
+
+struct RolloutArgs {
+  std::string checkpoint, tokenizer, data, split = "val", episode, actions_file, out, solver = "unipc",
+                                                                                  concat = "aligned";
+  int chunks = 4, steps = 35;
+  uint64_t seed = 0;
+};
+
+int run_rollout(const RolloutArgs& a) {
+  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer);
+  const auto store = data::EpisodeStore::open(a.data);
+  const auto indices = store.split_indices(a.split);
+  DOJO_CHECK(!indices.empty(), a.data + ": no episodes in split '" + a.split + "'");
+  size_t ep = indices.front();
+  if (!a.episode.empty()) {
+    bool found = false;
+    for (size_t i = 0; i < store.size(); ++i)
+      if (store.info().episodes[i].id == a.episode) {
+        ep = i;
+        found = true;
+      }
+    DOJO_CHECK(found, a.data + ": no episode '" + a.episode + "'");
+  }
+  data::ClipConfig clip;
+  clip.num_frames = 1 + 12 * a.chunks;
+  clip.strides = {1};
+  clip.height = store.info().height;
+  clip.width = store.info().width;
+  data::ClipDataset ds(store, clip, "all");
+  const auto id = store.info().episodes[ep].id;
+  DOJO_CHECK(data::window_fits(store.info().episodes[ep].frames, 1, clip.num_frames),
+             a.data + ": episode " + id + " is shorter than " + std::to_string(clip.num_frames) + " frames");
+  const auto c = ds.read(ep, data::make_window(0, 1, clip.num_frames));
+  auto actions = c.actions;  // [12 K, 384]
+  bool counterfactual = false;
+  if (!a.actions_file.empty()) {
+    // Counterfactual: the episode's first frame with actions from a file.
+    actions = SafetensorsFile::open(a.actions_file).tensor("actions", true).to(torch::kFloat);
+    DOJO_CHECK(actions.dim() == 2 && actions.size(1) == 384 && actions.size(0) % 12 == 0 && actions.size(0) > 0,
+               a.actions_file + ": tensor 'actions' must be [12 K, 384]");
+    counterfactual = true;
+  }
+  infer::SamplerOptions sampler;
+  sampler.steps = a.steps;
+  sampler.solver = infer::parse_solver(a.solver);
+  const auto pred = model.rollout(c.video.select(0, 0).unsqueeze(0), actions.unsqueeze(0), a.seed, sampler,
+                                  infer::parse_concat_mode(a.concat))[0];
+  if (counterfactual)
+    io::write_video(a.out, pred, {});
+  else
+    io::write_comparison_video(a.out, {c.video, pred}, {"ground truth", "world model"}, store.info().fps);
+  std::printf("rollout of %s (%lld frames) -> %s\n", id.c_str(), static_cast<long long>(pred.size(0)),
+              a.out.c_str());
+  return 0;
+}
+
+struct EvalArgs {
+  std::string checkpoint, tokenizer, data, out, solver = "unipc", concat = "aligned";
+  std::vector<std::string> splits = {"val"};
+  int chunks = 4, episodes = 16, steps = 35, videos = 4, batch = 4;
+  uint64_t seed = 0;
+  bool json = false;
+};
+
+int run_eval(const EvalArgs& a) {
+  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer);
+  eval::WmEvalOptions o;
+  o.chunks = a.chunks;
+  o.max_episodes = a.episodes;
+  o.batch = a.batch;
+  o.sampler.steps = a.steps;
+  o.sampler.solver = infer::parse_solver(a.solver);
+  o.concat = infer::parse_concat_mode(a.concat);
+  o.seed = a.seed;
+  o.videos = a.videos;
+  if (!a.out.empty()) o.video_dir = fs::path(a.out) / "videos";
+  std::vector<eval::WmEvalResult> results;
+  nlohmann::json j = {{"checkpoint", a.checkpoint},
+                      {"tokenizer", a.tokenizer},
+                      {"sampler", {{"solver", a.solver}, {"steps", a.steps}, {"shift", o.sampler.shift}}},
+                      {"concat", a.concat},
+                      {"metrics", "PSNR/SSIM per frame (piq conventions), mean per video, then mean over videos"},
+                      {"splits", nlohmann::json::array()}};
+  for (const auto& s : a.splits) {
+    results.push_back(eval::evaluate_world_model(model, a.data, s, o));
+    j["splits"].push_back(results.back().to_json());
+  }
+  const auto table = eval::markdown_table(results);
+  if (!a.out.empty()) {
+    fs::create_directories(a.out);
+    write_file_atomic(fs::path(a.out) / "metrics.json", j.dump(2) + "\n");
+    write_file_atomic(fs::path(a.out) / "metrics.md", table);
+  }
+  if (a.json)
+    std::printf("%s\n", j.dump(2).c_str());
+  else
+    std::printf("%s", table.c_str());
+  return 0;
+}
+
+}  // namespace
+
+void register_wm(CLI::App& app) {
+  auto* wm = app.add_subcommand("wm", "Action-conditioned world model (DiT, rectified flow)");
+  wm->require_subcommand(1);
+
+  auto t = std::make_shared<WmTrainArgs>();
+  auto* train_cmd = wm->add_subcommand("train", "Train on cached tokenizer latents: pretrain, posttrain or scratch");
+  train_cmd->add_option("--stage", t->stage, "pretrain (human video) | posttrain (robot, needs --init) | scratch")
+      ->capture_default_str();
+  train_cmd->add_option("--data,-d", t->data, "Dataset directory (repeat to mix)")->required();
+  train_cmd->add_option("--split", t->split, "Split to train on")->capture_default_str();
+  train_cmd->add_option("--tokenizer", t->tokenizer, "Tokenizer checkpoint (dojo tokenizer train)")->required();
+  train_cmd->add_option("--lam", t->lam, "LAM checkpoint, for --actions latent");
+  train_cmd->add_option("--actions", t->actions,
+                        "dataset | latent | none | ground-truth (default: latent for pretrain, else dataset)");
+  train_cmd->add_option("--init", t->init, "Pretrained world-model checkpoint (posttrain)");
+  train_cmd->add_option("--out,-o", t->out, "Output directory (checkpoint/, loss.csv, latent caches)")->required();
+  train_cmd->add_option("--model", t->model, "Network size: small | 2b | 14b")->capture_default_str();
+  train_cmd->add_option("--steps", t->steps, "Total optimiser steps")->capture_default_str();
+  train_cmd->add_option("--minutes", t->minutes, "Stop (and checkpoint) after this many minutes; 0 = no limit");
+  train_cmd->add_option("--batch,-b", t->batch, "Clips per step")->capture_default_str();
+  train_cmd->add_option("--lr", t->lr, "AdamW learning rate")->capture_default_str();
+  train_cmd->add_option("--weight-decay", t->weight_decay, "AdamW weight decay")->capture_default_str();
+  train_cmd->add_option("--grad-clip", t->grad_clip, "Global gradient-norm clip (0 = off)")->capture_default_str();
+  train_cmd->add_option("--warmup", t->warmup, "Linear learning-rate warm-up steps")->capture_default_str();
+  train_cmd->add_option("--temporal-axis", t->temporal_axis, "Temporal-consistency loss axis: time | channel")
+      ->check(CLI::IsMember({"time", "channel"}))
+      ->capture_default_str();
+  train_cmd->add_option("--temporal-weight", t->temporal_weight, "Temporal-consistency loss weight (0 = off)")
+      ->capture_default_str();
+  train_cmd->add_option("--hop", t->hop, "Frames between cached clip starts")->capture_default_str();
+  train_cmd->add_option("--max-clips", t->max_clips, "Cache at most this many clips per dataset (0 = all)");
+  train_cmd->add_option("--save-every", t->save_every, "Checkpoint interval in steps")->capture_default_str();
+  train_cmd->add_option("--seed", t->seed, "Random seed")->capture_default_str();
+  train_cmd->callback([t] { set_action([t] { return run_wm_train(*t); }); });
+
+  auto r = std::make_shared<RolloutArgs>();
+  auto* roll = wm->add_subcommand("rollout", "Roll the model out from an episode's first frame and actions");
+  roll->add_option("--checkpoint,-c", r->checkpoint, "World-model checkpoint")->required();
+  roll->add_option("--tokenizer", r->tokenizer, "Tokenizer checkpoint")->required();
+  roll->add_option("--data,-d", r->data, "Dataset the episode comes from")->required();
+  roll->add_option("--split", r->split, "Split (first episode is used unless --episode)")->capture_default_str();
+  roll->add_option("--episode", r->episode, "Episode id");
+  roll->add_option("--actions", r->actions_file, "safetensors file with 'actions' [12 K, 384] (counterfactual)");
+  roll->add_option("--chunks", r->chunks, "Chunks of 12 actions")->capture_default_str();
+  roll->add_option("--steps", r->steps, "Sampler steps")->capture_default_str();
+  roll->add_option("--solver", r->solver, "unipc | euler")->capture_default_str();
+  roll->add_option("--concat", r->concat, "aligned | released (chunk joining)")->capture_default_str();
+  roll->add_option("--seed", r->seed, "Noise seed")->capture_default_str();
+  roll->add_option("--out,-o", r->out, "Output mp4")->required();
+  roll->callback([r] { set_action([r] { return run_rollout(*r); }); });
+
+  auto e = std::make_shared<EvalArgs>();
+  auto* ev = app.add_subcommand("eval", "Evaluate a world model: PSNR/SSIM of rollouts vs ground truth per split");
+  ev->add_option("--checkpoint,-c", e->checkpoint, "World-model checkpoint")->required();
+  ev->add_option("--tokenizer", e->tokenizer, "Tokenizer checkpoint")->required();
+  ev->add_option("--data,-d", e->data, "Dataset directory")->required();
+  ev->add_option("--split,-s", e->splits, "Split(s) to evaluate (repeat)")->capture_default_str();
+  ev->add_option("--chunks", e->chunks, "Chunks of 12 actions per video (4 = the paper's 49 frames)")
+      ->capture_default_str();
+  ev->add_option("--episodes,-n", e->episodes, "Episodes per split (0 = all)")->capture_default_str();
+  ev->add_option("--steps", e->steps, "Sampler steps")->capture_default_str();
+  ev->add_option("--solver", e->solver, "unipc | euler")->capture_default_str();
+  ev->add_option("--concat", e->concat, "aligned | released (chunk joining)")->capture_default_str();
+  ev->add_option("--batch,-b", e->batch, "Episodes rolled out together")->capture_default_str();
+  ev->add_option("--videos", e->videos, "Side-by-side videos per split (with --out)")->capture_default_str();
+  ev->add_option("--seed", e->seed, "Noise seed")->capture_default_str();
+  ev->add_option("--out,-o", e->out, "Directory for metrics.json, metrics.md and videos/");
+  ev->add_flag("--json", e->json, "Print JSON instead of a table");
+  ev->callback([e] { set_action([e] { return run_eval(*e); }); });
+}
+
+}  // namespace dojo::cli

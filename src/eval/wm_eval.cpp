@@ -1,0 +1,123 @@
+#include "eval/wm_eval.h"
+
+#include <chrono>
+#include <cstdio>
+
+#include "core/error.h"
+#include "core/log.h"
+#include "core/progress.h"
+#include "data/clip_loader.h"
+#include "data/episode_store.h"
+#include "eval/metrics.h"
+#include "io/video.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::eval {
+
+nlohmann::json WmEvalResult::to_json() const {
+  nlohmann::json per = nlohmann::json::array();
+  for (const auto& v : videos) {
+    nlohmann::json j = {{"episode", v.episode},     {"psnr", v.psnr},           {"ssim", v.ssim},
+                        {"copy_psnr", v.copy_psnr}, {"copy_ssim", v.copy_ssim}};
+    if (!v.video.empty()) j["video"] = v.video;
+    per.push_back(j);
+  }
+  return {{"dataset", dataset},
+          {"split", split},
+          {"videos", static_cast<int>(videos.size())},
+          {"frames_per_video", frames},
+          {"psnr", psnr},
+          {"ssim", ssim},
+          {"copy_first_frame", {{"psnr", copy_psnr}, {"ssim", copy_ssim}}},
+          {"seconds", seconds},
+          {"frames_per_second", frames_per_second},
+          {"per_video", per}};
+}
+
+WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& dataset, const std::string& split,
+                                  const WmEvalOptions& o) {
+  DOJO_CHECK(o.chunks > 0, "eval: --chunks must be positive");
+  const auto store = data::EpisodeStore::open(dataset);
+  data::ClipConfig clip;
+  clip.num_frames = 1 + 12 * o.chunks;
+  clip.strides = {1};
+  clip.height = store.info().height;
+  clip.width = store.info().width;
+  data::ClipDataset ds(store, clip, split);
+  std::vector<size_t> episodes;
+  for (size_t ep : ds.episodes())
+    if (data::window_fits(store.info().episodes[ep].frames, 1, clip.num_frames)) episodes.push_back(ep);
+  DOJO_CHECK(!episodes.empty(), dataset.string() + ": no episode of split '" + split + "' is long enough for " +
+                                    std::to_string(clip.num_frames) + " frames");
+  if (o.max_episodes > 0 && static_cast<int>(episodes.size()) > o.max_episodes) episodes.resize(o.max_episodes);
+  if (!o.video_dir.empty()) fs::create_directories(o.video_dir);
+
+  WmEvalResult r;
+  r.dataset = dataset.string();
+  r.split = split;
+  r.frames = clip.num_frames;
+  Progress progress("eval " + split, static_cast<int64_t>(episodes.size()) * o.chunks, "chunk");
+  double rollout_seconds = 0;
+  for (size_t b = 0; b < episodes.size(); b += static_cast<size_t>(o.batch)) {
+    const size_t e = std::min(episodes.size(), b + static_cast<size_t>(o.batch));
+    std::vector<at::Tensor> gt_videos, gt_actions;
+    for (size_t i = b; i < e; ++i) {
+      const auto c = ds.read(episodes[i], data::make_window(0, 1, clip.num_frames));
+      gt_videos.push_back(c.video);
+      gt_actions.push_back(c.actions);
+    }
+    const auto gt = torch::stack(gt_videos);  // [n, 1 + 12K, H, W, 3]
+    const auto t0 = std::chrono::steady_clock::now();
+    const auto pred = model.rollout(gt.select(1, 0).contiguous(), torch::stack(gt_actions), o.seed, o.sampler, o.concat,
+                                    [&](int64_t) { progress.advance(static_cast<int64_t>(e - b)); });
+    rollout_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const auto first = pred.select(1, 0);  // the tokenizer's version of the conditioning frame
+    for (size_t i = b; i < e; ++i) {
+      const int64_t k = static_cast<int64_t>(i - b);
+      VideoScore s;
+      s.episode = store.info().episodes[episodes[i]].id;
+      const auto m = video_metrics(pred[k], gt[k]);
+      const auto copy = first[k].unsqueeze(0).expand_as(gt[k]).contiguous();
+      const auto mc = video_metrics(copy, gt[k]);
+      s.psnr = m.psnr;
+      s.ssim = m.ssim;
+      s.copy_psnr = mc.psnr;
+      s.copy_ssim = mc.ssim;
+      if (!o.video_dir.empty() && static_cast<int>(r.videos.size()) < o.videos) {
+        s.video = (o.video_dir / (split + "_" + s.episode + ".mp4")).string();
+        io::write_comparison_video(s.video, {gt[k], pred[k], copy}, {"ground truth", "world model", "copy frame 0"},
+                                   store.info().fps);
+      }
+      r.videos.push_back(s);
+    }
+  }
+  progress.finish();
+  for (const auto& v : r.videos) {
+    r.psnr += v.psnr;
+    r.ssim += v.ssim;
+    r.copy_psnr += v.copy_psnr;
+    r.copy_ssim += v.copy_ssim;
+  }
+  const double n = static_cast<double>(r.videos.size());
+  r.psnr /= n;
+  r.ssim /= n;
+  r.copy_psnr /= n;
+  r.copy_ssim /= n;
+  r.seconds = rollout_seconds;
+  r.frames_per_second = rollout_seconds > 0 ? n * (r.frames - 1) / rollout_seconds : 0;
+  return r;
+}
+
+std::string markdown_table(const std::vector<WmEvalResult>& results) {
+  std::string s = "| split | videos | PSNR | SSIM | copy-frame PSNR | copy-frame SSIM |\n|---|---|---|---|---|---|\n";
+  char line[256];
+  for (const auto& r : results) {
+    std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f |\n", r.split.c_str(), r.videos.size(),
+                  r.psnr, r.ssim, r.copy_psnr, r.copy_ssim);
+    s += line;
+  }
+  return s;
+}
+
+}  // namespace dojo::eval

@@ -1,0 +1,51 @@
+// The paper's teacher evaluation on a dataset split: for each episode, the first ground-truth
+// frame and the episode's actions drive a rollout of 1 + 12 K frames (K = 4 chunks: 49 frames,
+// 3 autoregressive resets); PSNR and SSIM are taken per frame, averaged per video, then over
+// videos. The copy-first-frame baseline (the conditioning frame, as the tokenizer returns it,
+// repeated) is scored the same way: a world model that ignores actions cannot beat it by much.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "infer/world_model.h"
+
+namespace dojo::eval {
+
+struct WmEvalOptions {
+  int chunks = 4;         // 4 x 12 actions: the paper's 49-frame protocol
+  int max_episodes = 16;  // evaluate at most this many episodes of the split (0: all)
+  int batch = 4;          // episodes rolled out together
+  infer::SamplerOptions sampler;
+  infer::ConcatMode concat = infer::ConcatMode::kAligned;
+  uint64_t seed = 0;
+  std::filesystem::path video_dir;  // side-by-side videos (ground truth | prediction) when set
+  int videos = 4;                   // how many episodes get a video
+};
+
+struct VideoScore {
+  std::string episode;
+  double psnr = 0, ssim = 0;            // world model
+  double copy_psnr = 0, copy_ssim = 0;  // copy-first-frame baseline
+  std::string video;                    // side-by-side file, when written
+};
+
+struct WmEvalResult {
+  std::string dataset, split;
+  std::vector<VideoScore> videos;
+  double psnr = 0, ssim = 0, copy_psnr = 0, copy_ssim = 0;  // means over videos
+  int frames = 0;                                           // per video
+  double seconds = 0, frames_per_second = 0;                // generated frames / rollout time
+  nlohmann::json to_json() const;
+};
+
+WmEvalResult evaluate_world_model(infer::WorldModel& model, const std::filesystem::path& dataset,
+                                  const std::string& split, const WmEvalOptions& options);
+
+// Markdown table of several results (one row per split).
+std::string markdown_table(const std::vector<WmEvalResult>& results);
+
+}  // namespace dojo::eval

@@ -1,0 +1,94 @@
+#include "infer/world_model.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+
+#include "core/error.h"
+#include "train/tokenizer_trainer.h"
+#include "train/wm_train.h"
+
+namespace dojo::infer {
+
+diffusion::Solver parse_solver(const std::string& text) {
+  if (text == "unipc") return diffusion::Solver::kUniPC;
+  if (text == "euler") return diffusion::Solver::kEuler;
+  throw Error("unknown solver '" + text + "' (expected unipc or euler)");
+}
+
+ConcatMode parse_concat_mode(const std::string& text) {
+  if (text == "aligned") return ConcatMode::kAligned;
+  if (text == "released") return ConcatMode::kReleased;
+  throw Error("unknown concat mode '" + text + "' (expected aligned or released)");
+}
+
+WorldModel::WorldModel(models::ActionDit net, models::WanVae tokenizer)
+    : net_(std::move(net)), tokenizer_(std::move(tokenizer)) {
+  net_->eval();
+  tokenizer_->eval();
+}
+
+WorldModel WorldModel::load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer) {
+  return WorldModel(train::load_world_model(checkpoint), train::load_tokenizer(tokenizer));
+}
+
+torch::Tensor WorldModel::reconstruct_frames(const torch::Tensor& frames) {
+  torch::NoGradGuard no_grad;
+  const auto z = tokenizer_->encode_latents(train::video_to_model(frames.unsqueeze(1)));  // [B, 16, 1, h, w]
+  return train::model_to_video(tokenizer_->decode_latents(z)).select(1, 0);             // [B, H, W, 3]
+}
+
+torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::Tensor& actions, uint64_t seed,
+                                        const SamplerOptions& sampler) {
+  DOJO_CHECK(cond.dim() == 4 && cond.size(3) == 3 && cond.scalar_type() == torch::kUInt8,
+             "predict_chunk: conditioning frames must be [B, H, W, 3] uint8");
+  DOJO_CHECK(actions.dim() == 3 && actions.size(0) == cond.size(0) && actions.size(1) == kChunkActions,
+             "predict_chunk: actions must be [B, 12, action_dim] for B = " + std::to_string(cond.size(0)));
+  torch::NoGradGuard no_grad;
+  const int64_t batch = cond.size(0);
+  // The causal tokenizer encodes frame 0 on its own, so the conditioning latent of a
+  // [cond, 12 blank frames] clip is the latent of cond alone.
+  const auto z_cond = tokenizer_->encode_latents(train::video_to_model(cond.unsqueeze(1)));  // [B, 16, 1, h, w]
+  const int64_t latent_frames = 1 + kChunkActions / 4;
+  auto gt = torch::zeros({batch, z_cond.size(1), latent_frames, z_cond.size(3), z_cond.size(4)});
+  gt.narrow(2, 0, 1).copy_(z_cond);  // [B, 16, 4, h, w]
+  auto mask = torch::zeros({batch, 1, latent_frames, z_cond.size(3), z_cond.size(4)});
+  mask.narrow(2, 0, 1).fill_(1);
+  auto gen = at::make_generator<at::CPUGeneratorImpl>(seed);
+  const auto noise = torch::randn(gt.sizes(), gen);
+  const auto acts = actions.to(torch::kFloat);
+
+  const diffusion::VelocityFn velocity = [&](const torch::Tensor& x, double /*sigma*/, int64_t timestep) {
+    models::DitInputs in;
+    in.timesteps = torch::full({batch, 1}, static_cast<double>(timestep));
+    in.condition_mask = mask;
+    in.actions = acts;
+    return models::denoise_velocity(*net_, in, x, gt, noise, mask);
+  };
+  const auto schedule = diffusion::flow_sigma_schedule(sampler.steps, sampler.shift);
+  const auto x0 = diffusion::sample_flow(velocity, noise, schedule, sampler.solver);  // [B, 16, 4, h, w]
+  return train::model_to_video(tokenizer_->decode_latents(x0));                      // [B, 13, H, W, 3]
+}
+
+torch::Tensor WorldModel::rollout(const torch::Tensor& first, const torch::Tensor& actions, uint64_t seed,
+                                  const SamplerOptions& sampler, ConcatMode concat,
+                                  const std::function<void(int64_t)>& on_chunk) {
+  DOJO_CHECK(actions.dim() == 3 && actions.size(1) % kChunkActions == 0 && actions.size(1) > 0,
+             "rollout: the action count must be a positive multiple of 12 (got " +
+                 std::to_string(actions.dim() == 3 ? actions.size(1) : -1) + ")");
+  const int64_t chunks = actions.size(1) / kChunkActions;
+  std::vector<torch::Tensor> parts;
+  auto cond = first;
+  for (int64_t k = 0; k < chunks; ++k) {
+    const auto chunk = predict_chunk(cond, actions.narrow(1, k * kChunkActions, kChunkActions),
+                                     seed + static_cast<uint64_t>(k), sampler);  // [B, 13, H, W, 3]
+    if (k == 0)
+      parts.push_back(chunk);
+    else
+      parts.push_back(concat == ConcatMode::kAligned ? chunk.narrow(1, 1, kChunkActions)
+                                                     : chunk.narrow(1, 0, kChunkActions));
+    cond = chunk.select(1, kChunkActions).contiguous();  // the last predicted frame
+    if (on_chunk) on_chunk(k);
+  }
+  return torch::cat(parts, 1);  // [B, 1 + 12 K, H, W, 3]
+}
+
+}  // namespace dojo::infer

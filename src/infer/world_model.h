@@ -1,0 +1,62 @@
+// Teacher inference: the tokenizer and the action-conditioned DiT together turn a frame and a
+// sequence of actions into video. One chunk = 1 conditioning frame + 12 predicted frames
+// (4 latent frames); longer rollouts chain chunks autoregressively, each conditioned on the
+// last frame the previous chunk produced (decoded to uint8 and re-encoded, as in the release).
+#pragma once
+
+#include <torch/torch.h>
+
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <string>
+
+#include "diffusion/samplers.h"
+#include "models/dit.h"
+#include "models/wan_vae.h"
+
+namespace dojo::infer {
+
+struct SamplerOptions {
+  int steps = 35;     // as released
+  double shift = 5.0;
+  diffusion::Solver solver = diffusion::Solver::kUniPC;
+};
+diffusion::Solver parse_solver(const std::string& text);  // unipc | euler
+
+// How chunks are joined. The release keeps frames [0, 12) of every chunk after the first, so the
+// re-decoded conditioning frame repeats and prediction k >= 13 shows ground-truth time k - 1;
+// aligned keeps frames [1, 13) so prediction k shows time k (DreamDojo decision table, row 5).
+enum class ConcatMode { kAligned, kReleased };
+ConcatMode parse_concat_mode(const std::string& text);  // aligned | released
+
+class WorldModel {
+ public:
+  WorldModel(models::ActionDit net, models::WanVae tokenizer);
+  // A world-model checkpoint and the tokenizer it was trained with.
+  static WorldModel load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer);
+
+  // cond: [B, H, W, 3] uint8, actions: [B, 12, 384] -> [B, 13, H, W, 3] uint8. Frame 0 is the
+  // tokenizer's reconstruction of cond. Noise is drawn from `seed` (same seed, same video).
+  torch::Tensor predict_chunk(const torch::Tensor& cond, const torch::Tensor& actions, uint64_t seed,
+                              const SamplerOptions& sampler = {});
+
+  // first: [B, H, W, 3] uint8, actions: [B, 12 K, 384] -> [B, 1 + 12 K, H, W, 3] uint8.
+  // Chunk k uses seed + k. `on_chunk(k)` is called after each chunk.
+  torch::Tensor rollout(const torch::Tensor& first, const torch::Tensor& actions, uint64_t seed,
+                        const SamplerOptions& sampler = {}, ConcatMode concat = ConcatMode::kAligned,
+                        const std::function<void(int64_t)>& on_chunk = {});
+
+  // The tokenizer round trip of single frames: [B, H, W, 3] -> [B, H, W, 3] uint8.
+  torch::Tensor reconstruct_frames(const torch::Tensor& frames);
+
+  models::ActionDit& net() { return net_; }
+  models::WanVae& tokenizer() { return tokenizer_; }
+  static constexpr int64_t kChunkActions = 12;
+
+ private:
+  models::ActionDit net_;
+  models::WanVae tokenizer_;
+};
+
+}  // namespace dojo::infer

@@ -1,0 +1,76 @@
+#include "train/train_util.h"
+
+#include <fstream>
+#include <map>
+
+#include "core/atomic_file.h"
+
+namespace dojo::train {
+namespace {
+
+// The optimizer keys its state by the parameter's TensorImpl address.
+std::string param_key(const torch::Tensor& p) { return c10::guts::to_string(p.unsafeGetTensorImpl()); }
+
+}  // namespace
+
+NamedTensors adamw_state(const torch::optim::AdamW& optimizer, const torch::nn::Module& module,
+                         const std::string& prefix) {
+  NamedTensors out;
+  const auto& state = optimizer.state();
+  for (const auto& item : module.named_parameters()) {
+    auto it = state.find(param_key(item.value()));
+    if (it == state.end()) continue;
+    const auto& st = static_cast<const torch::optim::AdamWParamState&>(*it->second);
+    const auto base = prefix + item.key();
+    out.emplace_back(base + ".exp_avg", st.exp_avg());
+    out.emplace_back(base + ".exp_avg_sq", st.exp_avg_sq());
+    out.emplace_back(base + ".step", torch::tensor(static_cast<int64_t>(st.step()), torch::kLong));
+  }
+  return out;
+}
+
+void load_adamw_state(torch::optim::AdamW& optimizer, const torch::nn::Module& module,
+                      const NamedTensors& tensors, const std::string& prefix) {
+  std::map<std::string, torch::Tensor> by_name(tensors.begin(), tensors.end());
+  auto& state = optimizer.state();
+  for (const auto& item : module.named_parameters()) {
+    const auto base = prefix + item.key();
+    auto avg = by_name.find(base + ".exp_avg");
+    if (avg == by_name.end()) continue;
+    const auto& p = item.value();
+    auto st = std::make_unique<torch::optim::AdamWParamState>();
+    st->exp_avg(avg->second.clone().to(p.device()));
+    st->exp_avg_sq(by_name.at(base + ".exp_avg_sq").clone().to(p.device()));
+    st->step(by_name.at(base + ".step").item<int64_t>());
+    state[param_key(p)] = std::move(st);
+  }
+}
+
+LossCurve::LossCurve(std::filesystem::path path, const std::string& header, int64_t resume_step)
+    : path_(std::move(path)) {
+  std::ifstream in(path_);
+  std::string line;
+  while (std::getline(in, line)) {
+    if (line.empty()) continue;
+    if (rows_.empty()) {  // header of the existing file
+      rows_.push_back(line);
+      continue;
+    }
+    int64_t step = 0;
+    try {
+      step = std::stoll(line.substr(0, line.find(',')));
+    } catch (const std::exception&) {
+      continue;  // a torn or foreign row: drop it
+    }
+    if (step <= resume_step) rows_.push_back(line);
+  }
+  if (rows_.empty() || rows_.front() != header) rows_.assign({header});
+}
+
+void LossCurve::write() const {
+  std::string text;
+  for (const auto& r : rows_) text += r + "\n";
+  write_file_atomic(path_, text);
+}
+
+}  // namespace dojo::train

@@ -1,0 +1,56 @@
+// Pieces every trainer shares: AdamW moments as named tensors (so checkpoints resume exactly),
+// a loss-curve CSV that survives resumes, and a wall-clock budget.
+#pragma once
+
+#include <torch/nn/module.h>
+#include <torch/optim/adamw.h>
+
+#include <chrono>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "core/safetensors.h"
+
+namespace dojo::train {
+
+// AdamW moments of `module`'s parameters as "<prefix><param>.{exp_avg,exp_avg_sq,step}".
+// Parameters the optimizer has not stepped yet are left out.
+NamedTensors adamw_state(const torch::optim::AdamW& optimizer, const torch::nn::Module& module,
+                         const std::string& prefix = "adamw.");
+// Restores what adamw_state wrote; names absent from `tensors` are skipped (fresh moments).
+void load_adamw_state(torch::optim::AdamW& optimizer, const torch::nn::Module& module,
+                      const NamedTensors& tensors, const std::string& prefix = "adamw.");
+
+// A CSV loss curve: header row plus one row per step, rewritten atomically. Opening an existing
+// file keeps rows up to `resume_step` (rows written after the last checkpoint are dropped, so a
+// resumed run does not leave duplicate steps).
+class LossCurve {
+ public:
+  LossCurve(std::filesystem::path path, const std::string& header, int64_t resume_step);
+  void add(const std::string& row) { rows_.push_back(row); }
+  void write() const;
+  const std::filesystem::path& path() const { return path_; }
+
+ private:
+  std::filesystem::path path_;
+  std::vector<std::string> rows_;
+};
+
+// Wall-clock budget: expired() once `seconds` have passed since construction (never when
+// seconds <= 0).
+class TimeBudget {
+ public:
+  explicit TimeBudget(double seconds) : seconds_(seconds), start_(std::chrono::steady_clock::now()) {}
+  double elapsed() const {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+  }
+  bool expired() const { return seconds_ > 0 && elapsed() >= seconds_; }
+  double seconds() const { return seconds_; }
+
+ private:
+  double seconds_;
+  std::chrono::steady_clock::time_point start_;
+};
+
+}  // namespace dojo::train

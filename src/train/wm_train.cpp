@@ -1,0 +1,477 @@
+#include "train/wm_train.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+
+#include <algorithm>
+#include <cmath>
+#include <deque>
+#include <optional>
+#include <sstream>
+
+#include "core/atomic_file.h"
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/progress.h"
+#include "core/safetensors.h"
+#include "core/state_dict.h"
+#include "data/actions.h"
+#include "data/clip_loader.h"
+#include "data/episode_store.h"
+#include "train/lam_train.h"
+#include "train/tokenizer_trainer.h"
+#include "train/train_util.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::train {
+
+ActionMode parse_action_mode(const std::string& text) {
+  if (text == "dataset") return ActionMode::kDataset;
+  if (text == "latent") return ActionMode::kLatent;
+  if (text == "none") return ActionMode::kNone;
+  if (text == "ground-truth") return ActionMode::kGroundTruth;
+  throw Error("unknown action mode '" + text + "' (expected dataset, latent, none or ground-truth)");
+}
+
+std::string to_string(ActionMode mode) {
+  switch (mode) {
+    case ActionMode::kDataset: return "dataset";
+    case ActionMode::kLatent: return "latent";
+    case ActionMode::kNone: return "none";
+    case ActionMode::kGroundTruth: return "ground-truth";
+  }
+  return "?";
+}
+
+WmStage parse_wm_stage(const std::string& text) {
+  if (text == "pretrain") return WmStage::kPretrain;
+  if (text == "posttrain") return WmStage::kPosttrain;
+  if (text == "scratch") return WmStage::kScratch;
+  throw Error("unknown stage '" + text + "' (expected pretrain, posttrain or scratch)");
+}
+
+std::string to_string(WmStage stage) {
+  switch (stage) {
+    case WmStage::kPretrain: return "pretrain";
+    case WmStage::kPosttrain: return "posttrain";
+    case WmStage::kScratch: return "scratch";
+  }
+  return "?";
+}
+
+namespace {
+
+// Identifies a checkpoint's weights without hashing them: a retrained model changes size or time.
+nlohmann::json weights_fingerprint(const fs::path& dir) {
+  if (dir.empty()) return nullptr;
+  const auto file = resolve_checkpoint_dir(dir) / "model.safetensors";
+  DOJO_CHECK(fs::exists(file), file.string() + ": missing (not a checkpoint directory)");
+  return {{"path", fs::absolute(dir).lexically_normal().string()},
+          {"bytes", static_cast<int64_t>(fs::file_size(file))},
+          {"mtime", static_cast<int64_t>(fs::last_write_time(file).time_since_epoch().count())}};
+}
+
+// Ground-truth motion rows in the clip-action convention: row j (transition j -> j+1) is the
+// motion at frame j+1 relative to the first frame of its 4-row chunk.
+torch::Tensor chunk_relative_motion(const torch::Tensor& motion /*[T, M]*/, int chunk) {
+  const int64_t rows = motion.size(0) - 1;
+  auto out = torch::empty({rows, motion.size(1)});
+  for (int64_t j = 0; j < rows; ++j) out[j] = motion[j + 1] - motion[(j / chunk) * chunk];
+  return out;  // [T - 1, M]
+}
+
+}  // namespace
+
+nlohmann::json LatentCacheSpec::to_json() const {
+  return {{"dataset", fs::absolute(dataset).lexically_normal().string()},
+          {"split", split},
+          {"tokenizer", weights_fingerprint(tokenizer)},
+          {"lam", mode == ActionMode::kLatent ? weights_fingerprint(lam) : nlohmann::json(nullptr)},
+          {"mode", train::to_string(mode)},
+          {"strides", strides},
+          {"hop", hop},
+          {"size", size},
+          {"max_clips", max_clips}};
+}
+
+LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::path& cache_file) {
+  const auto spec_json = spec.to_json();
+  if (fs::exists(cache_file)) {
+    auto file = SafetensorsFile::open(cache_file);
+    const auto& meta = file.metadata();
+    auto it = meta.find("spec");
+    if (it != meta.end() && nlohmann::json::parse(it->second) == spec_json) {
+      LatentClips clips{file.tensor("latents", true), file.tensor("actions", true), spec_json};
+      LOG_INFO("latent cache: ", clips.size(), " clips from ", cache_file.string());
+      return clips;
+    }
+    LOG_INFO("latent cache: ", cache_file.string(), " was made from other data or models; rebuilding");
+  }
+  DOJO_CHECK(!(spec.mode == ActionMode::kLatent && spec.lam.empty()),
+             "latent actions need a LAM checkpoint (--lam) for " + spec.dataset.string());
+
+  auto vae = load_tokenizer(spec.tokenizer);
+  vae->eval();
+  std::optional<models::LatentActionModel> lam;
+  if (spec.mode == ActionMode::kLatent) {
+    lam = load_lam(spec.lam);
+    DOJO_CHECK((*lam)->config.latent_dim == data::slots::kLatent.width(),
+               spec.lam.string() + ": LAM latent size " + std::to_string((*lam)->config.latent_dim) +
+                   " does not fill the " + std::to_string(data::slots::kLatent.width()) + "-wide latent slot");
+  }
+  const auto store = data::EpisodeStore::open(spec.dataset);
+  data::ClipConfig clip;
+  clip.strides = spec.strides;
+  clip.height = spec.size > 0 ? spec.size : store.info().height;
+  clip.width = spec.size > 0 ? spec.size : store.info().width;
+  data::ClipDataset dataset(store, clip, spec.split);
+  DOJO_CHECK(!dataset.episodes().empty(), spec.dataset.string() + ": no episodes in split '" + spec.split + "'");
+
+  std::vector<std::pair<size_t, data::ClipWindow>> windows;
+  for (size_t ep : dataset.episodes())
+    for (int stride : spec.strides)
+      for (auto& w : data::all_windows(store.info().episodes[ep].frames, stride, clip.num_frames, spec.hop))
+        windows.emplace_back(ep, std::move(w));
+  if (spec.max_clips > 0 && static_cast<int64_t>(windows.size()) > spec.max_clips) {
+    // Evenly spaced, so every episode and stride stays represented.
+    std::vector<std::pair<size_t, data::ClipWindow>> kept;
+    for (int64_t i = 0; i < spec.max_clips; ++i)
+      kept.push_back(windows[static_cast<size_t>(i * static_cast<int64_t>(windows.size()) / spec.max_clips)]);
+    windows.swap(kept);
+  }
+  DOJO_CHECK(!windows.empty(), spec.dataset.string() + ": episodes are shorter than one clip");
+
+  torch::NoGradGuard no_grad;
+  std::vector<torch::Tensor> latents, actions;
+  std::vector<torch::Tensor> pending_video;
+  auto flush = [&] {
+    if (pending_video.empty()) return;
+    const auto video = video_to_model(torch::stack(pending_video));  // [b, 3, 13, H, W]
+    latents.push_back(vae->encode_latents(video));                   // [b, 16, 4, h, w]
+    pending_video.clear();
+  };
+  Progress progress("latent cache " + spec.dataset.filename().string(), static_cast<int64_t>(windows.size()),
+                    "clip");
+  for (const auto& [ep, window] : windows) {
+    auto c = dataset.read(ep, window);
+    auto a = c.actions.clone();  // [12, 384]
+    auto slot = a.slice(1, data::slots::kLatent.begin, data::slots::kLatent.end);
+    switch (spec.mode) {
+      case ActionMode::kDataset: break;
+      case ActionMode::kLatent: slot.mul_(lam_encode_episode(*lam, c.video)); break;  // mask * z
+      case ActionMode::kNone: a.zero_(); break;
+      case ActionMode::kGroundTruth: {
+        DOJO_CHECK(c.hidden_motion.defined(),
+                   spec.dataset.string() + ": episode " + store.info().episodes[ep].id +
+                       " has no hidden_motion for ground-truth actions");
+        const auto m = chunk_relative_motion(c.hidden_motion, clip.action_chunk);
+        a.zero_();
+        a.slice(1, data::slots::kLatent.begin, data::slots::kLatent.begin + m.size(1)).copy_(m);
+        break;
+      }
+    }
+    actions.push_back(a);
+    pending_video.push_back(c.video);
+    if (pending_video.size() == 8) flush();
+    progress.advance();
+  }
+  flush();
+  progress.finish();
+  LatentClips clips{torch::cat(latents, 0).contiguous(), torch::stack(actions).contiguous(), spec_json};
+  if (spec.mode == ActionMode::kGroundTruth) {
+    // Motion deltas come in metres and radians; scale each dimension to a peak of 1 like the
+    // min-max normalised robot actions.
+    auto peak = clips.actions.abs().amax({0, 1}).clamp_min(1e-6);  // [384]
+    clips.actions.div_(peak);
+  }
+  fs::create_directories(cache_file.parent_path().empty() ? fs::path(".") : cache_file.parent_path());
+  save_safetensors(cache_file, {{"latents", clips.latents}, {"actions", clips.actions}},
+                   {{"spec", spec_json.dump()}});
+  LOG_INFO("latent cache: encoded ", clips.size(), " clips into ", cache_file.string());
+  return clips;
+}
+
+LatentClips concat_latent_clips(const std::vector<LatentClips>& sets) {
+  DOJO_CHECK(!sets.empty(), "no training data");
+  std::vector<torch::Tensor> l, a;
+  nlohmann::json meta = nlohmann::json::array();
+  for (const auto& s : sets) {
+    DOJO_CHECK(s.latents.sizes().slice(1) == sets[0].latents.sizes().slice(1),
+               "latent caches disagree in shape: " + s.meta.value("dataset", std::string("?")) + " vs " +
+                   sets[0].meta.value("dataset", std::string("?")) + " (same frame size and tokenizer needed)");
+    l.push_back(s.latents);
+    a.push_back(s.actions);
+    meta.push_back(s.meta);
+  }
+  return {torch::cat(l, 0), torch::cat(a, 0), meta};
+}
+
+nlohmann::json WmTrainOptions::to_json() const {
+  return {{"lr", lr},
+          {"weight_decay", weight_decay},
+          {"grad_clip", grad_clip},
+          {"warmup_steps", warmup_steps},
+          {"ema_sigma_rel", ema_sigma_rel},
+          {"flow",
+           {{"shift", flow.shift},
+            {"high_sigma_prob", flow.high_sigma_prob},
+            {"temporal_axis", flow.temporal_axis == diffusion::TemporalAxis::kTime ? "time" : "channel"},
+            {"temporal_weight", flow.temporal_weight}}}};
+}
+
+WmTrainOptions WmTrainOptions::from_json(const nlohmann::json& j) {
+  WmTrainOptions o;
+  o.lr = j.value("lr", o.lr);
+  o.weight_decay = j.value("weight_decay", o.weight_decay);
+  o.grad_clip = j.value("grad_clip", o.grad_clip);
+  o.warmup_steps = j.value("warmup_steps", o.warmup_steps);
+  o.ema_sigma_rel = j.value("ema_sigma_rel", o.ema_sigma_rel);
+  if (j.contains("flow")) {
+    const auto& f = j["flow"];
+    o.flow.shift = f.value("shift", o.flow.shift);
+    o.flow.high_sigma_prob = f.value("high_sigma_prob", o.flow.high_sigma_prob);
+    o.flow.temporal_weight = f.value("temporal_weight", o.flow.temporal_weight);
+    const auto axis = f.value("temporal_axis", std::string("time"));
+    DOJO_CHECK(axis == "time" || axis == "channel", "flow.temporal_axis must be time or channel (got " + axis + ")");
+    o.flow.temporal_axis = axis == "time" ? diffusion::TemporalAxis::kTime : diffusion::TemporalAxis::kChannel;
+  }
+  return o;
+}
+
+namespace {
+
+torch::Tensor condition_mask_like(const torch::Tensor& x0) {
+  auto mask = torch::zeros({x0.size(0), 1, x0.size(2), x0.size(3), x0.size(4)}, x0.options());
+  mask.select(2, 0).fill_(1);  // latent frame 0 is the clean conditioning frame
+  return mask;                 // [B, 1, T, h, w]
+}
+
+struct FlowLoss {
+  torch::Tensor total, mse;
+};
+
+FlowLoss flow_loss(models::ActionDit& net, const diffusion::FlowMatchingConfig& flow, const torch::Tensor& x0,
+                   const torch::Tensor& actions, torch::Generator gen) {
+  const auto noise = diffusion::sample_training_noise(x0, flow, gen);
+  const auto mask = condition_mask_like(x0);
+  models::DitInputs in;
+  in.timesteps = noise.timesteps.view({x0.size(0), 1});  // [B, 1]
+  in.condition_mask = mask;
+  in.actions = actions;
+  const auto v = models::denoise_velocity(*net, in, noise.x_t, x0, noise.noise, mask);  // [B, 16, T, h, w]
+  return {diffusion::flow_matching_loss(v, noise.target_velocity, flow),
+          (v - noise.target_velocity).pow(2).mean()};
+}
+
+torch::Generator make_cpu_generator(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
+
+}  // namespace
+
+WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options)
+    : net_(std::move(net)), ema_(net_->config), options_(options) {
+  // The EMA starts as an exact copy; it never trains.
+  load_state_dict(*ema_, state_dict(*net_));
+  ema_->eval();
+  for (auto& p : ema_->parameters()) p.set_requires_grad(false);
+  for (auto& p : net_->parameters())
+    if (p.requires_grad()) params_.push_back(p);
+  for (auto& item : net_->named_parameters())
+    if (item.value().requires_grad()) ema_params_.push_back(ema_->named_parameters()[item.key()]);
+  optimizer_ = std::make_unique<torch::optim::AdamW>(
+      params_, torch::optim::AdamWOptions(options_.lr).weight_decay(options_.weight_decay));
+  ema_gamma_ = diffusion::power_ema_gamma(options_.ema_sigma_rel);
+}
+
+double WmTrainer::lr_at(int64_t step) const {
+  if (options_.warmup_steps <= 0) return options_.lr;
+  return options_.lr * std::min(1.0, static_cast<double>(step + 1) / static_cast<double>(options_.warmup_steps));
+}
+
+WmStepStats WmTrainer::step(const torch::Tensor& x0, const torch::Tensor& actions, torch::Generator generator) {
+  net_->train();
+  WmStepStats s;
+  s.lr = lr_at(steps_);
+  for (auto& group : optimizer_->param_groups())
+    static_cast<torch::optim::AdamWOptions&>(group.options()).lr(s.lr);
+  optimizer_->zero_grad();
+  const auto loss = flow_loss(net_, options_.flow, x0, actions, generator);
+  loss.total.backward();
+  const double clip = options_.grad_clip > 0 ? options_.grad_clip : std::numeric_limits<double>::infinity();
+  s.grad_norm = torch::nn::utils::clip_grad_norm_(params_, clip);
+  optimizer_->step();
+  ++steps_;
+  diffusion::ema_update(ema_params_, params_, diffusion::power_ema_beta(steps_, ema_gamma_));
+  s.loss = loss.total.item<double>();
+  s.mse = loss.mse.item<double>();
+  s.temporal = options_.flow.temporal_weight > 0 ? (s.loss - s.mse) / options_.flow.temporal_weight : 0.0;
+  return s;
+}
+
+double WmTrainer::eval_loss(const torch::Tensor& x0, const torch::Tensor& actions, uint64_t seed) {
+  torch::NoGradGuard no_grad;
+  ema_->eval();
+  return flow_loss(ema_, options_.flow, x0, actions, make_cpu_generator(seed)).total.item<double>();
+}
+
+void WmTrainer::save(const fs::path& dir, const nlohmann::json& extra) const {
+  CheckpointData data;
+  data.config = {{"model", "action_dit"}, {"config", net_->config.to_json()}};
+  for (const auto& [name, t] : state_dict(*ema_)) data.model.emplace_back("net." + name, t);
+  TrainerState ts;
+  ts.step = steps_;
+  ts.extra = extra;
+  ts.extra["options"] = options_.to_json();
+  for (const auto& [name, t] : state_dict(*net_)) ts.tensors.emplace_back("train." + name, t);
+  for (auto& t : adamw_state(*optimizer_, *net_)) ts.tensors.push_back(std::move(t));
+  for (auto& t : capture_rng_state()) ts.tensors.push_back(std::move(t));
+  data.trainer = ts;
+  save_checkpoint(dir, data);
+}
+
+void WmTrainer::resume(const fs::path& dir) {
+  auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
+  LoadOptions net_opts;
+  net_opts.prefix = "net.";
+  load_state_dict(*ema_, ckpt.model(), net_opts);
+  steps_ = ckpt.has_trainer_state() ? ckpt.step() : 0;
+  DOJO_CHECK(ckpt.has_trainer_tensors(), dir.string() + ": no trainer_state.safetensors to resume from");
+  const auto tensors = ckpt.trainer_tensors().tensors(/*copy=*/true);
+  LoadOptions raw_opts;
+  raw_opts.prefix = "train.";
+  load_state_dict(*net_, tensors, raw_opts);
+  load_adamw_state(*optimizer_, *net_, tensors);
+  restore_rng_state(tensors);
+}
+
+models::ActionDit load_world_model(const fs::path& dir) {
+  auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
+  const auto& cfg = ckpt.config();
+  DOJO_CHECK(cfg.value("model", std::string()) == "action_dit" && cfg.contains("config"),
+             (ckpt.dir() / "config.json").string() + ": not a world-model checkpoint (model != action_dit)");
+  models::ActionDit net(models::DitConfig::from_json(cfg["config"]));
+  LoadOptions opts;
+  opts.prefix = "net.";
+  load_state_dict(*net, ckpt.model(), opts);
+  net->eval();
+  return net;
+}
+
+WmTrainResult run_wm_training(const WmTrainJob& job) {
+  DOJO_CHECK(!job.data.empty(), "wm train: no dataset given");
+  DOJO_CHECK(job.batch_size > 0, "wm train: batch size must be positive");
+  TimeBudget budget(job.time_budget_s);
+  fs::create_directories(job.out);
+  const auto ckpt_dir = job.out / "checkpoint";
+
+  std::vector<LatentClips> sets;
+  for (size_t i = 0; i < job.data.size(); ++i)
+    sets.push_back(load_or_build_latent_clips(job.data[i], job.out / ("latents-" + std::to_string(i) + ".safetensors")));
+  const auto clips = concat_latent_clips(sets);
+  const int64_t n = clips.size();
+
+  const bool resuming = fs::exists(ckpt_dir) || fs::exists(ckpt_dir.string() + ".dojo-old");
+  torch::manual_seed(job.seed);
+  std::optional<models::ActionDit> net;
+  if (resuming) {
+    const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir));
+    net.emplace(models::DitConfig::from_json(ckpt.config().at("config")));
+  } else if (job.stage == WmStage::kPosttrain) {
+    DOJO_CHECK(!job.init.empty(), "wm train --stage posttrain needs --init (a pretrained checkpoint)");
+    net.emplace(load_world_model(job.init));
+    // A new action space: the first layer of both action MLPs starts afresh; everything else
+    // (including fc2, which pretraining taught to speak adaLN) is fine-tuned.
+    (*net)->reinit_action_input_layer();
+  } else {
+    net.emplace(job.model);
+  }
+  WmTrainer trainer(*net, job.options);
+  if (resuming) {
+    trainer.resume(ckpt_dir);
+    LOG_INFO("wm train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
+  }
+
+  // A fixed batch with fixed noise tracks progress without the noise of random batches.
+  const int64_t probe = std::min<int64_t>(n, 16);
+  const auto probe_idx = torch::linspace(0, static_cast<double>(n - 1), probe).to(torch::kLong);
+  const auto probe_x0 = clips.latents.index_select(0, probe_idx);
+  const auto probe_actions = clips.actions.index_select(0, probe_idx);
+  const uint64_t probe_seed = job.seed + 12345;
+
+  WmTrainResult result;
+  result.clips = n;
+  result.heldout_loss_start = trainer.eval_loss(probe_x0, probe_actions, probe_seed);
+
+  LossCurve curve(job.out / "loss.csv", "step,loss,mse,temporal,grad_norm,lr,clips_per_s,fixed_batch_loss",
+                  trainer.steps_done());
+  Progress progress("wm " + to_string(job.stage), job.steps - trainer.steps_done(), "step");
+  std::deque<double> recent;
+  double timed_seconds = 0;
+  int64_t timed_steps = 0, run_steps = 0;
+  const auto run_start = std::chrono::steady_clock::now();
+  auto save = [&] {
+    trainer.save(ckpt_dir, {{"stage", to_string(job.stage)}, {"clips", n}});
+    curve.write();
+  };
+  while (trainer.steps_done() < job.steps) {
+    const int64_t step = trainer.steps_done();
+    // Batch and noise of step k depend on (seed, k) only, so a resumed run sees the same stream.
+    auto gen = make_cpu_generator(job.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(step) + 1);
+    const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
+    const auto t0 = std::chrono::steady_clock::now();
+    const auto s = trainer.step(clips.latents.index_select(0, idx), clips.actions.index_select(0, idx), gen);
+    const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (++run_steps > 2) {  // the first steps warm up allocators
+      timed_seconds += secs;
+      ++timed_steps;
+    }
+    recent.push_back(s.loss);
+    if (recent.size() > 20) recent.pop_front();
+    if (run_steps == std::min<int64_t>(20, job.steps - step)) {
+      double sum = 0;
+      for (double v : recent) sum += v;
+      result.first_loss = sum / static_cast<double>(recent.size());
+    }
+    const bool save_now = trainer.steps_done() % job.save_every == 0 || trainer.steps_done() == job.steps ||
+                          budget.expired();
+    double probe_loss = std::nan("");
+    if (save_now) probe_loss = trainer.eval_loss(probe_x0, probe_actions, probe_seed);
+    std::ostringstream row;
+    row << trainer.steps_done() << ',' << s.loss << ',' << s.mse << ',' << s.temporal << ',' << s.grad_norm << ','
+        << s.lr << ',' << job.batch_size / secs << ',';
+    if (!std::isnan(probe_loss)) row << probe_loss;
+    curve.add(row.str());
+    std::ostringstream note;
+    note << "loss " << s.loss;
+    progress.advance(1, note.str());
+    if (save_now) save();
+    if (budget.expired()) {
+      LOG_INFO("wm train: time budget of ", job.time_budget_s, " s reached at step ", trainer.steps_done());
+      break;
+    }
+  }
+  progress.finish();
+  if (run_steps == 0) save();  // nothing to do, but leave the checkpoint in place
+  double sum = 0;
+  for (double v : recent) sum += v;
+  result.last_loss = recent.empty() ? 0 : sum / static_cast<double>(recent.size());
+  if (result.first_loss == 0) result.first_loss = result.last_loss;
+  result.steps = trainer.steps_done();
+  result.heldout_loss_end = trainer.eval_loss(probe_x0, probe_actions, probe_seed);
+  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - run_start).count();
+  result.clips_per_second = timed_seconds > 0 ? static_cast<double>(timed_steps * job.batch_size) / timed_seconds : 0;
+  const nlohmann::json summary = {{"stage", to_string(job.stage)},
+                                  {"steps", result.steps},
+                                  {"clips", n},
+                                  {"first_loss", result.first_loss},
+                                  {"last_loss", result.last_loss},
+                                  {"fixed_batch_loss_start", result.heldout_loss_start},
+                                  {"fixed_batch_loss_end", result.heldout_loss_end},
+                                  {"seconds", result.seconds},
+                                  {"clips_per_second", result.clips_per_second},
+                                  {"options", job.options.to_json()}};
+  write_file_atomic(job.out / "train_summary.json", summary.dump(2) + "\n");
+  return result;
+}
+
+}  // namespace dojo::train

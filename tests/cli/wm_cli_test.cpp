@@ -1,0 +1,90 @@
+// End to end through the `dojo` executable: train a tokenizer and a world model on generated
+// robot episodes, post-train from it, roll out, evaluate; and the whole demo on a tiny budget.
+#include <gtest/gtest.h>
+
+#include <nlohmann/json.hpp>
+
+#include "sim/generate.h"
+#include "test_util.h"
+
+namespace dojo {
+namespace {
+
+TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
+  test::TempDir tmp;
+  sim::GenerateOptions g;
+  g.episodes = 3;
+  g.frames = 26;
+  g.width = g.height = 32;
+  g.workers = 1;
+  g.val_fraction = 0.34;  // one held-out episode
+  sim::generate_dataset(tmp / "robot", g);
+  const auto data = (tmp / "robot").string(), tok = (tmp / "tok").string();
+  auto r = test::run_dojo("--threads 1 tokenizer train --data " + data + " --out " + tok +
+                          " --steps 2 --batch 1 --frames 5 --size 32 --dim 8 --workers 1 --split all");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+
+  const std::string common = " --data " + data + " --tokenizer " + tok + " --batch 2 --hop 4 --save-every 2";
+  r = test::run_dojo("--threads 1 wm train --stage scratch --steps 3" + common + " --out " + (tmp / "s").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(tmp / "s" / "checkpoint" / "model.safetensors"));
+  EXPECT_TRUE(std::filesystem::exists(tmp / "s" / "latents-0.safetensors"));
+  EXPECT_NE(test::read_file(tmp / "s" / "loss.csv").find("\n3,"), std::string::npos);
+
+  // Continuing to more steps resumes from the checkpoint.
+  r = test::run_dojo("--threads 1 wm train --stage scratch --steps 4" + common + " --out " + (tmp / "s").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("4 steps"), std::string::npos) << r.output;
+
+  r = test::run_dojo("--threads 1 wm train --stage posttrain --steps 2" + common + " --init " +
+                     (tmp / "s" / "checkpoint").string() + " --out " + (tmp / "p").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+
+  r = test::run_dojo("--threads 1 eval --checkpoint " + (tmp / "p" / "checkpoint").string() + " --tokenizer " + tok +
+                     " --data " + data + " --split val --split train --chunks 1 --steps 2 --json --out " +
+                     (tmp / "eval").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto j = nlohmann::json::parse(r.output.substr(r.output.find('{')));
+  ASSERT_EQ(j.at("splits").size(), 2u);
+  EXPECT_EQ(j["splits"][0].at("split"), "val");
+  EXPECT_EQ(j["splits"][0].at("videos"), 1);
+  EXPECT_EQ(j["splits"][0].at("frames_per_video"), 13);
+  EXPECT_GT(j["splits"][0].at("psnr").get<double>(), 0.0);
+  EXPECT_TRUE(std::filesystem::exists(tmp / "eval" / "metrics.md"));
+  EXPECT_FALSE(std::filesystem::is_empty(tmp / "eval" / "videos"));
+
+  r = test::run_dojo("--threads 1 wm rollout --checkpoint " + (tmp / "p" / "checkpoint").string() + " --tokenizer " +
+                     tok + " --data " + data + " --chunks 2 --steps 2 --out " + (tmp / "roll.mp4").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("25 frames"), std::string::npos) << r.output;
+
+  // Mistakes are one clear line and a non-zero exit.
+  r = test::run_dojo("wm train --stage posttrain --steps 2" + common + " --out " + (tmp / "q").string());
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("--init"), std::string::npos) << r.output;
+  r = test::run_dojo("wm train --stage pretrain --steps 2" + common + " --out " + (tmp / "q").string());
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("LAM"), std::string::npos) << r.output;
+  r = test::run_dojo("eval --checkpoint " + tok + " --tokenizer " + tok + " --data " + data);
+  EXPECT_EQ(r.exit_code, 1);
+  EXPECT_NE(r.output.find("not a world-model checkpoint"), std::string::npos) << r.output;
+}
+
+TEST(WmCli, DemoRunsEndToEndOnATinyBudgetAndWritesTheReport) {
+  test::TempDir tmp;
+  const auto out = (tmp / "demo").string();
+  auto r = test::run_dojo("--threads 1 demo --minutes 0.3 --episodes 2 --eval-episodes 1 --frames 50 "
+                          "--sampler-steps 2 --workers 1 --out " + out);
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto html = test::read_file(tmp / "demo" / "report.html");
+  EXPECT_NE(html.find("data:video/mp4;base64,"), std::string::npos);
+  EXPECT_NE(html.find("<polyline"), std::string::npos);
+  for (const char* split : {"val", "ood-objects", "counterfactual"})
+    EXPECT_NE(html.find(std::string("<td>") + split + "</td>"), std::string::npos) << split;
+  const auto demo = nlohmann::json::parse(test::read_file(tmp / "demo" / "demo.json"));
+  EXPECT_EQ(demo.at("eval").size(), 3u);
+  EXPECT_GT(demo["wm_posttrain"].at("steps").get<int>(), 0);
+}
+
+}  // namespace
+}  // namespace dojo

@@ -1,0 +1,84 @@
+#include "infer/world_model.h"
+
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include "test_util.h"
+
+namespace dojo::infer {
+namespace {
+
+struct OneThread {
+  int saved = torch::get_num_threads();
+  OneThread() { torch::set_num_threads(1); }
+  ~OneThread() { torch::set_num_threads(saved); }
+};
+
+WorldModel random_model() {
+  torch::manual_seed(0);
+  auto c = models::DitConfig::small();
+  c.model_channels = 32;
+  c.num_blocks = 1;
+  c.num_heads = 1;
+  c.adaln_lora_dim = 8;
+  c.action_hidden_dim = 32;
+  c.crossattn_emb_channels = 8;
+  c.crossattn_proj_dim = 8;
+  c.zero_init_action_fc2 = false;  // let the actions matter from the start
+  return WorldModel(models::ActionDit(c), models::WanVae(models::WanVaeConfig::tiny()));
+}
+
+TEST(WorldModel, RolloutChainsChunksDeterministically) {
+  OneThread one;
+  auto model = random_model();
+  const auto first = torch::randint(0, 255, {2, 16, 16, 3}, torch::kByte);
+  const auto actions = torch::rand({2, 24, 384}) * 2 - 1;
+  SamplerOptions s;
+  s.steps = 3;
+  const auto a = model.rollout(first, actions, 7, s, ConcatMode::kAligned);
+  EXPECT_EQ(a.sizes(), (std::vector<int64_t>{2, 25, 16, 16, 3}));
+  EXPECT_EQ(a.scalar_type(), torch::kUInt8);
+  EXPECT_TRUE(a.equal(model.rollout(first, actions, 7, s, ConcatMode::kAligned))) << "same seed, same video";
+  EXPECT_FALSE(a.equal(model.rollout(first, actions, 8, s, ConcatMode::kAligned)));
+
+  // Frame 0 is the tokenizer's version of the first frame.
+  EXPECT_TRUE(a.select(1, 0).equal(model.reconstruct_frames(first)));
+
+  // The released joining keeps each later chunk's re-decoded conditioning frame (so frame 13
+  // is the round trip of frame 12) and drops its last frame; the first chunk is shared.
+  const auto r = model.rollout(first, actions, 7, s, ConcatMode::kReleased);
+  EXPECT_EQ(r.sizes(), a.sizes());
+  EXPECT_TRUE(r.narrow(1, 0, 13).equal(a.narrow(1, 0, 13)));
+  const auto round_trip = model.reconstruct_frames(a.select(1, 12).contiguous());
+  EXPECT_LE((r.select(1, 13).to(torch::kInt) - round_trip.to(torch::kInt)).abs().max().item<int>(), 1);
+  EXPECT_TRUE(r.narrow(1, 14, 11).equal(a.narrow(1, 13, 11)));
+}
+
+TEST(WorldModel, ActionsChangeThePrediction) {
+  OneThread one;
+  auto model = random_model();
+  const auto first = torch::randint(0, 255, {1, 16, 16, 3}, torch::kByte);
+  SamplerOptions s;
+  s.steps = 2;
+  const auto a = model.predict_chunk(first, torch::zeros({1, 12, 384}), 1, s);
+  const auto b = model.predict_chunk(first, torch::ones({1, 12, 384}), 1, s);
+  EXPECT_EQ(a.sizes(), (std::vector<int64_t>{1, 13, 16, 16, 3}));
+  EXPECT_FALSE(a.narrow(1, 1, 12).equal(b.narrow(1, 1, 12)));
+  EXPECT_TRUE(a.select(1, 0).equal(b.select(1, 0))) << "the conditioning frame does not depend on actions";
+}
+
+TEST(WorldModel, RejectsBadShapesClearly) {
+  auto model = random_model();
+  const auto first = torch::zeros({1, 16, 16, 3}, torch::kByte);
+  EXPECT_NE(test::error_message([&] { model.rollout(first, torch::zeros({1, 10, 384}), 0); }).find("multiple of 12"),
+            std::string::npos);
+  EXPECT_NE(test::error_message([&] { model.predict_chunk(first.to(torch::kFloat), torch::zeros({1, 12, 384}), 0); })
+                .find("uint8"),
+            std::string::npos);
+  EXPECT_EQ(parse_solver("euler"), diffusion::Solver::kEuler);
+  EXPECT_NE(test::error_message([] { parse_solver("ddim"); }).find("ddim"), std::string::npos);
+  EXPECT_NE(test::error_message([] { parse_concat_mode("x"); }).find("aligned"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace dojo::infer
