@@ -38,5 +38,6 @@ void register_data(CLI::App& app);
 void register_demo(CLI::App& app);
 void register_lam(CLI::App& app);
 void register_tokenizer(CLI::App& app);
+void register_metrics(CLI::App& app);
 
 }  // namespace dojo::cli

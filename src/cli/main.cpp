@@ -59,6 +59,7 @@ int main(int argc, char** argv) {
   cli::register_tokenizer(app);
   cli::register_demo(app);
   cli::register_lam(app);
+  cli::register_metrics(app);
 
   try {
     app.parse(argc, argv);
