@@ -126,6 +126,11 @@ torch::Tensor FlowSampler::step(const torch::Tensor& x, const torch::Tensor& vel
   return next;
 }
 
+const torch::Tensor& FlowSampler::last_x0_pred() const {
+  DOJO_CHECK(!x0_history_.empty(), "FlowSampler: no step taken yet, so there is no x0 prediction");
+  return x0_history_.back();
+}
+
 torch::Tensor sample_flow(const VelocityFn& velocity, torch::Tensor noise, const SigmaSchedule& schedule,
                           Solver solver, std::vector<torch::Tensor>* trajectory,
                           const std::function<void(int)>& on_step) {

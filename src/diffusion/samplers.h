@@ -50,7 +50,8 @@ class FlowSampler {
   // Euler: x + (σ_next − σ)·v̂. Throws dojo::Error when called more than num_steps() times.
   torch::Tensor step(const torch::Tensor& x, const torch::Tensor& velocity);
   // The x0 prediction x − σ·v̂ of the last step() (what UniPC stores as its model output).
-  const torch::Tensor& last_x0_pred() const { return x0_history_.back(); }
+  // Throws dojo::Error before the first step.
+  const torch::Tensor& last_x0_pred() const;
 
  private:
   SigmaSchedule schedule_;

@@ -78,6 +78,7 @@ TEST(Sampler, UniPCMatchesFixtureTrajectory) {
   const auto v_ref = f->tensor("unipc_velocity");
 
   FlowSampler sampler(flow_sigma_schedule(35, 5.0), Solver::kUniPC);
+  EXPECT_THROW(sampler.last_x0_pred(), Error);
   const auto velocity = fixture_velocity(k);
   auto x = noise;
   double err_latent = 0, err_x0 = 0, err_v = 0;
