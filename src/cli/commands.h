@@ -39,5 +39,6 @@ void register_demo(CLI::App& app);
 void register_lam(CLI::App& app);
 void register_tokenizer(CLI::App& app);
 void register_wm(CLI::App& app);
+void register_metrics(CLI::App& app);
 
 }  // namespace dojo::cli

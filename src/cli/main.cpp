@@ -60,6 +60,7 @@ int main(int argc, char** argv) {
   cli::register_demo(app);
   cli::register_lam(app);
   cli::register_wm(app);
+  cli::register_metrics(app);
 
   try {
     app.parse(argc, argv);
