@@ -4,6 +4,7 @@
 #include <limits>
 
 #include "core/error.h"
+#include "core/safetensors.h"
 #include "models/attention.h"
 
 namespace dojo::models {
@@ -197,6 +198,62 @@ DitConfig DitConfig::from_reference_kwargs(const nlohmann::json& j) {
   bool adaln_lora = true;
   f.get("use_adaln_lora", adaln_lora);
   DOJO_CHECK(adaln_lora, "DiT kwargs: field 'use_adaln_lora' = false is not supported");
+  c.validate();
+  return c;
+}
+
+DitConfig DitConfig::from_weights(const SafetensorsFile& file, const std::string& prefix) {
+  auto shape = [&](const std::string& name) -> std::vector<int64_t> {
+    DOJO_CHECK(file.contains(prefix + name),
+               "DiT weights " + file.path().string() + ": no tensor '" + prefix + name + "'");
+    return file.info(prefix + name).shape;
+  };
+  auto check = [&](bool ok, const std::string& name) {
+    DOJO_CHECK(ok, "DiT weights " + file.path().string() + ": unexpected shape of '" + prefix + name + "'");
+  };
+  DitConfig c;
+  c.zero_init_action_fc2 = false;  // the weights come from the file
+  const auto x_emb = shape("x_embedder.proj.1.weight");
+  check(x_emb.size() == 2, "x_embedder.proj.1.weight");
+  c.model_channels = x_emb[0];
+  const int64_t D = c.model_channels;
+  c.num_blocks = 0;
+  while (file.contains(prefix + "blocks." + std::to_string(c.num_blocks) + ".self_attn.q_proj.weight"))
+    ++c.num_blocks;
+  DOJO_CHECK(c.num_blocks > 0, "DiT weights " + file.path().string() + ": no tensor '" + prefix +
+                                   "blocks.0.self_attn.q_proj.weight'");
+  const int64_t head_dim = shape("blocks.0.self_attn.q_norm.weight").at(0);
+  check(head_dim > 0 && D % head_dim == 0, "blocks.0.self_attn.q_norm.weight");
+  c.num_heads = D / head_dim;
+  c.adaln_lora_dim = shape("blocks.0.adaln_modulation_self_attn.1.weight").at(0);
+  c.mlp_ratio = static_cast<double>(shape("blocks.0.mlp.layer1.weight").at(0)) / static_cast<double>(D);
+  // Output p·p·16 and input (16 + 1 [+ 1])·p·p give the patch size and the padding-mask channel.
+  const int64_t out_features = shape("final_layer.linear.weight").at(0);
+  c.patch_spatial =
+      static_cast<int64_t>(std::lround(std::sqrt(out_features / static_cast<double>(c.out_channels))));
+  const int64_t pp = c.patch_spatial * c.patch_spatial;
+  check(pp * c.out_channels == out_features, "final_layer.linear.weight");
+  check(x_emb[1] == (c.in_channels + 2) * pp || x_emb[1] == (c.in_channels + 1) * pp,
+        "x_embedder.proj.1.weight");
+  c.concat_padding_mask = x_emb[1] == (c.in_channels + 2) * pp;
+  c.use_crossattn_projection = file.contains(prefix + "crossattn_proj.0.weight");
+  if (c.use_crossattn_projection) {
+    const auto proj = shape("crossattn_proj.0.weight");
+    c.crossattn_proj_dim = proj.at(0);
+    c.crossattn_emb_channels = proj.at(1);
+  } else {
+    c.crossattn_emb_channels = shape("blocks.0.cross_attn.k_proj.weight").at(1);
+    c.crossattn_proj_dim = c.crossattn_emb_channels;  // unused without the projection
+  }
+  const auto fc1 = shape("action_embedder_B_D.fc1.weight");
+  check(fc1.size() == 2 && fc1[1] % c.actions_per_latent_frame == 0, "action_embedder_B_D.fc1.weight");
+  c.action_dim = fc1[1] / c.actions_per_latent_frame;
+  c.action_hidden_dim = fc1[0] == 4 * D ? 0 : fc1[0];
+  // seq has max(max_img_h / p, max_img_w / p, max_frames) entries.
+  const int64_t seq_len = shape("pos_embedder.seq").at(0);
+  c.max_frames = seq_len;
+  if (seq_len < c.max_img_h / c.patch_spatial) c.max_img_h = c.max_img_w = seq_len * c.patch_spatial;
+  c.rope_bf16_ranges = file.info(prefix + "pos_embedder.dim_spatial_range").dtype == "BF16";
   c.validate();
   return c;
 }

@@ -21,6 +21,10 @@
 #include <string>
 #include <vector>
 
+namespace dojo {
+class SafetensorsFile;
+}
+
 namespace dojo::models {
 
 struct DitConfig {
@@ -79,6 +83,12 @@ struct DitConfig {
   // The Python constructor kwargs (as in the golden fixture's __metadata__.config), with the
   // crossattn_* naming of the reference.
   static DitConfig from_reference_kwargs(const nlohmann::json& j);
+  // The architecture implied by a checkpoint's tensor shapes alone (names under `prefix`, e.g.
+  // "net." for a converted release file): width from x_embedder, depth from the highest block
+  // index, heads from q_norm, action width from action_embedder_B_D.fc1, RoPE length from
+  // pos_embedder.seq. Assumes 16 latent channels in and out. Throws dojo::Error naming the tensor
+  // when one it needs is missing or inconsistent.
+  static DitConfig from_weights(const SafetensorsFile& file, const std::string& prefix = "net.");
   void validate() const;
 };
 

@@ -223,6 +223,39 @@ TEST(DitConfig, JsonRoundTripAndErrors) {
   EXPECT_EQ(DitConfig::released_2b().rope_seq_len(), 128);
 }
 
+TEST(DitConfig, FromWeightsReadsTheArchitecture) {
+  auto g = open_fixture("dit_tiny_weights.safetensors");
+  if (g) EXPECT_EQ(DitConfig::from_weights(*g).to_json(), DitConfig::golden_tiny().to_json());
+
+  // A saved small model (no projection, custom action width) round-trips and loads strictly.
+  auto c = DitConfig::small();
+  c.num_blocks = 2;
+  c.use_crossattn_projection = false;
+  c.action_dim = 12;
+  c.action_hidden_dim = 40;
+  c.max_frames = 256;
+  c.zero_init_action_fc2 = false;
+  ActionDit net(c);
+  NamedTensors named;
+  for (const auto& [name, t] : state_dict(*net)) named.emplace_back("net." + name, t);
+  test::TempDir dir;
+  save_safetensors(dir / "dit.safetensors", named);
+  const auto file = SafetensorsFile::open(dir / "dit.safetensors");
+  const auto back = DitConfig::from_weights(file);
+  EXPECT_EQ(back.to_json(), c.to_json());
+  ActionDit loaded(back);
+  LoadOptions opts;
+  opts.prefix = "net.";
+  EXPECT_TRUE(load_state_dict(*loaded, file, opts).ok());
+
+  NamedTensors partial(named.begin(), named.begin() + 4);
+  save_safetensors(dir / "partial.safetensors", partial);
+  EXPECT_NE(test::error_message([&] {
+              DitConfig::from_weights(SafetensorsFile::open(dir / "partial.safetensors"));
+            }).find("net.x_embedder.proj.1.weight"),
+            std::string::npos);
+}
+
 TEST(DitKeys, Released2BKeyListShapesAndCount) {
   const auto ref = read_key_list("dit_2B_action384_keys.tsv");
   if (ref.empty()) GTEST_SKIP() << "key list not present";
