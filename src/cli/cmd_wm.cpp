@@ -13,6 +13,7 @@
 #include "core/safetensors.h"
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
+#include "eval/lpips.h"
 #include "eval/wm_eval.h"
 #include "infer/world_model.h"
 #include "io/video.h"
@@ -138,6 +139,7 @@ int run_rollout(const RolloutArgs& a) {
 struct EvalArgs {
   std::string checkpoint, tokenizer, data, out, solver = "unipc", concat = "aligned";
   std::vector<std::string> splits = {"val"};
+  std::vector<std::string> lpips_weights;
   int chunks = 4, episodes = 16, steps = 35, videos = 4, batch = 4;
   uint64_t seed = 0;
   bool json = false;
@@ -155,6 +157,12 @@ int run_eval(const EvalArgs& a) {
   o.seed = a.seed;
   o.videos = a.videos;
   if (!a.out.empty()) o.video_dir = fs::path(a.out) / "videos";
+  eval::Lpips lpips;
+  if (!a.lpips_weights.empty()) {
+    std::vector<fs::path> files(a.lpips_weights.begin(), a.lpips_weights.end());
+    lpips = eval::Lpips::load(files);
+    o.lpips = &lpips;
+  }
   std::vector<eval::WmEvalResult> results;
   nlohmann::json j = {{"checkpoint", a.checkpoint},
                       {"tokenizer", a.tokenizer},
@@ -248,6 +256,8 @@ void register_wm(CLI::App& app) {
   ev->add_option("--videos", e->videos, "Side-by-side videos per split (with --out)")->capture_default_str();
   ev->add_option("--seed", e->seed, "Noise seed")->capture_default_str();
   ev->add_option("--out,-o", e->out, "Directory for metrics.json, metrics.md and videos/");
+  ev->add_option("--lpips-weights", e->lpips_weights,
+                 "LPIPS-VGG weights (safetensors; see docs/evaluation.md); adds LPIPS to the metrics");
   ev->add_flag("--json", e->json, "Print JSON instead of a table");
   ev->callback([e] { set_action([e] { return run_eval(*e); }); });
 }

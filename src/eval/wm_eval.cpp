@@ -8,6 +8,7 @@
 #include "core/progress.h"
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
+#include "eval/lpips.h"
 #include "eval/metrics.h"
 #include "io/video.h"
 
@@ -20,10 +21,11 @@ nlohmann::json WmEvalResult::to_json() const {
   for (const auto& v : videos) {
     nlohmann::json j = {{"episode", v.episode},     {"psnr", v.psnr},           {"ssim", v.ssim},
                         {"copy_psnr", v.copy_psnr}, {"copy_ssim", v.copy_ssim}};
+    if (!std::isnan(v.lpips)) j["lpips"] = v.lpips, j["copy_lpips"] = v.copy_lpips;
     if (!v.video.empty()) j["video"] = v.video;
     per.push_back(j);
   }
-  return {{"dataset", dataset},
+  nlohmann::json out = {{"dataset", dataset},
           {"split", split},
           {"videos", static_cast<int>(videos.size())},
           {"frames_per_video", frames},
@@ -33,6 +35,11 @@ nlohmann::json WmEvalResult::to_json() const {
           {"seconds", seconds},
           {"frames_per_second", frames_per_second},
           {"per_video", per}};
+  if (!std::isnan(lpips)) {
+    out["lpips"] = lpips;
+    out["copy_first_frame"]["lpips"] = copy_lpips;
+  }
+  return out;
 }
 
 WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& dataset, const std::string& split,
@@ -77,9 +84,11 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
       const int64_t k = static_cast<int64_t>(i - b);
       VideoScore s;
       s.episode = store.info().episodes[episodes[i]].id;
-      const auto m = video_metrics(pred[k], gt[k]);
+      const auto m = video_metrics(pred[k], gt[k], o.lpips);
       const auto copy = first[k].unsqueeze(0).expand_as(gt[k]).contiguous();
-      const auto mc = video_metrics(copy, gt[k]);
+      const auto mc = video_metrics(copy, gt[k], o.lpips);
+      s.lpips = m.lpips;
+      s.copy_lpips = mc.lpips;
       s.psnr = m.psnr;
       s.ssim = m.ssim;
       s.copy_psnr = mc.psnr;
@@ -100,6 +109,10 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
     r.copy_ssim += v.copy_ssim;
   }
   const double n = static_cast<double>(r.videos.size());
+  if (o.lpips) {
+    r.lpips = r.copy_lpips = 0;
+    for (const auto& v : r.videos) r.lpips += v.lpips / n, r.copy_lpips += v.copy_lpips / n;
+  }
   r.psnr /= n;
   r.ssim /= n;
   r.copy_psnr /= n;
@@ -110,11 +123,19 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
 }
 
 std::string markdown_table(const std::vector<WmEvalResult>& results) {
-  std::string s = "| split | videos | PSNR | SSIM | copy-frame PSNR | copy-frame SSIM |\n|---|---|---|---|---|---|\n";
-  char line[256];
+  const bool with_lpips = !results.empty() && !std::isnan(results[0].lpips);
+  std::string s = "| split | videos | PSNR | SSIM |";
+  s += with_lpips ? " LPIPS |" : "";
+  s += " copy-frame PSNR | copy-frame SSIM |";
+  s += with_lpips ? " copy-frame LPIPS |\n|---|---|---|---|---|---|---|---|\n" : "\n|---|---|---|---|---|---|\n";
+  char line[320];
   for (const auto& r : results) {
-    std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f |\n", r.split.c_str(), r.videos.size(),
-                  r.psnr, r.ssim, r.copy_psnr, r.copy_ssim);
+    if (with_lpips)
+      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f |\n", r.split.c_str(),
+                    r.videos.size(), r.psnr, r.ssim, r.lpips, r.copy_psnr, r.copy_ssim, r.copy_lpips);
+    else
+      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f |\n", r.split.c_str(),
+                    r.videos.size(), r.psnr, r.ssim, r.copy_psnr, r.copy_ssim);
     s += line;
   }
   return s;

@@ -5,6 +5,7 @@
 // repeated) is scored the same way: a world model that ignores actions cannot beat it by much.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 #include <filesystem>
 #include <nlohmann/json.hpp>
@@ -15,6 +16,8 @@
 
 namespace dojo::eval {
 
+class Lpips;
+
 struct WmEvalOptions {
   int chunks = 4;         // 4 x 12 actions: the paper's 49-frame protocol
   int max_episodes = 16;  // evaluate at most this many episodes of the split (0: all)
@@ -24,12 +27,15 @@ struct WmEvalOptions {
   uint64_t seed = 0;
   std::filesystem::path video_dir;  // side-by-side videos (ground truth | prediction) when set
   int videos = 4;                   // how many episodes get a video
+  const Lpips* lpips = nullptr;     // LPIPS as well, when the user supplied its weights
 };
 
 struct VideoScore {
   std::string episode;
   double psnr = 0, ssim = 0;            // world model
+  double lpips = std::nan("");          // NaN without LPIPS weights
   double copy_psnr = 0, copy_ssim = 0;  // copy-first-frame baseline
+  double copy_lpips = std::nan("");
   std::string video;                    // side-by-side file, when written
 };
 
@@ -37,6 +43,7 @@ struct WmEvalResult {
   std::string dataset, split;
   std::vector<VideoScore> videos;
   double psnr = 0, ssim = 0, copy_psnr = 0, copy_ssim = 0;  // means over videos
+  double lpips = std::nan(""), copy_lpips = std::nan("");
   int frames = 0;                                           // per video
   double seconds = 0, frames_per_second = 0;                // generated frames / rollout time
   nlohmann::json to_json() const;

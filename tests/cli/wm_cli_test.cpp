@@ -4,6 +4,9 @@
 
 #include <nlohmann/json.hpp>
 
+#include "core/safetensors.h"
+#include "core/state_dict.h"
+#include "eval/lpips.h"
 #include "sim/generate.h"
 #include "test_util.h"
 
@@ -40,9 +43,13 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
                      (tmp / "s" / "checkpoint").string() + " --out " + (tmp / "p").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
 
+  // LPIPS with random weights: the wiring is what is tested here (values are checked in metrics_test).
+  torch::manual_seed(0);
+  eval::LpipsVgg lpips;
+  save_safetensors(tmp / "lpips.safetensors", state_dict(*lpips));
   r = test::run_dojo("--threads 1 eval --checkpoint " + (tmp / "p" / "checkpoint").string() + " --tokenizer " + tok +
                      " --data " + data + " --split val --split train --chunks 1 --steps 2 --json --out " +
-                     (tmp / "eval").string());
+                     (tmp / "eval").string() + " --lpips-weights " + (tmp / "lpips.safetensors").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto j = nlohmann::json::parse(r.output.substr(r.output.find('{')));
   ASSERT_EQ(j.at("splits").size(), 2u);
@@ -50,6 +57,8 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   EXPECT_EQ(j["splits"][0].at("videos"), 1);
   EXPECT_EQ(j["splits"][0].at("frames_per_video"), 13);
   EXPECT_GT(j["splits"][0].at("psnr").get<double>(), 0.0);
+  EXPECT_GE(j["splits"][0].at("lpips").get<double>(), 0.0);
+  EXPECT_TRUE(j["splits"][0]["copy_first_frame"].contains("lpips"));
   EXPECT_TRUE(std::filesystem::exists(tmp / "eval" / "metrics.md"));
   EXPECT_FALSE(std::filesystem::is_empty(tmp / "eval" / "videos"));
 
