@@ -217,7 +217,7 @@ struct DitBlockContext {
 
 class DitBlockImpl : public torch::nn::Module {
  public:
-  DitBlockImpl(const DitConfig& config);
+  explicit DitBlockImpl(const DitConfig& config);
   torch::Tensor forward(const torch::Tensor& x, const DitBlockContext& ctx);  // [B, T, S, D] -> same
 
   DitAttention self_attn{nullptr}, cross_attn{nullptr};

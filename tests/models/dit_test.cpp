@@ -539,6 +539,21 @@ TEST(DitSmall, InputValidationNamesTheField) {
   EXPECT_NE(test::error_message([&] { net->forward(in); }).find("frame_offset"), std::string::npos);
 }
 
+TEST(DitSmall, PaddingMaskIsResizedToTheLatentGrid) {
+  // A pixel-resolution mask is resized (nearest) to the latent H x W, as the reference does.
+  const auto c = DitConfig::small();
+  torch::manual_seed(45);
+  ActionDit net(c);
+  torch::NoGradGuard no_grad;
+  auto in = random_inputs(c, 1, 2, 8, 8, 46);
+  const auto zeros = net->forward(in);
+  in.padding_mask = torch::ones({1, 1, 8, 8});
+  const auto ones_latent = net->forward(in);
+  in.padding_mask = torch::ones({1, 1, 64, 64});
+  EXPECT_EQ(max_abs(net->forward(in), ones_latent), 0.0);
+  EXPECT_GT(max_abs(ones_latent, zeros), 1e-3);
+}
+
 TEST(DitSmall, TrainsOnFixedTarget) {
   OneThread one_thread;
   const auto c = DitConfig::small();
