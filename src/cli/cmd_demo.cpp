@@ -50,6 +50,7 @@ struct DemoOptions {
 };
 
 // Shares of the training budget; the rest (generation, caching, evaluation) is not budgeted.
+constexpr int64_t kMaxClips = 384;  // per dataset in the latent cache
 constexpr double kLamShare = 0.12, kTokenizerShare = 0.30, kPretrainShare = 0.24, kPosttrainShare = 0.24;
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
@@ -74,8 +75,9 @@ int run_demo(const DemoOptions& o) {
   LOG_INFO("[1/7] DojoSim: human and robot episodes into ", out.string());
   auto t0 = std::chrono::steady_clock::now();
   auto generate = [&](const std::string& name, const std::string& embodiment, const std::string& split,
-                      int episodes, uint64_t seed) {
+                      int episodes, uint64_t seed, double val_fraction = 0) {
     sim::GenerateOptions g;
+    g.val_fraction = val_fraction;
     g.embodiment = embodiment;
     g.split = split;
     g.episodes = episodes;
@@ -87,7 +89,9 @@ int run_demo(const DemoOptions& o) {
     if (!std::isnan(s.mean_success)) report["data"][name]["bin_success"] = s.mean_success;
   };
   generate("human", "human", "train", o.episodes, o.seed);
-  generate("robot", "robot", "train", o.episodes + o.eval_episodes, o.seed + 1);  // the val tail is held out
+  // The last eval_episodes robot episodes form the held-out "val" split.
+  generate("robot", "robot", "train", o.episodes + o.eval_episodes, o.seed + 1,
+           static_cast<double>(o.eval_episodes) / (o.episodes + o.eval_episodes));
   generate("robot_ood_objects", "robot", "ood-objects", o.eval_episodes, o.seed + 2);
   generate("robot_counterfactual", "robot", "counterfactual", o.eval_episodes, o.seed + 3);
   data::write_preview_video(data::EpisodeStore::open(out / "human"), out / "preview_human.mp4", 4, 2);
@@ -116,7 +120,7 @@ int run_demo(const DemoOptions& o) {
   t0 = std::chrono::steady_clock::now();
   {
     models::WanVaeConfig cfg;
-    cfg.dim = 32;
+    cfg.dim = 16;
     models::WanVae vae(cfg);
     auto mixture = std::make_shared<data::ClipMixture>();
     data::ClipConfig clip;
@@ -132,7 +136,7 @@ int run_demo(const DemoOptions& o) {
     };
     train::TokenizerTrainOptions t;
     t.steps = 1000000;
-    t.lr = 1e-3;
+    t.lr = 2e-3;
     t.save_every = 100;
     t.checkpoint_dir = out / "tokenizer" / "checkpoint";
     t.loss_curve = out / "tokenizer" / "loss.csv";
@@ -157,6 +161,10 @@ int run_demo(const DemoOptions& o) {
     spec.tokenizer = tokenizer;
     spec.lam = out / "lam" / "checkpoint";
     spec.mode = mode;
+    // Encoding is the slow part of caching (one 13-frame clip at a time, as the release does):
+    // windows every 4 frames at strides 1 and 2, at most kMaxClips of them, evenly spread.
+    spec.hop = 4;
+    spec.max_clips = kMaxClips;
     job.data = {spec};
     job.out = dir;
     if (stage == train::WmStage::kPosttrain) job.init = out / "wm_pretrain" / "checkpoint";

@@ -64,7 +64,10 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
     return models::denoise_velocity(*net_, in, x, gt, noise, mask);
   };
   const auto schedule = diffusion::flow_sigma_schedule(sampler.steps, sampler.shift);
-  const auto x0 = diffusion::sample_flow(velocity, noise, schedule, sampler.solver);  // [B, 16, 4, h, w]
+  auto x0 = diffusion::sample_flow(velocity, noise, schedule, sampler.solver);  // [B, 16, 4, h, w]
+  // The sampler starts from pure noise at sigma = 0.999, so the conditioning latent ends ~1e-3
+  // off its clean value; put it back exactly, so frame 0 is the tokenizer's round trip of cond.
+  x0 = gt * mask + x0 * (1 - mask);
   return train::model_to_video(tokenizer_->decode_latents(x0));                      // [B, 13, H, W, 3]
 }
 

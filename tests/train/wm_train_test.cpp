@@ -116,9 +116,11 @@ TEST(WmTrain, LearnsActionDrivenLatentsAndBeatsCopyingTheFirstFrame) {
   const auto future = probe_x0.narrow(2, 1, 3);
   const double model_mse = (sample.narrow(2, 1, 3) - future).pow(2).mean().item<double>();
   const double copy_mse = (probe_x0.narrow(2, 0, 1).expand_as(future) - future).pow(2).mean().item<double>();
-  EXPECT_TRUE(sample.narrow(2, 0, 1).equal(probe_x0.narrow(2, 0, 1)) ||
-              (sample.narrow(2, 0, 1) - probe_x0.narrow(2, 0, 1)).abs().max().item<double>() < 1e-4)
-      << "the conditioning frame must come back exactly";
+  // The conditioning frame stays on its interpolation path up to the grid's start at
+  // sigma = 0.999 rather than 1 (the sampler starts from pure noise): within ~1e-3 of gt.
+  EXPECT_LT((sample.narrow(2, 0, 1) - probe_x0.narrow(2, 0, 1)).abs().max().item<double>(), 5e-3);
+  std::printf("fixed-batch loss %.4f -> %.4f; future-latent MSE model %.4f vs copy-frame-0 %.4f\n", before, after,
+              model_mse, copy_mse);
   EXPECT_LT(model_mse, 0.5 * copy_mse) << "model " << model_mse << " vs copy-frame-0 " << copy_mse;
 }
 
@@ -197,10 +199,11 @@ TEST(WmTrain, LatentCacheHoldsTokenizerLatentsAndLamActions) {
   CacheFixture f;
   const auto spec = f.spec(ActionMode::kLatent);
   const auto clips = load_or_build_latent_clips(spec, f.dir / "cache.safetensors");
-  // 20-frame episodes, 14 steps per 13-frame clip at stride 1, starts 0 and 3 -> 2 clips each.
-  ASSERT_EQ(clips.size(), 4);
-  EXPECT_EQ(clips.latents.sizes(), (std::vector<int64_t>{4, 16, 4, 4, 4}));
-  EXPECT_EQ(clips.actions.sizes(), (std::vector<int64_t>{4, 12, 384}));
+  // 20-frame episodes, 14 steps per 13-frame clip at stride 1 (starts 0..6), hop 3 -> starts
+  // 0, 3, 6 in each episode.
+  ASSERT_EQ(clips.size(), 6);
+  EXPECT_EQ(clips.latents.sizes(), (std::vector<int64_t>{6, 16, 4, 4, 4}));
+  EXPECT_EQ(clips.actions.sizes(), (std::vector<int64_t>{6, 12, 384}));
 
   // Clip 1 is episode 0 from frame 3: recompute it by hand.
   auto store = data::EpisodeStore::open(f.dir / "human");
@@ -236,13 +239,13 @@ TEST(WmTrain, LatentCacheHoldsTokenizerLatentsAndLamActions) {
   // By hand: row j of a clip is motion[j + 1] - motion[first frame of j's chunk].
   std::vector<torch::Tensor> raw;
   for (size_t ep : {0, 1})
-    for (int64_t start : {0, 3}) {
+    for (int64_t start : {0, 3, 6}) {
       const auto m = ds.read(ep, data::make_window(start, 1, 13)).hidden_motion;  // [13, 6]
       auto rows = torch::empty({12, m.size(1)});
       for (int64_t j = 0; j < 12; ++j) rows[j] = m[j + 1] - m[(j / 4) * 4];
       raw.push_back(rows);
     }
-  const auto by_hand = torch::stack(raw);  // [4, 12, 6]
+  const auto by_hand = torch::stack(raw);  // [6, 12, 6]
   const auto expected = by_hand / by_hand.abs().amax({0, 1}).clamp_min(1e-6);
   EXPECT_LT((slot - expected).abs().max().item<double>(), 1e-5);
 }
