@@ -32,6 +32,7 @@ struct WmTrainArgs {
   int batch = 8;
   double minutes = 0, lr = 1.6e-4, weight_decay = 0.1, grad_clip = 0.1, temporal_weight = 0.1;
   uint64_t seed = 0;
+  bool absolute_actions = false, whole_clip_actions = false;
 };
 
 models::DitConfig model_preset(const std::string& name) {
@@ -55,11 +56,13 @@ int run_wm_train(const WmTrainArgs& a) {
     spec.mode = mode;
     spec.hop = a.hop;
     spec.max_clips = a.max_clips;
+    spec.relative_actions = !a.absolute_actions;
     job.data.push_back(spec);
   }
   job.out = a.out;
   job.init = a.init;
   job.model = model_preset(a.model);
+  if (a.whole_clip_actions) job.model.whole_clip_actions = 12;
   job.options.lr = a.lr;
   job.options.weight_decay = a.weight_decay;
   job.options.grad_clip = a.grad_clip;
@@ -220,6 +223,10 @@ void register_wm(CLI::App& app) {
       ->capture_default_str();
   train_cmd->add_option("--hop", t->hop, "Frames between cached clip starts")->capture_default_str();
   train_cmd->add_option("--max-clips", t->max_clips, "Cache at most this many clips per dataset (0 = all)");
+  train_cmd->add_flag("--absolute-actions", t->absolute_actions,
+                      "Ablation: normalised absolute actions instead of chunk-relative deltas");
+  train_cmd->add_flag("--whole-clip-actions", t->whole_clip_actions,
+                      "Ablation: one embedding of all 12 actions added to every frame (no per-frame chunks)");
   train_cmd->add_option("--save-every", t->save_every, "Checkpoint interval in steps")->capture_default_str();
   train_cmd->add_option("--seed", t->seed, "Random seed")->capture_default_str();
   train_cmd->callback([t] { set_action([t] { return run_wm_train(*t); }); });

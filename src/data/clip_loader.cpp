@@ -68,7 +68,8 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
   if (info.embodiment == Embodiment::kRobot) {
     const auto absolute = arrays.actions.index_select(0, steps);              // [T + 1, A]
     const auto normalized = normalize_min_max(absolute, *info.action_stats);  // [T + 1, A]
-    const auto relative = chunk_relative(normalized, config_.action_chunk);   // [T - 1, A]
+    const auto relative = config_.relative_actions ? chunk_relative(normalized, config_.action_chunk)
+                                                   : normalized.slice(0, 1, rows + 1);  // [T - 1, A]
     DOJO_CHECK(relative.size(0) == rows, where + ": clip length " + std::to_string(config_.num_frames) +
                                              " - 1 is not a multiple of the action chunk");
     clip.actions = place_in_slot(relative, slot_by_name(info.action_slot));  // [T - 1, 384]

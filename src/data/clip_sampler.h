@@ -14,6 +14,9 @@ struct ClipConfig {
   int num_frames = 13;  // 1 conditioning frame + 12 predicted
   std::vector<int> strides = {1, 2, 3, 4};
   int action_chunk = 4;  // actions per latent frame (the VAE's temporal factor)
+  // false: rows hold the normalised absolute actions at steps 1..T-1 instead of chunk-relative
+  // deltas (the paper's "relative actions" ablation).
+  bool relative_actions = true;
   int height = 64;       // output size after centre crop + resize
   int width = 64;
 };

@@ -91,6 +91,7 @@ nlohmann::json DitConfig::to_json() const {
           {"actions_per_latent_frame", actions_per_latent_frame},
           {"action_hidden_dim", action_hidden_dim},
           {"zero_init_action_fc2", zero_init_action_fc2},
+          {"whole_clip_actions", whole_clip_actions},
           {"concat_padding_mask", concat_padding_mask},
           {"mlp_ratio", mlp_ratio}};
 }
@@ -148,6 +149,7 @@ DitConfig DitConfig::from_json(const nlohmann::json& j) {
   f.get("actions_per_latent_frame", c.actions_per_latent_frame);
   f.get("action_hidden_dim", c.action_hidden_dim);
   f.get("zero_init_action_fc2", c.zero_init_action_fc2);
+  f.get("whole_clip_actions", c.whole_clip_actions);
   f.get("concat_padding_mask", c.concat_padding_mask);
   f.get("mlp_ratio", c.mlp_ratio);
   c.validate();
@@ -750,7 +752,15 @@ torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
   auto t_emb = t_emb_raw;
   const int64_t lead = in.frame_offset == 0 ? 1 : 0;
   const int64_t action_frames = T - lead;
-  if (in.actions.defined() && action_frames > 0) {
+  if (in.actions.defined() && c.whole_clip_actions > 0) {
+    DOJO_CHECK(in.actions.dim() == 3 && in.actions.size(0) == B && in.actions.size(1) == c.whole_clip_actions &&
+                   in.actions.size(2) == c.action_dim,
+               "DiT: actions must be [B, " + std::to_string(c.whole_clip_actions) + ", " +
+                   std::to_string(c.action_dim) + "] (whole-clip injection)");
+    const auto row = in.actions.to(dtype).reshape({B, 1, c.whole_clip_actions * c.action_dim});  // [B, 1, NA]
+    t_emb = t_emb + action_embedder_B_D(row);             // [B, T_t, D], the same for every frame
+    adaln_lora = adaln_lora + action_embedder_B_3D(row);  // [B, T_t, 3D]
+  } else if (in.actions.defined() && action_frames > 0) {
     const int64_t k = c.actions_per_latent_frame;
     DOJO_CHECK(in.actions.dim() == 3 && in.actions.size(0) == B && in.actions.size(1) == k * action_frames &&
                    in.actions.size(2) == c.action_dim,

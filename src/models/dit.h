@@ -55,6 +55,9 @@ struct DitConfig {
   int64_t actions_per_latent_frame = 4;
   int64_t action_hidden_dim = 0;  // 0 => 4 * D
   bool zero_init_action_fc2 = true;
+  // Ablation only (> 0): the older Cosmos action DiT's injection, one embedding of all this many
+  // actions of the clip added to every latent frame, instead of 4 actions per latent frame.
+  int64_t whole_clip_actions = 0;
   bool concat_padding_mask = true;
   double mlp_ratio = 4.0;
 
@@ -66,7 +69,9 @@ struct DitConfig {
 
   int64_t head_dim() const { return model_channels / num_heads; }
   int64_t action_hidden() const { return action_hidden_dim > 0 ? action_hidden_dim : 4 * model_channels; }
-  int64_t action_in_features() const { return actions_per_latent_frame * action_dim; }
+  int64_t action_in_features() const {
+    return (whole_clip_actions > 0 ? whole_clip_actions : actions_per_latent_frame) * action_dim;
+  }
   int64_t mlp_hidden() const { return static_cast<int64_t>(model_channels * mlp_ratio); }
   int64_t crossattn_dim() const {
     return use_crossattn_projection ? crossattn_proj_dim : crossattn_emb_channels;

@@ -92,7 +92,8 @@ nlohmann::json LatentCacheSpec::to_json() const {
           {"strides", strides},
           {"hop", hop},
           {"size", size},
-          {"max_clips", max_clips}};
+          {"max_clips", max_clips},
+          {"relative_actions", relative_actions}};
 }
 
 LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::path& cache_file) {
@@ -123,6 +124,7 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
   const auto store = data::EpisodeStore::open(spec.dataset);
   data::ClipConfig clip;
   clip.strides = spec.strides;
+  clip.relative_actions = spec.relative_actions;
   clip.height = spec.size > 0 ? spec.size : store.info().height;
   clip.width = spec.size > 0 ? spec.size : store.info().width;
   data::ClipDataset dataset(store, clip, spec.split);

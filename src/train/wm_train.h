@@ -45,6 +45,7 @@ struct LatentCacheSpec {
   int64_t hop = 2;        // window starts advance by this many frames
   int size = 0;           // frame size fed to the tokenizer (0: the dataset's)
   int64_t max_clips = 0;  // 0: all windows
+  bool relative_actions = true;  // false: absolute normalised actions (ablation)
   nlohmann::json to_json() const;
 };
 

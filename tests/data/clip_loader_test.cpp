@@ -86,6 +86,20 @@ TEST(ClipLoader, RobotClipHandComputed) {
   EXPECT_EQ(clip.actions.slice(1, 172).abs().sum().item<float>(), 0.f);
 }
 
+TEST(ClipLoader, AbsoluteActionsAblationKeepsNormalisedValues) {
+  test::TempDir tmp;
+  make_dataset(tmp / "robot", Embodiment::kRobot, 1, 40);
+  auto config = small_config();
+  config.relative_actions = false;
+  ClipDataset dataset(EpisodeStore::open(tmp / "robot"), config);
+  const auto clip = dataset.read(0, make_window(2, 2, 13));
+  // Row j is the normalised action at step 1 + j of the window: episode step 2 + 2 (1 + j).
+  for (int j = 0; j < 12; ++j) {
+    const double step = 2 + 2 * (1 + j);
+    EXPECT_NEAR(clip.actions[j][169].item<float>(), 2 * step / 39.0 - 1, 1e-5) << j;
+  }
+}
+
 TEST(ClipLoader, HumanClipCarriesLatentMask) {
   test::TempDir tmp;
   make_dataset(tmp / "human", Embodiment::kHuman, 1, 20);

@@ -413,6 +413,32 @@ TEST(DitGolden, TinyDenoiseVelocity) {
 
 // --- behaviour on the small config --------------------------------------------------------------
 
+TEST(DitSmall, WholeClipActionInjectionAblation) {
+  OneThread one_thread;
+  auto c = DitConfig::small();
+  c.model_channels = 64;
+  c.num_heads = 2;
+  c.num_blocks = 1;
+  c.whole_clip_actions = 12;
+  c.zero_init_action_fc2 = false;
+  ActionDit net(c);
+  EXPECT_EQ(net->action_embedder_B_D->fc1->weight.size(1), 12 * 384);
+  net->eval();
+  torch::NoGradGuard no_grad;
+  auto in = random_inputs(c, 1, 4, 4, 4, 3);
+  in.timesteps = torch::full({1, 1}, 500.0);
+  in.actions = torch::randn({1, 12, 384});
+  const auto a = net->forward_with_intermediates(in);
+  // One embedding for the whole clip: a single modulation row shared by all four frames, and it
+  // depends on the last action too.
+  EXPECT_EQ(a.at("t_emb_normed").sizes(), (std::vector<int64_t>{1, 1, 64}));
+  in.actions[0][11][0] += 1.0;
+  EXPECT_GT(max_abs(net->forward_with_intermediates(in).at("t_emb_normed"), a.at("t_emb_normed")), 1e-6);
+  in.actions = torch::randn({1, 8, 384});
+  EXPECT_THROW(net->forward(in), std::exception);
+  EXPECT_EQ(DitConfig::from_json(c.to_json()).whole_clip_actions, 12);
+}
+
 TEST(DitSmall, BatchIndependence) {
   OneThread one_thread;
   const auto c = DitConfig::small();
