@@ -1,0 +1,820 @@
+#include "models/dit.h"
+
+#include <cmath>
+#include <limits>
+
+#include "core/error.h"
+#include "core/safetensors.h"
+#include "models/attention.h"
+
+namespace dojo::models {
+
+namespace nn = torch::nn;
+
+// ---------------------------------------------------------------------------------------------
+// Config
+
+DitConfig DitConfig::released_2b() { return DitConfig{}; }
+
+DitConfig DitConfig::released_14b() {
+  DitConfig c;
+  c.model_channels = 5120;
+  c.num_blocks = 36;
+  c.num_heads = 40;
+  return c;
+}
+
+DitConfig DitConfig::student_2b() {
+  DitConfig c;
+  c.max_frames = 256;
+  return c;
+}
+
+DitConfig DitConfig::golden_tiny() {
+  DitConfig c;
+  c.model_channels = 64;
+  c.num_blocks = 2;
+  c.num_heads = 2;
+  c.adaln_lora_dim = 16;
+  c.crossattn_emb_channels = 48;
+  c.crossattn_proj_dim = 32;
+  c.action_dim = 8;
+  // The fixture was built from freshly constructed (float32) buffers and re-randomised weights.
+  c.rope_bf16_ranges = false;
+  c.zero_init_action_fc2 = false;
+  return c;
+}
+
+DitConfig DitConfig::small() {
+  DitConfig c;
+  c.model_channels = 256;
+  c.num_blocks = 6;
+  c.num_heads = 4;
+  c.adaln_lora_dim = 64;
+  c.crossattn_emb_channels = 64;
+  c.crossattn_proj_dim = 64;
+  c.rope_bf16_ranges = false;  // trained from scratch: no released buffers to match
+  return c;
+}
+
+int64_t DitConfig::patch_in_features() const {
+  const int64_t channels = in_channels + 1 + (concat_padding_mask ? 1 : 0);
+  return channels * patch_spatial * patch_spatial * patch_temporal;
+}
+
+int64_t DitConfig::rope_seq_len() const {
+  return std::max({max_img_h / patch_spatial, max_img_w / patch_spatial, max_frames / patch_temporal});
+}
+
+nlohmann::json DitConfig::to_json() const {
+  return {{"model", "dit"},
+          {"model_channels", model_channels},
+          {"num_blocks", num_blocks},
+          {"num_heads", num_heads},
+          {"adaln_lora_dim", adaln_lora_dim},
+          {"in_channels", in_channels},
+          {"out_channels", out_channels},
+          {"patch_spatial", patch_spatial},
+          {"patch_temporal", patch_temporal},
+          {"crossattn_emb_channels", crossattn_emb_channels},
+          {"crossattn_proj_dim", crossattn_proj_dim},
+          {"use_crossattn_projection", use_crossattn_projection},
+          {"max_img_h", max_img_h},
+          {"max_img_w", max_img_w},
+          {"max_frames", max_frames},
+          {"rope_h_extrapolation_ratio", rope_h_extrapolation_ratio},
+          {"rope_w_extrapolation_ratio", rope_w_extrapolation_ratio},
+          {"rope_t_extrapolation_ratio", rope_t_extrapolation_ratio},
+          {"rope_bf16_ranges", rope_bf16_ranges},
+          {"timestep_scale", timestep_scale},
+          {"action_dim", action_dim},
+          {"actions_per_latent_frame", actions_per_latent_frame},
+          {"action_hidden_dim", action_hidden_dim},
+          {"zero_init_action_fc2", zero_init_action_fc2},
+          {"concat_padding_mask", concat_padding_mask},
+          {"mlp_ratio", mlp_ratio}};
+}
+
+namespace {
+
+// Typed field readers shared by from_json and from_reference_kwargs.
+struct JsonFields {
+  const nlohmann::json& j;
+  const char* what;
+  void get(const char* key, int64_t& v) const {
+    if (!j.contains(key)) return;
+    DOJO_CHECK(j[key].is_number_integer(), std::string(what) + ": field '" + key + "' must be an integer");
+    v = j[key].get<int64_t>();
+  }
+  void get(const char* key, double& v) const {
+    if (!j.contains(key)) return;
+    DOJO_CHECK(j[key].is_number(), std::string(what) + ": field '" + key + "' must be a number");
+    v = j[key].get<double>();
+  }
+  void get(const char* key, bool& v) const {
+    if (!j.contains(key)) return;
+    DOJO_CHECK(j[key].is_boolean(), std::string(what) + ": field '" + key + "' must be true or false");
+    v = j[key].get<bool>();
+  }
+};
+
+}  // namespace
+
+DitConfig DitConfig::from_json(const nlohmann::json& j) {
+  DOJO_CHECK(j.is_object(), "DiT config: expected a JSON object");
+  if (j.contains("model")) DOJO_CHECK(j["model"] == "dit", "DiT config: field 'model' must be \"dit\"");
+  DitConfig c;
+  const JsonFields f{j, "DiT config"};
+  f.get("model_channels", c.model_channels);
+  f.get("num_blocks", c.num_blocks);
+  f.get("num_heads", c.num_heads);
+  f.get("adaln_lora_dim", c.adaln_lora_dim);
+  f.get("in_channels", c.in_channels);
+  f.get("out_channels", c.out_channels);
+  f.get("patch_spatial", c.patch_spatial);
+  f.get("patch_temporal", c.patch_temporal);
+  f.get("crossattn_emb_channels", c.crossattn_emb_channels);
+  f.get("crossattn_proj_dim", c.crossattn_proj_dim);
+  f.get("use_crossattn_projection", c.use_crossattn_projection);
+  f.get("max_img_h", c.max_img_h);
+  f.get("max_img_w", c.max_img_w);
+  f.get("max_frames", c.max_frames);
+  f.get("rope_h_extrapolation_ratio", c.rope_h_extrapolation_ratio);
+  f.get("rope_w_extrapolation_ratio", c.rope_w_extrapolation_ratio);
+  f.get("rope_t_extrapolation_ratio", c.rope_t_extrapolation_ratio);
+  f.get("rope_bf16_ranges", c.rope_bf16_ranges);
+  f.get("timestep_scale", c.timestep_scale);
+  f.get("action_dim", c.action_dim);
+  f.get("actions_per_latent_frame", c.actions_per_latent_frame);
+  f.get("action_hidden_dim", c.action_hidden_dim);
+  f.get("zero_init_action_fc2", c.zero_init_action_fc2);
+  f.get("concat_padding_mask", c.concat_padding_mask);
+  f.get("mlp_ratio", c.mlp_ratio);
+  c.validate();
+  return c;
+}
+
+DitConfig DitConfig::from_reference_kwargs(const nlohmann::json& j) {
+  DOJO_CHECK(j.is_object(), "DiT kwargs: expected a JSON object");
+  DitConfig c;
+  const JsonFields f{j, "DiT kwargs"};
+  f.get("model_channels", c.model_channels);
+  f.get("num_blocks", c.num_blocks);
+  f.get("num_heads", c.num_heads);
+  f.get("adaln_lora_dim", c.adaln_lora_dim);
+  f.get("in_channels", c.in_channels);
+  f.get("out_channels", c.out_channels);
+  f.get("patch_spatial", c.patch_spatial);
+  f.get("patch_temporal", c.patch_temporal);
+  f.get("use_crossattn_projection", c.use_crossattn_projection);
+  // Reference naming: crossattn_emb_channels is the width after the projection.
+  if (c.use_crossattn_projection) {
+    f.get("crossattn_proj_in_channels", c.crossattn_emb_channels);
+    f.get("crossattn_emb_channels", c.crossattn_proj_dim);
+  } else {
+    f.get("crossattn_emb_channels", c.crossattn_emb_channels);
+  }
+  f.get("max_img_h", c.max_img_h);
+  f.get("max_img_w", c.max_img_w);
+  f.get("max_frames", c.max_frames);
+  f.get("rope_h_extrapolation_ratio", c.rope_h_extrapolation_ratio);
+  f.get("rope_w_extrapolation_ratio", c.rope_w_extrapolation_ratio);
+  f.get("rope_t_extrapolation_ratio", c.rope_t_extrapolation_ratio);
+  f.get("timestep_scale", c.timestep_scale);
+  f.get("action_dim", c.action_dim);
+  f.get("temporal_compression_ratio", c.actions_per_latent_frame);
+  f.get("concat_padding_mask", c.concat_padding_mask);
+  f.get("mlp_ratio", c.mlp_ratio);
+  f.get("zero_init_action_embedder", c.zero_init_action_fc2);
+  if (j.contains("hidden_dim_in_action_embedder") && !j["hidden_dim_in_action_embedder"].is_null())
+    f.get("hidden_dim_in_action_embedder", c.action_hidden_dim);
+  // A freshly constructed reference module has exact float32 RoPE ranges.
+  c.rope_bf16_ranges = false;
+  for (const char* key : {"extra_per_block_abs_pos_emb", "rope_enable_fps_modulation"}) {
+    bool on = false;
+    f.get(key, on);
+    DOJO_CHECK(!on, std::string("DiT kwargs: field '") + key + "' = true is not supported");
+  }
+  bool adaln_lora = true;
+  f.get("use_adaln_lora", adaln_lora);
+  DOJO_CHECK(adaln_lora, "DiT kwargs: field 'use_adaln_lora' = false is not supported");
+  c.validate();
+  return c;
+}
+
+DitConfig DitConfig::from_weights(const SafetensorsFile& file, const std::string& prefix) {
+  auto shape = [&](const std::string& name) -> std::vector<int64_t> {
+    DOJO_CHECK(file.contains(prefix + name),
+               "DiT weights " + file.path().string() + ": no tensor '" + prefix + name + "'");
+    return file.info(prefix + name).shape;
+  };
+  auto check = [&](bool ok, const std::string& name) {
+    DOJO_CHECK(ok, "DiT weights " + file.path().string() + ": unexpected shape of '" + prefix + name + "'");
+  };
+  DitConfig c;
+  c.zero_init_action_fc2 = false;  // the weights come from the file
+  const auto x_emb = shape("x_embedder.proj.1.weight");
+  check(x_emb.size() == 2, "x_embedder.proj.1.weight");
+  c.model_channels = x_emb[0];
+  const int64_t D = c.model_channels;
+  c.num_blocks = 0;
+  while (file.contains(prefix + "blocks." + std::to_string(c.num_blocks) + ".self_attn.q_proj.weight"))
+    ++c.num_blocks;
+  DOJO_CHECK(c.num_blocks > 0, "DiT weights " + file.path().string() + ": no tensor '" + prefix +
+                                   "blocks.0.self_attn.q_proj.weight'");
+  const int64_t head_dim = shape("blocks.0.self_attn.q_norm.weight").at(0);
+  check(head_dim > 0 && D % head_dim == 0, "blocks.0.self_attn.q_norm.weight");
+  c.num_heads = D / head_dim;
+  c.adaln_lora_dim = shape("blocks.0.adaln_modulation_self_attn.1.weight").at(0);
+  c.mlp_ratio = static_cast<double>(shape("blocks.0.mlp.layer1.weight").at(0)) / static_cast<double>(D);
+  // Output p·p·16 and input (16 + 1 [+ 1])·p·p give the patch size and the padding-mask channel.
+  const int64_t out_features = shape("final_layer.linear.weight").at(0);
+  c.patch_spatial =
+      static_cast<int64_t>(std::lround(std::sqrt(out_features / static_cast<double>(c.out_channels))));
+  const int64_t pp = c.patch_spatial * c.patch_spatial;
+  check(pp * c.out_channels == out_features, "final_layer.linear.weight");
+  check(x_emb[1] == (c.in_channels + 2) * pp || x_emb[1] == (c.in_channels + 1) * pp,
+        "x_embedder.proj.1.weight");
+  c.concat_padding_mask = x_emb[1] == (c.in_channels + 2) * pp;
+  c.use_crossattn_projection = file.contains(prefix + "crossattn_proj.0.weight");
+  if (c.use_crossattn_projection) {
+    const auto proj = shape("crossattn_proj.0.weight");
+    c.crossattn_proj_dim = proj.at(0);
+    c.crossattn_emb_channels = proj.at(1);
+  } else {
+    c.crossattn_emb_channels = shape("blocks.0.cross_attn.k_proj.weight").at(1);
+    c.crossattn_proj_dim = c.crossattn_emb_channels;  // unused without the projection
+  }
+  const auto fc1 = shape("action_embedder_B_D.fc1.weight");
+  check(fc1.size() == 2 && fc1[1] % c.actions_per_latent_frame == 0, "action_embedder_B_D.fc1.weight");
+  c.action_dim = fc1[1] / c.actions_per_latent_frame;
+  c.action_hidden_dim = fc1[0] == 4 * D ? 0 : fc1[0];
+  // seq has max(max_img_h / p, max_img_w / p, max_frames) entries.
+  const int64_t seq_len = shape("pos_embedder.seq").at(0);
+  c.max_frames = seq_len;
+  if (seq_len < c.max_img_h / c.patch_spatial) c.max_img_h = c.max_img_w = seq_len * c.patch_spatial;
+  c.rope_bf16_ranges = file.info(prefix + "pos_embedder.dim_spatial_range").dtype == "BF16";
+  c.validate();
+  return c;
+}
+
+void DitConfig::validate() const {
+  auto positive = [](const char* name, int64_t v) {
+    DOJO_CHECK(v > 0,
+               std::string("DiT config: field '") + name + "' must be positive, got " + std::to_string(v));
+  };
+  positive("model_channels", model_channels);
+  positive("num_blocks", num_blocks);
+  positive("num_heads", num_heads);
+  positive("adaln_lora_dim", adaln_lora_dim);
+  positive("in_channels", in_channels);
+  positive("out_channels", out_channels);
+  positive("patch_spatial", patch_spatial);
+  positive("crossattn_emb_channels", crossattn_emb_channels);
+  positive("crossattn_proj_dim", crossattn_proj_dim);
+  positive("max_img_h", max_img_h);
+  positive("max_img_w", max_img_w);
+  positive("max_frames", max_frames);
+  positive("action_dim", action_dim);
+  positive("actions_per_latent_frame", actions_per_latent_frame);
+  DOJO_CHECK(action_hidden_dim >= 0,
+             "DiT config: field 'action_hidden_dim' must be >= 0 (0 = 4 * model_channels)");
+  DOJO_CHECK(patch_temporal == 1, "DiT config: field 'patch_temporal' must be 1 (the only released value)");
+  DOJO_CHECK(model_channels % num_heads == 0,
+             "DiT config: field 'model_channels' must be divisible by 'num_heads'");
+  DOJO_CHECK(head_dim() % 2 == 0 && head_dim() >= 6,
+             "DiT config: head dim (model_channels / num_heads) must be even and >= 6 for 3-D RoPE");
+  DOJO_CHECK(model_channels % 2 == 0, "DiT config: field 'model_channels' must be even");
+  DOJO_CHECK(mlp_ratio > 0.0, "DiT config: field 'mlp_ratio' must be positive");
+  DOJO_CHECK(timestep_scale > 0.0, "DiT config: field 'timestep_scale' must be positive");
+  DOJO_CHECK(
+      rope_h_extrapolation_ratio > 0 && rope_w_extrapolation_ratio > 0 && rope_t_extrapolation_ratio > 0,
+      "DiT config: fields 'rope_*_extrapolation_ratio' must be positive");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Parameter inventory (mirrors the constructors below; a test checks both agree)
+
+std::vector<DitTensorSpec> dit_parameter_shapes(const DitConfig& c) {
+  c.validate();
+  const int64_t D = c.model_channels, r = c.adaln_lora_dim, d = c.head_dim();
+  const auto axes = rope_axis_dims(d);
+  std::vector<DitTensorSpec> out;
+  auto param = [&](const std::string& name, std::vector<int64_t> shape) {
+    out.push_back({name, std::move(shape), torch::kFloat32, false});
+  };
+  auto buffer = [&](const std::string& name, std::vector<int64_t> shape, torch::Dtype dtype) {
+    out.push_back({name, std::move(shape), dtype, true});
+  };
+  buffer("accum_video_sample_counter", {}, torch::kInt64);
+  buffer("accum_image_sample_counter", {}, torch::kInt64);
+  buffer("accum_iteration", {}, torch::kInt64);
+  buffer("accum_train_in_hours", {}, torch::kFloat32);
+  param("x_embedder.proj.1.weight", {D, c.patch_in_features()});
+  buffer("pos_embedder.seq", {c.rope_seq_len()}, torch::kFloat32);
+  buffer("pos_embedder.dim_spatial_range", {axes.h / 2}, torch::kFloat32);
+  buffer("pos_embedder.dim_temporal_range", {axes.t / 2}, torch::kFloat32);
+  param("t_embedder.1.linear_1.weight", {D, D});
+  param("t_embedder.1.linear_2.weight", {3 * D, D});
+  for (int64_t i = 0; i < c.num_blocks; ++i) {
+    const std::string b = "blocks." + std::to_string(i) + ".";
+    for (const std::string attn : {"self_attn", "cross_attn"}) {
+      const int64_t kv_in = attn == "self_attn" ? D : c.crossattn_dim();
+      param(b + attn + ".q_proj.weight", {D, D});
+      param(b + attn + ".q_norm.weight", {d});
+      param(b + attn + ".k_proj.weight", {D, kv_in});
+      param(b + attn + ".k_norm.weight", {d});
+      param(b + attn + ".v_proj.weight", {D, kv_in});
+      param(b + attn + ".output_proj.weight", {D, D});
+    }
+    param(b + "mlp.layer1.weight", {c.mlp_hidden(), D});
+    param(b + "mlp.layer2.weight", {D, c.mlp_hidden()});
+    for (const std::string m : {"self_attn", "cross_attn", "mlp"}) {
+      param(b + "adaln_modulation_" + m + ".1.weight", {r, D});
+      param(b + "adaln_modulation_" + m + ".2.weight", {3 * D, r});
+    }
+  }
+  param("final_layer.linear.weight", {c.patch_out_features(), D});
+  param("final_layer.adaln_modulation.1.weight", {r, D});
+  param("final_layer.adaln_modulation.2.weight", {2 * D, r});
+  param("t_embedding_norm.weight", {D});
+  if (c.use_crossattn_projection) {
+    param("crossattn_proj.0.weight", {c.crossattn_proj_dim, c.crossattn_emb_channels});
+    param("crossattn_proj.0.bias", {c.crossattn_proj_dim});
+  }
+  for (const auto& [name, out_dim] : {std::pair<std::string, int64_t>{"action_embedder_B_D", D},
+                                      std::pair<std::string, int64_t>{"action_embedder_B_3D", 3 * D}}) {
+    param(name + ".fc1.weight", {c.action_hidden(), c.action_in_features()});
+    param(name + ".fc1.bias", {c.action_hidden()});
+    param(name + ".fc2.weight", {out_dim, c.action_hidden()});
+    param(name + ".fc2.bias", {out_dim});
+  }
+  return out;
+}
+
+int64_t dit_parameter_count(const DitConfig& config) {
+  int64_t n = 0;
+  for (const auto& s : dit_parameter_shapes(config)) {
+    if (s.is_buffer) continue;
+    int64_t numel = 1;
+    for (int64_t v : s.shape) numel *= v;
+    n += numel;
+  }
+  return n;
+}
+
+// ---------------------------------------------------------------------------------------------
+// RoPE, timestep embedding, masks
+
+torch::Tensor rope_dim_range(int64_t dim, bool bf16_round) {
+  // As the reference: arange(0, dim, 2)[:dim // 2].float() / dim.
+  auto range = torch::arange(0, dim, 2, torch::kLong).slice(0, 0, dim / 2).to(torch::kFloat32) / dim;
+  if (bf16_round) range = range.to(torch::kBFloat16).to(torch::kFloat32);
+  return range;
+}
+
+RopeAxisDims rope_axis_dims(int64_t head_dim) {
+  const int64_t hw = head_dim / 6 * 2;
+  return {head_dim - 2 * hw, hw, hw};
+}
+
+namespace {
+// 1 / (10000 · ratio^(dim / (dim − 2)))^range, float32 ops in the reference's order.
+torch::Tensor rope_freqs(const torch::Tensor& range, double ratio) {
+  const double dim = static_cast<double>(range.size(0) * 2);
+  const double theta = 10000.0 * std::pow(ratio, dim / (dim - 2.0));
+  return torch::reciprocal(torch::pow(theta, range.to(torch::kFloat32)));
+}
+}  // namespace
+
+torch::Tensor rope_angles_3d(const torch::Tensor& dim_spatial_range, const torch::Tensor& dim_temporal_range,
+                             int64_t frames, int64_t height, int64_t width, int64_t frame_offset,
+                             double h_ratio, double w_ratio, double t_ratio) {
+  const auto freqs_h = rope_freqs(dim_spatial_range, h_ratio);   // [dh / 2]
+  const auto freqs_w = rope_freqs(dim_spatial_range, w_ratio);   // [dw / 2]
+  const auto freqs_t = rope_freqs(dim_temporal_range, t_ratio);  // [dt / 2]
+  const auto opts = freqs_h.options();
+  const auto pos_t = torch::arange(frame_offset, frame_offset + frames, opts);
+  const auto half_t = torch::outer(pos_t, freqs_t);                        // [T, dt / 2]
+  const auto half_h = torch::outer(torch::arange(height, opts), freqs_h);  // [H, dh / 2]
+  const auto half_w = torch::outer(torch::arange(width, opts), freqs_w);   // [W, dw / 2]
+  const int64_t nt = half_t.size(1), nh = half_h.size(1), nw = half_w.size(1);
+  const auto t = half_t.view({frames, 1, 1, nt}).expand({frames, height, width, nt});
+  const auto h = half_h.view({1, height, 1, nh}).expand({frames, height, width, nh});
+  const auto w = half_w.view({1, 1, width, nw}).expand({frames, height, width, nw});
+  const auto angles = torch::cat({t, h, w, t, h, w}, -1);  // [T, H, W, d]
+  return angles.reshape({frames * height * width, 1, 1, 2 * (nt + nh + nw)});
+}
+
+torch::Tensor rope_angles_3d(int64_t head_dim, int64_t frames, int64_t height, int64_t width,
+                             int64_t frame_offset, double h_ratio, double w_ratio, double t_ratio,
+                             bool bf16_ranges) {
+  const auto axes = rope_axis_dims(head_dim);
+  return rope_angles_3d(rope_dim_range(axes.h, bf16_ranges), rope_dim_range(axes.t, bf16_ranges), frames,
+                        height, width, frame_offset, h_ratio, w_ratio, t_ratio);
+}
+
+torch::Tensor apply_rope(const torch::Tensor& x, const torch::Tensor& cos, const torch::Tensor& sin) {
+  const auto xf = x.to(torch::kFloat32);
+  const int64_t half = x.size(-1) / 2;
+  const auto rotated = torch::cat({-xf.slice(-1, half), xf.slice(-1, 0, half)}, -1);  // rotate_half
+  return (xf * cos + rotated * sin).to(x.scalar_type());
+}
+
+torch::Tensor apply_rope(const torch::Tensor& x, const torch::Tensor& angles) {
+  const auto a = angles.to(torch::kFloat32).flatten(1, 2);  // [L, 1, d]
+  return apply_rope(x, a.cos(), a.sin());
+}
+
+torch::Tensor timestep_sinusoid(const torch::Tensor& t, int64_t dim) {
+  const int64_t half = dim / 2;
+  auto exponent = -std::log(10000.0) *
+                  torch::arange(half, torch::TensorOptions().dtype(torch::kFloat32).device(t.device()));
+  exponent = exponent / static_cast<double>(half);
+  const auto freqs = torch::exp(exponent);                        // [half]
+  const auto args = t.to(torch::kFloat32).unsqueeze(-1) * freqs;  // [..., half]
+  return torch::cat({torch::cos(args), torch::sin(args)}, -1);    // [..., dim]
+}
+
+torch::Tensor dit_block_causal_mask(int64_t q_frames, int64_t tokens_per_frame, int64_t cached_frames,
+                                    int64_t window_frames) {
+  const auto q_frame =
+      (torch::arange(q_frames, torch::kLong) + cached_frames).repeat_interleave(tokens_per_frame);
+  const auto k_frame =
+      torch::arange(cached_frames + q_frames, torch::kLong).repeat_interleave(tokens_per_frame);
+  auto keep = k_frame.unsqueeze(0).le(q_frame.unsqueeze(1));  // [Lq, Lk]
+  if (window_frames > 0)
+    keep = keep.logical_and(k_frame.unsqueeze(0).gt(q_frame.unsqueeze(1) - window_frames));
+  return keep;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Modules
+
+void DitKvCache::append(const torch::Tensor& k_new, const torch::Tensor& v_new) {
+  if (!k.defined()) {
+    k = k_new.detach();
+    v = v_new.detach();
+  } else {
+    k = torch::cat({k, k_new.detach()}, 2);
+    v = torch::cat({v, v_new.detach()}, 2);
+  }
+}
+
+void DitKvCache::keep_last(int64_t tokens_to_keep) {
+  if (tokens() <= tokens_to_keep) return;
+  if (tokens_to_keep <= 0) return clear();
+  k = k.slice(2, tokens() - tokens_to_keep).contiguous();
+  v = v.slice(2, v.size(2) - tokens_to_keep).contiguous();
+}
+
+DitRmsNormImpl::DitRmsNormImpl(int64_t dim, double eps_) : eps(eps_) {
+  weight = register_parameter("weight", torch::ones({dim}));
+}
+
+torch::Tensor DitRmsNormImpl::forward(const torch::Tensor& x) {
+  const auto xf = x.to(torch::kFloat32);
+  return (xf * torch::rsqrt(xf.pow(2).mean(-1, /*keepdim=*/true) + eps) * weight.to(torch::kFloat32))
+      .to(x.scalar_type());
+}
+
+DitAttentionImpl::DitAttentionImpl(int64_t query_dim, int64_t context_dim, int64_t heads_, int64_t head_dim_)
+    : heads(heads_), head_dim(head_dim_) {
+  const int64_t inner = heads * head_dim;
+  q_proj = register_module("q_proj", nn::Linear(nn::LinearOptions(query_dim, inner).bias(false)));
+  q_norm = register_module("q_norm", DitRmsNorm(head_dim));
+  k_proj = register_module("k_proj", nn::Linear(nn::LinearOptions(context_dim, inner).bias(false)));
+  k_norm = register_module("k_norm", DitRmsNorm(head_dim));
+  v_proj = register_module("v_proj", nn::Linear(nn::LinearOptions(context_dim, inner).bias(false)));
+  output_proj = register_module("output_proj", nn::Linear(nn::LinearOptions(inner, query_dim).bias(false)));
+}
+
+torch::Tensor DitAttentionImpl::self_attention(const torch::Tensor& x, const torch::Tensor& cos,
+                                               const torch::Tensor& sin, const torch::Tensor& mask,
+                                               DitKvCache* cache, bool store_kv) {
+  const int64_t B = x.size(0), L = x.size(1);
+  // Norm and RoPE act per head on the [B, L, h, d] layout the projections produce; the
+  // transposes to [B, h, L, d] are views (the attention matmuls take them as they are).
+  const auto q = apply_rope(q_norm(q_proj(x).view({B, L, heads, head_dim})), cos, sin).transpose(1, 2);
+  auto k = apply_rope(k_norm(k_proj(x).view({B, L, heads, head_dim})), cos, sin).transpose(1, 2);
+  auto v = v_proj(x).view({B, L, heads, head_dim}).transpose(1, 2);  // [B, h, L, d]
+  torch::Tensor k_all = k, v_all = v;
+  if (cache != nullptr) {
+    if (cache->tokens() > 0) {
+      k_all = torch::cat({cache->k, k}, 2);  // [B, h, cached + L, d]
+      v_all = torch::cat({cache->v, v}, 2);
+    }
+    if (store_kv) cache->append(k, v);
+  }
+  std::optional<torch::Tensor> m;
+  if (mask.defined()) m = mask;
+  const auto o = attention(q, k_all, v_all, m);                             // [B, h, L, d]
+  return output_proj(o.transpose(1, 2).reshape({B, L, heads * head_dim}));  // [B, L, D]
+}
+
+torch::Tensor DitAttentionImpl::cross_attention(const torch::Tensor& x, const torch::Tensor& context) {
+  const int64_t B = x.size(0), L = x.size(1), Lc = context.size(1);
+  const auto q = q_norm(q_proj(x).view({B, L, heads, head_dim})).transpose(1, 2);         // [B, h, L, d]
+  const auto k = k_norm(k_proj(context).view({B, Lc, heads, head_dim})).transpose(1, 2);  // [B, h, Lc, d]
+  const auto v = v_proj(context).view({B, Lc, heads, head_dim}).transpose(1, 2);
+  const auto o = attention(q, k, v);                                        // [B, h, L, d]
+  return output_proj(o.transpose(1, 2).reshape({B, L, heads * head_dim}));  // [B, L, D]
+}
+
+DitMlpImpl::DitMlpImpl(int64_t dim, int64_t hidden) {
+  layer1 = register_module("layer1", nn::Linear(nn::LinearOptions(dim, hidden).bias(false)));
+  layer2 = register_module("layer2", nn::Linear(nn::LinearOptions(hidden, dim).bias(false)));
+}
+
+torch::Tensor DitMlpImpl::forward(const torch::Tensor& x) { return layer2(torch::gelu(layer1(x))); }
+
+DitModulation::DitModulation(int64_t dim, int64_t lora_dim, int64_t out)
+    : down(nn::LinearOptions(dim, lora_dim).bias(false)), up(nn::LinearOptions(lora_dim, out).bias(false)) {
+  seq = nn::Sequential(nn::SiLU(), down, up);
+}
+
+namespace {
+// LayerNorm without affine parameters (eps 1e-6), then adaLN: norm · (1 + scale) + shift.
+torch::Tensor modulate(const torch::Tensor& x, const torch::Tensor& shift, const torch::Tensor& scale) {
+  const auto normed = torch::layer_norm(x, {x.size(-1)}, {}, {}, 1e-6);
+  return normed * (1 + scale) + shift;
+}
+}  // namespace
+
+DitBlockImpl::DitBlockImpl(const DitConfig& c) {
+  const int64_t D = c.model_channels;
+  self_attn = register_module("self_attn", DitAttention(D, D, c.num_heads, c.head_dim()));
+  cross_attn = register_module("cross_attn", DitAttention(D, c.crossattn_dim(), c.num_heads, c.head_dim()));
+  mlp = register_module("mlp", DitMlp(D, c.mlp_hidden()));
+  adaln_modulation_self_attn = DitModulation(D, c.adaln_lora_dim, 3 * D);
+  adaln_modulation_cross_attn = DitModulation(D, c.adaln_lora_dim, 3 * D);
+  adaln_modulation_mlp = DitModulation(D, c.adaln_lora_dim, 3 * D);
+  register_module("adaln_modulation_self_attn", adaln_modulation_self_attn.seq);
+  register_module("adaln_modulation_cross_attn", adaln_modulation_cross_attn.seq);
+  register_module("adaln_modulation_mlp", adaln_modulation_mlp.seq);
+}
+
+torch::Tensor DitBlockImpl::forward(const torch::Tensor& input, const DitBlockContext& ctx) {
+  const int64_t B = input.size(0), T = input.size(1), S = input.size(2), D = input.size(3);
+  // (shift, scale, gate) per latent frame, broadcast over the frame's tokens: [B, T_t, 1, D] each.
+  auto mod = [&](const DitModulation& m) {
+    return (m(ctx.silu_emb) + ctx.adaln_lora).unsqueeze(2).chunk(3, -1);
+  };
+  const auto sa = mod(adaln_modulation_self_attn);
+  const auto ca = mod(adaln_modulation_cross_attn);
+  const auto ml = mod(adaln_modulation_mlp);
+
+  auto x = input;  // [B, T, S, D]
+  auto y = modulate(x, sa[0], sa[1]).view({B, T * S, D});
+  auto r = self_attn->self_attention(y, ctx.cos, ctx.sin, ctx.mask, ctx.cache, ctx.store_kv);
+  x = x + sa[2] * r.view({B, T, S, D});
+
+  y = modulate(x, ca[0], ca[1]).view({B, T * S, D});
+  r = cross_attn->cross_attention(y, ctx.context);
+  x = r.view({B, T, S, D}) * ca[2] + x;
+
+  y = modulate(x, ml[0], ml[1]);
+  return x + ml[2] * mlp(y);
+}
+
+DitTimestepEmbeddingImpl::DitTimestepEmbeddingImpl(int64_t dim) {
+  linear_1 = register_module("linear_1", nn::Linear(nn::LinearOptions(dim, dim).bias(false)));
+  linear_2 = register_module("linear_2", nn::Linear(nn::LinearOptions(dim, 3 * dim).bias(false)));
+}
+
+torch::Tensor DitTimestepEmbeddingImpl::forward(const torch::Tensor& sinusoid) {
+  return linear_2(torch::silu(linear_1(sinusoid)));
+}
+
+DitActionMlpImpl::DitActionMlpImpl(int64_t in, int64_t hidden, int64_t out) {
+  fc1 = register_module("fc1", nn::Linear(in, hidden));
+  fc2 = register_module("fc2", nn::Linear(hidden, out));
+}
+
+torch::Tensor DitActionMlpImpl::forward(const torch::Tensor& x) { return fc2(torch::gelu(fc1(x), "tanh")); }
+
+DitPatchEmbedImpl::DitPatchEmbedImpl(int64_t in_features, int64_t dim) {
+  linear = nn::Linear(nn::LinearOptions(in_features, dim).bias(false));
+  proj = register_module("proj", nn::ModuleList(nn::Identity(), linear));
+}
+
+DitRopeBuffersImpl::DitRopeBuffersImpl(const DitConfig& c) {
+  const auto axes = rope_axis_dims(c.head_dim());
+  seq = register_buffer("seq", torch::arange(c.rope_seq_len(), torch::kFloat32));
+  dim_spatial_range = register_buffer("dim_spatial_range", rope_dim_range(axes.h, c.rope_bf16_ranges));
+  dim_temporal_range = register_buffer("dim_temporal_range", rope_dim_range(axes.t, c.rope_bf16_ranges));
+}
+
+DitFinalLayerImpl::DitFinalLayerImpl(const DitConfig& c) {
+  const int64_t D = c.model_channels;
+  linear = register_module("linear", nn::Linear(nn::LinearOptions(D, c.patch_out_features()).bias(false)));
+  adaln_modulation = DitModulation(D, c.adaln_lora_dim, 2 * D);
+  register_module("adaln_modulation", adaln_modulation.seq);
+}
+
+ActionDitImpl::ActionDitImpl(const DitConfig& c) : config(c) {
+  config.validate();
+  const int64_t D = c.model_channels;
+  accum_video_sample_counter = register_buffer("accum_video_sample_counter", torch::zeros({}, torch::kInt64));
+  accum_image_sample_counter = register_buffer("accum_image_sample_counter", torch::zeros({}, torch::kInt64));
+  accum_iteration = register_buffer("accum_iteration", torch::zeros({}, torch::kInt64));
+  accum_train_in_hours = register_buffer("accum_train_in_hours", torch::zeros({}, torch::kFloat32));
+  x_embedder = register_module("x_embedder", DitPatchEmbed(c.patch_in_features(), D));
+  pos_embedder = register_module("pos_embedder", DitRopeBuffers(c));
+  t_embedding = DitTimestepEmbedding(D);
+  t_embedder = register_module("t_embedder", nn::ModuleList(nn::Identity(), t_embedding));
+  blocks = register_module("blocks", nn::ModuleList());
+  for (int64_t i = 0; i < c.num_blocks; ++i) {
+    block_list.push_back(DitBlock(c));
+    blocks->push_back(block_list.back());
+  }
+  final_layer = register_module("final_layer", DitFinalLayer(c));
+  t_embedding_norm = register_module("t_embedding_norm", DitRmsNorm(D));
+  if (c.use_crossattn_projection)
+    crossattn_proj = register_module(
+        "crossattn_proj",
+        nn::Sequential(nn::Linear(c.crossattn_emb_channels, c.crossattn_proj_dim), nn::GELU()));
+  action_embedder_B_D =
+      register_module("action_embedder_B_D", DitActionMlp(c.action_in_features(), c.action_hidden(), D));
+  action_embedder_B_3D =
+      register_module("action_embedder_B_3D", DitActionMlp(c.action_in_features(), c.action_hidden(), 3 * D));
+  if (c.zero_init_action_fc2) {
+    torch::NoGradGuard no_grad;
+    for (auto* mlp : {action_embedder_B_D.get(), action_embedder_B_3D.get()}) {
+      mlp->fc2->weight.zero_();
+      mlp->fc2->bias.zero_();
+    }
+  }
+}
+
+void ActionDitImpl::reinit_action_input_layer() {
+  action_embedder_B_D->fc1->reset_parameters();
+  action_embedder_B_3D->fc1->reset_parameters();
+}
+
+int64_t ActionDitImpl::num_parameters() const {
+  int64_t n = 0;
+  for (const auto& p : parameters()) n += p.numel();
+  return n;
+}
+
+torch::Tensor ActionDitImpl::project_context(const torch::Tensor& context) {
+  DOJO_CHECK(context.dim() == 3 && context.size(2) == config.crossattn_emb_channels,
+             "DiT: context must be [B, L, " + std::to_string(config.crossattn_emb_channels) + "]");
+  const auto ctx = context.to(x_embedder->linear->weight.scalar_type());
+  return config.use_crossattn_projection ? crossattn_proj->forward(ctx) : ctx;  // [B, L, C]
+}
+
+torch::Tensor ActionDitImpl::forward(const DitInputs& in) { return forward_impl(in, nullptr); }
+
+std::map<std::string, torch::Tensor> ActionDitImpl::forward_with_intermediates(const DitInputs& in) {
+  std::map<std::string, torch::Tensor> out;
+  out["velocity"] = forward_impl(in, &out);
+  return out;
+}
+
+torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
+                                          std::map<std::string, torch::Tensor>* capture) {
+  const auto& c = config;
+  DOJO_CHECK(in.x.defined() && in.x.dim() == 5 && in.x.size(1) == c.in_channels,
+             "DiT: x must be [B, " + std::to_string(c.in_channels) + ", T, H, W]");
+  const int64_t B = in.x.size(0), T = in.x.size(2), H = in.x.size(3), W = in.x.size(4);
+  const int64_t p = c.patch_spatial, D = c.model_channels;
+  DOJO_CHECK(H % p == 0 && W % p == 0, "DiT: latent H and W must be multiples of patch_spatial");
+  const int64_t Hp = H / p, Wp = W / p, S = Hp * Wp, L = T * S;
+  DOJO_CHECK(Hp <= c.max_img_h / p && Wp <= c.max_img_w / p,
+             "DiT: latent " + std::to_string(H) + "x" + std::to_string(W) + " exceeds max_img_h/max_img_w");
+  DOJO_CHECK(in.frame_offset >= 0 && in.frame_offset + T <= pos_embedder->seq.size(0),
+             "DiT: frames [frame_offset, frame_offset + T) exceed the RoPE length (max_frames)");
+  const auto dtype = x_embedder->linear->weight.scalar_type();
+  const auto opts = x_embedder->linear->weight.options();
+  auto keep = [&](const std::string& name, const torch::Tensor& t) {
+    if (capture != nullptr) (*capture)[name] = t;
+  };
+
+  // Input assembly: [latent, condition mask, padding mask] -> patches [B, T, Hp, Wp, C·p·p].
+  DOJO_CHECK(in.condition_mask.defined() && in.condition_mask.dim() == 5 && in.condition_mask.size(1) == 1,
+             "DiT: condition_mask must be [B, 1, T, H, W]");
+  std::vector<torch::Tensor> parts = {in.x.to(dtype), in.condition_mask.to(dtype).expand({B, 1, T, H, W})};
+  if (c.concat_padding_mask) {
+    torch::Tensor pad =
+        in.padding_mask.defined() ? in.padding_mask.to(dtype) : torch::zeros({B, 1, H, W}, opts);
+    DOJO_CHECK(pad.dim() == 4 && pad.size(1) == 1, "DiT: padding_mask must be [B, 1, H, W]");
+    if (pad.size(2) != H || pad.size(3) != W)
+      pad = torch::nn::functional::interpolate(pad, torch::nn::functional::InterpolateFuncOptions()
+                                                        .size(std::vector<int64_t>{H, W})
+                                                        .mode(torch::kNearest));
+    parts.push_back(pad.unsqueeze(2).expand({B, 1, T, H, W}));
+  }
+  const auto x_in = torch::cat(parts, 1);  // [B, C, T, H, W]
+  const int64_t C = x_in.size(1);
+  const auto patches = x_in.view({B, C, T, Hp, p, Wp, p})
+                           .permute({0, 2, 3, 5, 1, 4, 6})  // b t hp wp c m n (channel-major)
+                           .reshape({B, T, Hp, Wp, C * p * p});
+  auto x = x_embedder->linear(patches);  // [B, T, Hp, Wp, D]
+  keep("x_embedded", x);
+
+  // RoPE for absolute frames [frame_offset, frame_offset + T).
+  const auto angles =
+      rope_angles_3d(pos_embedder->dim_spatial_range, pos_embedder->dim_temporal_range, T, Hp, Wp,
+                     in.frame_offset, c.rope_h_extrapolation_ratio, c.rope_w_extrapolation_ratio,
+                     c.rope_t_extrapolation_ratio);  // [L, 1, 1, d]
+  keep("rope_emb", angles);
+  const auto angles_L_1_d = angles.flatten(1, 2);
+  const auto cos = angles_L_1_d.cos(), sin = angles_L_1_d.sin();  // [L, 1, d]
+
+  // Text context.
+  torch::Tensor context;  // [B, Lc, C]
+  if (in.projected_context.defined()) {
+    DOJO_CHECK(in.projected_context.dim() == 3 && in.projected_context.size(2) == c.crossattn_dim(),
+               "DiT: projected_context must be [B, L, " + std::to_string(c.crossattn_dim()) + "]");
+    context = in.projected_context.to(dtype);
+  } else {
+    context = project_context(in.context.defined() ? in.context
+                                                   : torch::zeros({B, 1, c.crossattn_emb_channels}, opts));
+  }
+  keep("crossattn_proj_out", context);
+
+  // Timesteps -> sinusoid [B, T_t, D] and adaLN-LoRA [B, T_t, 3D] (float32).
+  DOJO_CHECK(in.timesteps.defined(), "DiT: timesteps are required");
+  auto ts = in.timesteps.dim() == 1 ? in.timesteps.unsqueeze(1) : in.timesteps;
+  DOJO_CHECK(ts.dim() == 2 && ts.size(0) == B && (ts.size(1) == 1 || ts.size(1) == T),
+             "DiT: timesteps must be [B, 1] or [B, T]");
+  const auto t_emb_raw =
+      timestep_sinusoid(ts.to(torch::kFloat32) * c.timestep_scale, D).to(dtype);  // [B, T_t, D]
+  auto adaln_lora = t_embedding(t_emb_raw);                                       // [B, T_t, 3D]
+  keep("t_emb_raw", t_emb_raw);
+  keep("adaln_lora_raw", adaln_lora);
+
+  // Actions: 4 per latent frame; the first frame of a sequence (frame 0) has none.
+  auto t_emb = t_emb_raw;
+  const int64_t lead = in.frame_offset == 0 ? 1 : 0;
+  const int64_t action_frames = T - lead;
+  if (in.actions.defined() && action_frames > 0) {
+    const int64_t k = c.actions_per_latent_frame;
+    DOJO_CHECK(in.actions.dim() == 3 && in.actions.size(0) == B && in.actions.size(1) == k * action_frames &&
+                   in.actions.size(2) == c.action_dim,
+               "DiT: actions must be [B, " + std::to_string(k * action_frames) + ", " +
+                   std::to_string(c.action_dim) + "] for " + std::to_string(T) +
+                   " latent frames at frame_offset " + std::to_string(in.frame_offset));
+    const auto rows = in.actions.to(dtype).reshape({B, action_frames, k * c.action_dim});  // [B, T', 4A]
+    auto emb_D = action_embedder_B_D(rows);                                                // [B, T', D]
+    auto emb_3D = action_embedder_B_3D(rows);                                              // [B, T', 3D]
+    keep("action_emb_B_D", emb_D);
+    keep("action_emb_B_3D", emb_3D);
+    if (lead > 0) {
+      emb_D = torch::cat({torch::zeros({B, lead, D}, opts), emb_D}, 1);        // [B, T, D]
+      emb_3D = torch::cat({torch::zeros({B, lead, 3 * D}, opts), emb_3D}, 1);  // [B, T, 3D]
+    }
+    t_emb = t_emb + emb_D;
+    adaln_lora = adaln_lora + emb_3D;
+  }
+  t_emb = t_embedding_norm(t_emb);  // [B, T or 1, D]
+  keep("t_emb_normed", t_emb);
+
+  DitBlockContext ctx;
+  ctx.silu_emb = torch::silu(t_emb);  // every modulation MLP starts with SiLU(t_emb)
+  ctx.adaln_lora = adaln_lora;
+  ctx.cos = cos;
+  ctx.sin = sin;
+  ctx.context = context;
+  ctx.mask = in.self_attn_mask;
+  ctx.store_kv = in.store_kv;
+  if (in.kv_cache != nullptr)
+    DOJO_CHECK(static_cast<int64_t>(in.kv_cache->size()) == c.num_blocks,
+               "DiT: kv_cache must hold one entry per block (" + std::to_string(c.num_blocks) + ")");
+
+  x = x.view({B, T, S, D});
+  for (int64_t i = 0; i < c.num_blocks; ++i) {
+    ctx.cache = in.kv_cache != nullptr ? &(*in.kv_cache)[i] : nullptr;
+    x = block_list[i]->forward(x, ctx);  // [B, T, S, D]
+    if (capture != nullptr) keep("block" + std::to_string(i) + "_out", x.reshape({B, L, D}));
+  }
+
+  // Final layer: adaLN with (shift, scale) from the first 2D LoRA channels, then D -> p·p·16.
+  const auto fm = (final_layer->adaln_modulation(ctx.silu_emb) + adaln_lora.slice(-1, 0, 2 * D))
+                      .unsqueeze(2)
+                      .chunk(2, -1);
+  auto out = final_layer->linear(modulate(x, fm[0], fm[1]));  // [B, T, S, p·p·16]
+  out = out.view({B, T, Hp, Wp, out.size(-1)});
+  keep("final_layer_out", out);
+
+  // Unpatchify "B T H W (p1 p2 t C) -> B C (T t) (H p1) (W p2)" (channel-minor).
+  const int64_t Co = c.out_channels;
+  return out.view({B, T, Hp, Wp, p, p, Co})
+      .permute({0, 6, 1, 2, 4, 3, 5})  // B C T Hp p1 Wp p2
+      .reshape({B, Co, T, H, W});
+}
+
+torch::Tensor denoise_velocity(ActionDitImpl& net, const DitInputs& base, const torch::Tensor& x_t,
+                               const torch::Tensor& gt_x0, const torch::Tensor& noise,
+                               const torch::Tensor& condition_mask) {
+  const auto m = condition_mask.to(x_t.scalar_type());  // [B, 1, T, H, W], broadcast over channels
+  DitInputs in = base;
+  in.x = gt_x0 * m + x_t * (1 - m);
+  in.condition_mask = condition_mask;
+  const auto v = net.forward(in);
+  return (noise - gt_x0) * m + v * (1 - m);
+}
+
+}  // namespace dojo::models
