@@ -287,19 +287,21 @@ std::shared_ptr<LeRobotDataset> LeRobotDataset::open(const fs::path& root, const
                   "' (gr1, g1, yam, agibot, human, none)");
   }
   const fs::path modality_path = root / "meta" / "modality.json";
+  std::string modality_where = modality_path.string();
   if (fs::exists(modality_path)) {
     ds->modality_ = Modality::from_json(read_json_file(modality_path), modality_path.string());
-    for (const auto& r : ds->modality_.action)
-      if (r.original_key.empty() && ds->action_width_ > 0 && r.end > ds->action_width_)
-        throw Error(modality_path.string() + ": action." + r.key + " ends at " + std::to_string(r.end) +
-                    " beyond the " + std::to_string(ds->action_width_) + "-d action feature");
-    for (const auto& r : ds->modality_.state)
-      if (r.original_key.empty() && ds->state_width_ > 0 && r.end > ds->state_width_)
-        throw Error(modality_path.string() + ": state." + r.key + " ends at " + std::to_string(r.end) +
-                    " beyond the " + std::to_string(ds->state_width_) + "-d state feature");
   } else if (ds->layout_) {
     ds->modality_ = ds->layout_->default_modality;
+    modality_where = root.string() + ": built-in " + ds->layout_->name + " layout";
   }
+  for (const auto& r : ds->modality_.action)
+    if (r.original_key.empty() && ds->action_width_ > 0 && r.end > ds->action_width_)
+      throw Error(modality_where + ": action." + r.key + " ends at " + std::to_string(r.end) +
+                  " beyond the " + std::to_string(ds->action_width_) + "-d action feature");
+  for (const auto& r : ds->modality_.state)
+    if (r.original_key.empty() && ds->state_width_ > 0 && r.end > ds->state_width_)
+      throw Error(modality_where + ": state." + r.key + " ends at " + std::to_string(r.end) + " beyond the " +
+                  std::to_string(ds->state_width_) + "-d state feature");
 
   // Camera: explicit, else the robot's, else the first video feature.
   if (!options.camera.empty()) {

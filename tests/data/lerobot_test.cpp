@@ -31,6 +31,9 @@ struct Fixture {
   int episodes = 2;
   int64_t frames = 30;
   bool v3 = false;
+  int raw_dim = kRawDim;
+  std::string robot_type = "fourier_gr1_arms_waist";
+  bool modality = true;  // write GR-1's meta/modality.json
 };
 
 at::Tensor grey_frames(int64_t first, int64_t count) {
@@ -65,8 +68,8 @@ io::ParquetWriter data_table(const Fixture& fx, int first, int last, const io::P
   std::vector<int64_t> frame_index, episode_index, index, task_index;
   for (int e = first; e < last; ++e)
     for (int64_t k = 0; k < fx.frames; ++k) {
-      std::vector<float> a(kRawDim);
-      for (int d = 0; d < kRawDim; ++d) a[d] = raw_action(e, k, d);
+      std::vector<float> a(fx.raw_dim);
+      for (int d = 0; d < fx.raw_dim; ++d) a[d] = raw_action(e, k, d);
       std::vector<float> s = a;
       for (float& v : s) v -= 1;
       action.push_back(a);
@@ -92,7 +95,7 @@ const std::vector<std::string> kTasks = {"pick up the cup", "wave"};
 fs::path make_lerobot(const fs::path& root, const Fixture& fx = {}) {
   nlohmann::json info;
   info["codebase_version"] = fx.v3 ? "v3.0" : "v2.1";
-  info["robot_type"] = "fourier_gr1_arms_waist";
+  info["robot_type"] = fx.robot_type;
   info["fps"] = kFps;
   info["total_episodes"] = fx.episodes;
   info["total_frames"] = fx.episodes * fx.frames;
@@ -107,14 +110,14 @@ fs::path make_lerobot(const fs::path& root, const Fixture& fx = {}) {
       {"shape", {32, 32, 3}},
       {"names", {"height", "width", "channel"}},
       {"info", {{"video.height", 32}, {"video.width", 32}, {"video.codec", "h264"}, {"video.fps", kFps}}}};
-  info["features"]["observation.state"] = {{"dtype", "float32"}, {"shape", {kRawDim}}};
-  info["features"]["action"] = {{"dtype", "float32"}, {"shape", {kRawDim}}};
+  info["features"]["observation.state"] = {{"dtype", "float32"}, {"shape", {fx.raw_dim}}};
+  info["features"]["action"] = {{"dtype", "float32"}, {"shape", {fx.raw_dim}}};
   info["features"]["timestamp"] = {{"dtype", "float32"}, {"shape", {1}}};
   write_json(root / "meta" / "info.json", info);
-  write_json(root / "meta" / "modality.json", gr1_modality());
+  if (fx.modality) write_json(root / "meta" / "modality.json", gr1_modality());
   nlohmann::json stats;
-  std::vector<float> mn(kRawDim), mx(kRawDim), mean(kRawDim), sd(kRawDim, 1.f);
-  for (int d = 0; d < kRawDim; ++d) {
+  std::vector<float> mn(fx.raw_dim), mx(fx.raw_dim), mean(fx.raw_dim), sd(fx.raw_dim, 1.f);
+  for (int d = 0; d < fx.raw_dim; ++d) {
     mn[d] = raw_action(0, 0, d);
     mx[d] = raw_action(fx.episodes - 1, fx.frames - 1, d);
     mean[d] = (mn[d] + mx[d]) / 2;
@@ -223,12 +226,49 @@ TEST(LeRobot, PathTemplatesAndRobotDetection) {
   EXPECT_EQ(detect_robot("/data/x", "bimanual_yam"), "yam");
   EXPECT_EQ(detect_robot("/data/x", "AgiBot"), "agibot");
   EXPECT_EQ(detect_robot("/data/so100_pick", "so100"), "");
-  // Each released layout fills exactly its slot.
+  // Each released layout fills exactly its slot, with keys its default modality defines.
   for (const auto& layout : robot_layouts()) {
     int width = 0;
-    for (const auto& key : layout.action_order) width += key.second;
+    for (const auto& [key, w] : layout.action_order) {
+      width += w;
+      const ModalityRange* r = layout.default_modality.find_action(key);
+      ASSERT_NE(r, nullptr) << layout.name << " " << key;
+      EXPECT_EQ(r->width(), w) << layout.name << " " << key;
+    }
     EXPECT_EQ(width, layout.slot.width()) << layout.name;
   }
+}
+
+// Without meta/modality.json a known robot falls back to its released layout: a G1 dataset's
+// 43-d actions land in the G1 slot [58, 101).
+TEST(LeRobot, G1WithoutModalityUsesTheReleasedLayout) {
+  test::TempDir tmp;
+  Fixture fx;
+  fx.raw_dim = 43;
+  fx.robot_type = "unitree_g1";
+  fx.modality = false;
+  fx.frames = 14;
+  ClipConfig config;
+  config.height = config.width = 16;
+  config.strides = {1};
+  const auto source = open_dataset(make_lerobot(tmp / "robot", fx));
+  EXPECT_EQ(source->info().action_slot, "g1");
+  EXPECT_EQ(source->info().action_dim, 43);
+  ClipDataset dataset(source, config);
+  const auto clip = dataset.read(0, make_window(0, 1, 13));
+  EXPECT_EQ(clip.actions.slice(1, 0, 58).abs().sum().item<float>(), 0.f);
+  EXPECT_EQ(clip.actions.slice(1, 101).abs().sum().item<float>(), 0.f);
+  // G1 keeps its stored order: slot column 58 + d is raw dim d; min 0.01 d, max 113 + 0.01 d.
+  for (int j = 0; j < 12; ++j) {
+    const double step = 1 + j, base = 4 * (j / 4);
+    EXPECT_NEAR(clip.actions[j][58 + 42].item<float>(), 2 * (step - base) / 113.0, 1e-5) << j;
+  }
+  OpenOptions yam;
+  yam.embodiment = "yam";  // 46 dims expected, the dataset has 43
+  EXPECT_EQ(
+      test::error_message([&] { LeRobotDataset::open(tmp / "robot", yam); }),
+      (tmp / "robot").string() +
+          ": built-in yam layout: action.joint_pos_action_right ends at 46 beyond the 43-d action feature");
 }
 
 TEST(LeRobot, V21ReadsEpisodesTasksStatsAndGr1Slot) {
