@@ -544,3 +544,48 @@ TEST(DataConvert, StatsMatchLeRobotFieldNamesAndWrite) {
 }
 
 }  // namespace dojo::data
+
+namespace dojo::data {
+
+// Background workers read a LeRobot source (shared, cached parquet) and a video folder in one
+// mixture: robot clips carry GR-1 actions, human clips the latent mask.
+TEST(LeRobot, PrefetchLoaderMixesFormats) {
+  test::TempDir tmp;
+  Fixture fx;
+  fx.v3 = true;
+  fx.frames = 20;
+  make_lerobot(tmp / "gr1", fx);
+  fs::create_directories(tmp / "hv");
+  io::VideoWriterOptions vopt;
+  vopt.fps = 15;
+  io::write_video((tmp / "hv" / "clip.mp4").string(), grey_frames(0, 20), vopt);
+  ClipConfig config;
+  config.height = config.width = 16;
+  config.strides = {1};
+  auto mixture = std::make_shared<ClipMixture>();
+  mixture->add(std::make_shared<ClipDataset>(open_dataset(tmp / "gr1"), config), 1.0);
+  mixture->add(std::make_shared<ClipDataset>(open_dataset(tmp / "hv"), config), 1.0);
+  LoaderOptions options;
+  options.batch_size = 4;
+  options.workers = 2;
+  options.seed = 5;
+  PrefetchLoader loader(mixture, options);
+  int robot = 0, human = 0;
+  for (int b = 0; b < 3; ++b) {
+    const Batch batch = loader.next();
+    ASSERT_EQ(batch.video.sizes(), (std::vector<int64_t>{4, 13, 16, 16, 3}));
+    for (int i = 0; i < 4; ++i) {
+      const bool has = batch.has_actions[i].item<bool>();
+      has ? ++robot : ++human;
+      const auto rows = batch.actions[i];  // [12, 384]
+      if (has)
+        EXPECT_EQ(rows.slice(1, 29).abs().sum().item<float>(), 0.f);
+      else
+        EXPECT_EQ(rows.slice(1, 352).sum().item<float>(), 12.f * 32.f);
+    }
+  }
+  EXPECT_GT(robot, 0);
+  EXPECT_GT(human, 0);
+}
+
+}  // namespace dojo::data
