@@ -13,6 +13,7 @@ PACKAGES=(
   nlohmann-json3-dev libcli11-dev libgtest-dev
   libmujoco-dev libosmesa6-dev                       # DojoSim physics + headless rendering
   libhdf5-dev                                        # EgoDex reader
+  libsnappy-dev libzstd-dev                          # Parquet pages (LeRobot datasets)
   opencv-doc                                         # real camera clips used by the video tests
 )
 

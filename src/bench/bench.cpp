@@ -15,6 +15,8 @@
 #include "core/log.h"
 #include "core/runtime.h"
 #include "data/clip_loader.h"
+#include "io/parquet.h"
+#include "io/parquet_writer.h"
 #include "io/video.h"
 #ifdef DOJO_WITH_SIM
 #include "sim/episode.h"
@@ -89,6 +91,45 @@ std::string synthetic_clip() {
 }
 
 // `path` is resolved on first run so that --list generates nothing.
+// Parquet decoding of a LeRobot-shaped table: 100k rows of list<float>[44] `action` plus
+// `timestamp` and `episode_index`, 2000-row pages, snappy; values decoded per second.
+BenchCase parquet_case() {
+  BenchCase c;
+  c.name = "parquet_decode";
+  c.unit = "Mvalues/s";
+  c.params = "100k rows x (44-float list + 2 scalars), snappy, 2000-row pages";
+  c.run_once = [] {
+    static const std::string bytes = [] {
+      io::ParquetWriteOptions options;
+      options.codec = io::ParquetCodec::kSnappy;
+      options.rows_per_page = 2000;
+      io::ParquetWriter writer(options);
+      std::vector<std::optional<std::vector<float>>> action;
+      std::vector<float> timestamp;
+      std::vector<int64_t> episode;
+      for (int i = 0; i < 100000; ++i) {
+        std::vector<float> row(44);
+        for (int d = 0; d < 44; ++d) row[d] = 0.001f * i + d;
+        action.push_back(std::move(row));
+        timestamp.push_back(i / 20.f);
+        episode.push_back(i / 500);
+      }
+      writer.add_list_f32("action", action);
+      writer.add_f32("timestamp", timestamp);
+      writer.add_i64("episode_index", episode);
+      return writer.to_bytes();
+    }();
+    const auto start = std::chrono::steady_clock::now();
+    const auto file = io::ParquetFile::from_buffer(bytes, "bench.parquet");
+    const auto action = file.read_list_f32("action");
+    const auto timestamp = file.read_f32("timestamp");
+    const auto episode = file.read_i64("episode_index");
+    const double values = static_cast<double>(action.values.size() + timestamp.size() + episode.size());
+    return values / 1e6 / seconds_since(start);
+  };
+  return c;
+}
+
 BenchCase decode_case(const std::string& name, std::function<std::string()> path, const std::string& params) {
   BenchCase c;
   c.name = name;
@@ -182,6 +223,7 @@ std::vector<BenchCase> builtin_cases(const BenchOptions& options) {
           "video_decode_camera", [camera_clip] { return camera_clip; },
           "opencv-doc vtest.avi msmpeg4v3 768x576"));
   }
+  cases.push_back(parquet_case());
 #ifdef DOJO_WITH_SIM
   cases.push_back(sim_case("robot", 64, true));
   cases.push_back(sim_case("human", 64, true));

@@ -5,45 +5,129 @@
 #include "cli/commands.h"
 #include "core/error.h"
 #include "core/progress.h"
+#include "data/episode_source.h"
 #include "data/episode_store.h"
 
 namespace dojo::cli {
 
 void register_data(CLI::App& app) {
-  auto* data = app.add_subcommand("data", "Inspect and check datasets in the DojoSim episode format");
+  auto* data = app.add_subcommand(
+      "data", "Inspect, convert and check datasets (episode format, LeRobot, EgoDex, video folders)");
   data->require_subcommand(1);
 
-  auto* info_cmd = data->add_subcommand("info", "Summarise a dataset: episodes, frames, action dims, splits");
+  // Options every reading command shares: how to open a non-native format.
+  auto add_open_options = [](CLI::App* cmd, std::shared_ptr<data::OpenOptions> o) {
+    cmd->add_option("--embodiment", o->embodiment,
+                    "LeRobot robot: auto (from robot_type/path), gr1, g1, yam, agibot, human, none")
+        ->capture_default_str();
+    cmd->add_option("--camera", o->camera, "LeRobot video key (default: the robot's camera, else the first)");
+    cmd->add_flag("--skip-dreamdojo-names", o->skip_dreamdojo_names,
+                  "Video folders: skip names with left/right/resize/pad, as DreamDojo's raw-video loader");
+  };
+
+  auto* info_cmd = data->add_subcommand(
+      "info", "Summarise a dataset of any format (episode format, LeRobot v2.x/v3.0, EgoDex, video folder)");
   auto dir = std::make_shared<std::string>();
   auto json = std::make_shared<bool>(false);
-  info_cmd->add_option("DIR", *dir, "Dataset directory (holds info.json)")->required();
+  auto info_open = std::make_shared<data::OpenOptions>();
+  info_cmd->add_option("DIR", *dir, "Dataset directory")->required();
   info_cmd->add_flag("--json", *json, "Print JSON");
+  add_open_options(info_cmd, info_open);
   info_cmd->callback([=] {
     set_action([=] {
-      const auto store = data::EpisodeStore::open(*dir);
-      const auto& info = store.info();
-      nlohmann::json summary;
-      summary["name"] = info.name;
-      summary["embodiments"] = {data::to_string(info.embodiment)};
-      summary["episodes"] = info.episodes.size();
-      summary["frames"] = info.total_frames();
-      summary["fps"] = info.fps;
-      summary["height"] = info.height;
-      summary["width"] = info.width;
-      summary["action_dim"] = info.action_dim;
-      summary["state_dim"] = info.state_dim;
-      summary["action_slot"] = info.action_slot;
-      summary["splits"] = info.split_counts();
+      const auto source = data::open_dataset(*dir, *info_open);
+      const auto summary = source->describe();
+      const auto& info = source->info();
       if (*json) {
         std::printf("%s\n", summary.dump(2).c_str());
       } else {
-        std::printf("dataset      %s (%s)\n", info.name.c_str(), data::to_string(info.embodiment).c_str());
-        std::printf("episodes     %zu, %lld frames at %.0f fps, %dx%d\n", info.episodes.size(),
+        std::printf("dataset      %s (%s, %s)\n", info.name.c_str(), source->format().c_str(),
+                    data::to_string(info.embodiment).c_str());
+        std::printf("episodes     %zu, %lld frames at %.4g fps, %dx%d\n", info.episodes.size(),
                     static_cast<long long>(info.total_frames()), info.fps, info.height, info.width);
-        std::printf("actions      %d-d%s%s, state %d-d\n", info.action_dim,
-                    info.action_slot.empty() ? "" : " in slot ", info.action_slot.c_str(), info.state_dim);
+        std::printf("actions      %d-d%s%s, state %d-d%s\n", info.action_dim,
+                    info.action_slot.empty() ? "" : " in slot ", info.action_slot.c_str(), info.state_dim,
+                    info.action_stats
+                        ? ""
+                        : (info.embodiment == data::Embodiment::kRobot ? " (no action stats)" : ""));
+        if (!summary.at("cameras").empty())
+          std::printf("cameras      %s\n", summary.at("cameras").dump().c_str());
+        std::printf("tasks        %zu\n", summary.at("tasks").size());
         for (const auto& [split, count] : info.split_counts())
           std::printf("split        %-18s %lld episodes\n", split.c_str(), static_cast<long long>(count));
+      }
+      return 0;
+    });
+  });
+
+  auto* convert_cmd = data->add_subcommand(
+      "convert",
+      "Write any dataset in our episode format (frames decoded once, actions in slot order); resumable");
+  auto convert_src = std::make_shared<std::string>();
+  auto convert_dst = std::make_shared<std::string>();
+  auto convert_size = std::make_shared<std::string>();
+  auto convert_limit = std::make_shared<int64_t>(-1);
+  auto convert_open = std::make_shared<data::OpenOptions>();
+  convert_cmd->add_option("SRC", *convert_src, "Source dataset directory")->required();
+  convert_cmd->add_option("DST", *convert_dst, "Output directory (episode format)")->required();
+  convert_cmd->add_option("--size", *convert_size, "Centre-crop and resize frames to HxW (default: keep)");
+  convert_cmd->add_option("--limit", *convert_limit, "Convert only the first N episodes");
+  add_open_options(convert_cmd, convert_open);
+  convert_cmd->callback([=] {
+    set_action([=] {
+      data::ConvertOptions options;
+      if (!convert_size->empty()) {
+        const auto [h, w] = parse_size(*convert_size);
+        options.height = static_cast<int>(h);
+        options.width = static_cast<int>(w);
+      }
+      options.limit = *convert_limit;
+      const auto source = data::open_dataset(*convert_src, *convert_open);
+      const int64_t total = options.limit < 0
+                                ? static_cast<int64_t>(source->size())
+                                : std::min<int64_t>(options.limit, static_cast<int64_t>(source->size()));
+      Progress progress("convert", total, "episodes");
+      const auto result = data::convert_dataset(*source, *convert_dst, options, [&] { progress.advance(); });
+      progress.finish();
+      std::printf("%s: %lld episodes converted, %lld kept from an earlier run (%s)\n", convert_dst->c_str(),
+                  static_cast<long long>(result.converted), static_cast<long long>(result.kept),
+                  source->format().c_str());
+      return 0;
+    });
+  });
+
+  auto* stats_cmd = data->add_subcommand(
+      "stats", "Per-dimension min/max/mean/std of actions and states (LeRobot stats.json field names)");
+  auto stats_dir = std::make_shared<std::string>();
+  auto stats_json = std::make_shared<bool>(false);
+  auto stats_write = std::make_shared<bool>(false);
+  auto stats_open = std::make_shared<data::OpenOptions>();
+  stats_cmd->add_option("DIR", *stats_dir, "Dataset directory")->required();
+  stats_cmd->add_flag("--json", *stats_json, "Print JSON");
+  stats_cmd->add_flag(
+      "--write", *stats_write,
+      "Store them: meta/stats.json for LeRobot (other keys kept), info.json for the episode format");
+  add_open_options(stats_cmd, stats_open);
+  stats_cmd->callback([=] {
+    set_action([=] {
+      const auto source = data::open_dataset(*stats_dir, *stats_open);
+      const auto stats = data::compute_stats(*source);
+      if (*stats_write) {
+        const auto path = data::write_stats(*source, stats);
+        std::fprintf(stderr, "wrote %s\n", path.string().c_str());
+      }
+      if (*stats_json) {
+        std::printf("%s\n", stats.dump(2).c_str());
+      } else {
+        for (const auto& [name, s] : stats.items()) {
+          std::printf("%s (%zu-d, %lld rows)\n", name.c_str(), s.at("min").size(),
+                      static_cast<long long>(s.at("count")[0].get<int64_t>()));
+          for (size_t d = 0; d < s.at("min").size(); ++d)
+            std::printf("  %3zu  min %10.4g  max %10.4g  mean %10.4g  std %10.4g\n", d,
+                        s.at("min")[d].get<double>(), s.at("max")[d].get<double>(),
+                        s.at("mean")[d].get<double>(), s.at("std")[d].get<double>());
+        }
+        if (stats.empty()) std::printf("no actions or states (action-free dataset)\n");
       }
       return 0;
     });

@@ -19,15 +19,21 @@ std::mt19937_64 stream_rng(uint64_t seed, uint64_t index) {
 }
 
 ClipDataset::ClipDataset(EpisodeStore store, ClipConfig config, const std::string& split, bool skip_bad)
-    : store_(std::move(store)), config_(std::move(config)), skip_bad_(skip_bad) {
-  const auto& info = store_.info();
+    : ClipDataset(std::make_shared<EpisodeStoreSource>(std::move(store)), std::move(config), split,
+                  skip_bad) {}
+
+ClipDataset::ClipDataset(std::shared_ptr<const EpisodeSource> source, ClipConfig config,
+                         const std::string& split, bool skip_bad)
+    : source_(std::move(source)), config_(std::move(config)), skip_bad_(skip_bad) {
+  DOJO_CHECK(source_ != nullptr, "clip dataset needs a source");
+  const auto& info = source_->info();
+  const std::string root = source_->root().string();
   if (info.embodiment == Embodiment::kRobot) {
-    DOJO_CHECK(info.action_stats.has_value(),
-               store_.dir().string() + ": robot dataset has no action statistics");
-    DOJO_CHECK(!info.action_slot.empty(), store_.dir().string() + ": robot dataset names no action_slot");
+    DOJO_CHECK(info.action_stats.has_value(), root + ": robot dataset has no action statistics");
+    DOJO_CHECK(!info.action_slot.empty(), root + ": robot dataset names no action_slot");
   }
   int64_t total = 0;
-  for (size_t index : store_.split_indices(split)) {
+  for (size_t index : source_->split_indices(split)) {
     int64_t windows = 0;
     for (int stride : config_.strides)
       if (window_fits(info.episodes[index].frames, stride, config_.num_frames))
@@ -37,14 +43,22 @@ ClipDataset::ClipDataset(EpisodeStore store, ClipConfig config, const std::strin
     total += windows;
     cumulative_.push_back(total);
   }
-  DOJO_CHECK(!episodes_.empty(), store_.dir().string() + ": split '" + split +
-                                     "' has no episode long enough for a " +
+  DOJO_CHECK(!episodes_.empty(), root + ": split '" + split + "' has no episode long enough for a " +
                                      std::to_string(config_.num_frames) + "-frame clip");
 }
 
+const EpisodeStore& ClipDataset::store() const {
+  const auto* s = dynamic_cast<const EpisodeStoreSource*>(source_.get());
+  if (s == nullptr)
+    throw Error(source_->root().string() + ": a " + source_->format() + " dataset is not an episode store");
+  return s->store();
+}
+
 Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
-  const auto& info = store_.info();
-  const std::string where = store_.episode_dir(episode).string();
+  const auto& info = source_->info();
+  DOJO_CHECK(episode < info.episodes.size(),
+             source_->root().string() + ": episode index " + std::to_string(episode) + " out of range");
+  const std::string where = source_->episode_location(episode);
   Clip clip;
   clip.dataset = info.name;
   clip.episode = episode;
@@ -54,18 +68,16 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
                                                std::to_string(window.steps.back()) + " beyond " +
                                                std::to_string(frames) + " frames");
 
-  EpisodeData arrays = store_.load_arrays(episode);
+  EpisodeData arrays = source_->read_arrays(episode);
   const auto steps = torch::tensor(window.steps, torch::kLong);  // [T + 1]
   {
-    // One decoding thread per reader: the loader's parallelism comes from its workers.
-    io::VideoReaderOptions reader_options;
-    reader_options.threads = 1;
-    io::VideoReader reader(store_.video_path(episode).string(), reader_options);
-    const auto raw = reader.read_frames(window.frame_indices());              // [T, h, w, 3] u8
+    const auto raw = source_->read_frames(episode, window.frame_indices());   // [T, h, w, 3] u8
     clip.video = io::resize_center_crop(raw, config_.height, config_.width);  // [T, H, W, 3] u8
   }
   const int64_t rows = config_.num_frames - 1;
   if (info.embodiment == Embodiment::kRobot) {
+    DOJO_CHECK(arrays.actions.defined() && arrays.actions.size(0) == frames,
+               where + ": robot episode has no action row per frame");
     const auto absolute = arrays.actions.index_select(0, steps);              // [T + 1, A]
     const auto normalized = normalize_min_max(absolute, *info.action_stats);  // [T + 1, A]
     const auto relative = config_.relative_actions ? chunk_relative(normalized, config_.action_chunk)
@@ -88,7 +100,7 @@ Clip ClipDataset::sample(std::mt19937_64& rng) const {
     const size_t slot = std::upper_bound(cumulative_.begin(), cumulative_.end(), static_cast<int64_t>(pick)) -
                         cumulative_.begin();
     const size_t episode = episodes_[slot];
-    const auto window = sample_window(store_.info().episodes[episode].frames, config_, rng);
+    const auto window = sample_window(source_->info().episodes[episode].frames, config_, rng);
     {
       std::lock_guard<std::mutex> lock(bad_mutex_);
       if (bad_.count(episode)) continue;
@@ -99,10 +111,10 @@ Clip ClipDataset::sample(std::mt19937_64& rng) const {
       if (!skip_bad_) throw;
       std::lock_guard<std::mutex> lock(bad_mutex_);
       if (bad_.insert(episode).second) LOG_WARN("skipping bad episode: ", e.what());
-      if (bad_.size() == episodes_.size()) throw Error(store_.dir().string() + ": every episode is bad");
+      if (bad_.size() == episodes_.size()) throw Error(source_->root().string() + ": every episode is bad");
     }
   }
-  throw Error(store_.dir().string() + ": could not draw a usable clip after 64 attempts");
+  throw Error(source_->root().string() + ": could not draw a usable clip after 64 attempts");
 }
 
 int64_t ClipDataset::skipped_episodes() const {
@@ -117,7 +129,7 @@ void ClipMixture::add(std::shared_ptr<ClipDataset> dataset, double weight) {
     const auto& b = dataset->config();
     DOJO_CHECK(
         a.num_frames == b.num_frames && a.height == b.height && a.width == b.width,
-        dataset->store().dir().string() + ": clip geometry differs from the other datasets of the mixture");
+        dataset->source().root().string() + ": clip geometry differs from the other datasets of the mixture");
   }
   datasets_.push_back(std::move(dataset));
   weights_.push_back(weight);

@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "data/clip_sampler.h"
+#include "data/episode_source.h"
 #include "data/episode_store.h"
 
 namespace dojo::data {
@@ -40,8 +41,13 @@ class ClipDataset {
   // `skip_bad`: a broken episode is skipped and counted instead of failing the run.
   ClipDataset(EpisodeStore store, ClipConfig config, const std::string& split = "train",
               bool skip_bad = false);
+  // Any format (LeRobot, EgoDex, video folders, ...): see open_dataset().
+  ClipDataset(std::shared_ptr<const EpisodeSource> source, ClipConfig config,
+              const std::string& split = "train", bool skip_bad = false);
 
-  const EpisodeStore& store() const { return store_; }
+  const EpisodeSource& source() const { return *source_; }
+  // The episode store behind the dataset; throws dojo::Error when the source is another format.
+  const EpisodeStore& store() const;
   const ClipConfig& config() const { return config_; }
   const std::vector<size_t>& episodes() const { return episodes_; }
 
@@ -54,7 +60,7 @@ class ClipDataset {
   int64_t skipped_episodes() const;
 
  private:
-  EpisodeStore store_;
+  std::shared_ptr<const EpisodeSource> source_;
   ClipConfig config_;
   std::vector<size_t> episodes_;     // usable episode indices of the split
   std::vector<int64_t> cumulative_;  // cumulative window counts, for length-weighted sampling

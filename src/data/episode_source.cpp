@@ -1,0 +1,199 @@
+#include "data/episode_source.h"
+
+#include <torch/torch.h>
+
+#include <set>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "core/json_file.h"
+#include "core/safetensors.h"
+#include "data/egodex.h"
+#include "data/lerobot.h"
+#include "data/video_folder.h"
+#include "io/video.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::data {
+
+std::string dataset_name(const fs::path& root) {
+  fs::path p = fs::absolute(root).lexically_normal();
+  if (p.filename().empty()) p = p.parent_path();
+  return p.filename().string();
+}
+
+std::vector<size_t> EpisodeSource::split_indices(const std::string& split) const {
+  std::vector<size_t> out;
+  const auto& episodes = info().episodes;
+  for (size_t i = 0; i < episodes.size(); ++i)
+    if (split.empty() || split == "all" || episodes[i].split == split) out.push_back(i);
+  return out;
+}
+
+nlohmann::json EpisodeSource::describe() const {
+  const auto& i = info();
+  nlohmann::json j;
+  j["format"] = format();
+  j["path"] = root().string();
+  j["name"] = i.name;
+  j["embodiments"] = {to_string(i.embodiment)};
+  j["episodes"] = i.episodes.size();
+  j["frames"] = i.total_frames();
+  j["fps"] = i.fps;
+  j["height"] = i.height;
+  j["width"] = i.width;
+  j["action_dim"] = i.action_dim;
+  j["state_dim"] = i.state_dim;
+  j["action_slot"] = i.action_slot;
+  j["has_action_stats"] = i.action_stats.has_value();
+  j["splits"] = i.split_counts();
+  std::set<std::string> tasks;
+  for (const auto& e : i.episodes)
+    if (!e.task.empty()) tasks.insert(e.task);
+  j["tasks"] = std::vector<std::string>(tasks.begin(), tasks.end());
+  j["cameras"] = nlohmann::json::array();
+  return j;
+}
+
+at::Tensor EpisodeStoreSource::read_frames(size_t index, const std::vector<int64_t>& frames) const {
+  io::VideoReaderOptions options;
+  options.threads = 1;  // the loader's parallelism comes from its workers
+  io::VideoReader reader(store_.video_path(index).string(), options);
+  return reader.read_frames(frames);  // [N, H, W, 3] u8
+}
+
+std::shared_ptr<const EpisodeSource> open_dataset(const fs::path& path, const OpenOptions& options) {
+  std::error_code ec;
+  if (!fs::exists(path, ec)) throw Error(path.string() + ": no such dataset directory");
+  if (!fs::is_directory(path, ec)) throw Error(path.string() + ": a dataset is a directory");
+  if (fs::exists(path / "info.json")) return std::make_shared<EpisodeStoreSource>(EpisodeStore::open(path));
+  if (fs::exists(path / "meta" / "info.json")) return LeRobotDataset::open(path, options);
+  if (looks_like_egodex(path)) return EgoDexDataset::open(path);
+  if (looks_like_video_folder(path)) {
+    VideoFolderOptions vf;
+    vf.skip_dreamdojo_names = options.skip_dreamdojo_names;
+    return VideoFolderDataset::open(path, vf);
+  }
+  throw Error(path.string() +
+              ": cannot tell the dataset format (no info.json, no meta/info.json, no *.hdf5 beside *.mp4, no "
+              "video files)");
+}
+
+nlohmann::json compute_stats(const EpisodeSource& source) {
+  StatsAccumulator actions, states;
+  const auto* lerobot = dynamic_cast<const LeRobotDataset*>(&source);
+  for (size_t i = 0; i < source.size(); ++i) {
+    // LeRobot stats describe the stored columns, not the slot-ordered slice.
+    const EpisodeData d = lerobot ? lerobot->read_raw(i) : source.read_arrays(i);
+    if (d.actions.defined() && d.actions.size(0) > 0) actions.add(d.actions);
+    if (d.states.defined() && d.states.size(0) > 0) states.add(d.states);
+  }
+  nlohmann::json j = nlohmann::json::object();
+  auto put = [&](const char* name, const StatsAccumulator& acc) {
+    if (acc.count() == 0) return;
+    nlohmann::json s = acc.finish().to_json();
+    s["count"] = {acc.count()};
+    j[name] = s;
+  };
+  put("action", actions);
+  put("observation.state", states);
+  return j;
+}
+
+fs::path write_stats(const EpisodeSource& source, const nlohmann::json& stats) {
+  if (source.format().rfind("lerobot", 0) == 0) {
+    const fs::path path = source.root() / "meta" / "stats.json";
+    nlohmann::json j = fs::exists(path) ? read_json_file(path) : nlohmann::json::object();
+    for (const auto& [key, value] : stats.items()) j[key] = value;
+    write_file_atomic(path, j.dump(2) + "\n");
+    return path;
+  }
+  if (const auto* store = dynamic_cast<const EpisodeStoreSource*>(&source)) {
+    DatasetInfo info = store->info();
+    if (stats.contains("action"))
+      info.action_stats = ArrayStats::from_json(stats.at("action"), "stats.action");
+    if (stats.contains("observation.state"))
+      info.state_stats = ArrayStats::from_json(stats.at("observation.state"), "stats.observation.state");
+    write_dataset_info(source.root(), info);
+    return source.root() / "info.json";
+  }
+  throw Error(source.root().string() + ": --write works for LeRobot and the episode format, not " +
+              source.format());
+}
+
+ConvertResult convert_dataset(const EpisodeSource& source, const fs::path& dst, const ConvertOptions& options,
+                              const std::function<void()>& on_episode) {
+  const DatasetInfo& src = source.info();
+  DOJO_CHECK(fs::absolute(dst) != fs::absolute(source.root()),
+             dst.string() + ": cannot convert a dataset onto itself");
+  nlohmann::json job = {{"source", fs::absolute(source.root()).string()},
+                        {"format", source.format()},
+                        {"height", options.height},
+                        {"width", options.width},
+                        {"limit", options.limit}};
+  const fs::path job_path = dst / "convert.json";
+  if (fs::exists(job_path)) {
+    if (read_json_file(job_path) != job)
+      throw Error(job_path.string() +
+                  ": this directory holds a conversion with other options; use another DST");
+  } else {
+    if (fs::exists(dst) && !fs::is_empty(dst))
+      throw Error(dst.string() + ": exists and is not a conversion output");
+    fs::create_directories(dst);
+    write_file_atomic(job_path, job.dump(2) + "\n");
+  }
+  fs::create_directories(dst / "episodes");
+
+  DatasetInfo info = src;
+  info.episodes.clear();
+  info.generator = {{"converted_from", job["source"]}, {"source_format", source.format()}};
+  ConvertResult result;
+  StatsAccumulator action_acc, state_acc;
+  const size_t count =
+      options.limit < 0 ? source.size() : std::min(source.size(), static_cast<size_t>(options.limit));
+  for (size_t i = 0; i < count; ++i) {
+    char id[32];
+    std::snprintf(id, sizeof id, "%06zu", i);
+    const fs::path dir = dst / "episodes" / id;
+    EpisodeEntry entry = src.episodes[i];
+    entry.id = id;
+    EpisodeData arrays;
+    if (fs::exists(dir / "meta.json")) {
+      ++result.kept;
+      if (!src.action_stats || !src.state_stats) {
+        // Statistics must cover every episode, including those a previous run wrote.
+        const auto file = SafetensorsFile::open(dir / "data.safetensors");
+        if (file.contains("action")) arrays.actions = file.tensor("action", true).to(torch::kFloat32);
+        if (file.contains("state")) arrays.states = file.tensor("state", true).to(torch::kFloat32);
+      }
+    } else {
+      std::vector<int64_t> all(static_cast<size_t>(entry.frames));
+      for (int64_t f = 0; f < entry.frames; ++f) all[static_cast<size_t>(f)] = f;
+      EpisodeData episode = source.read_arrays(i);
+      episode.frames = source.read_frames(i, all);  // [T, H, W, 3] u8
+      if (options.height > 0 && options.width > 0)
+        episode.frames =
+            io::resize_center_crop(episode.frames, options.height, options.width);  // [T, h, w, 3]
+      episode.meta["task"] = entry.task;
+      episode.meta["source"] = source.episode_location(i);
+      write_episode(dir, episode, src.fps);
+      arrays = episode;
+      ++result.converted;
+    }
+    if (arrays.actions.defined()) action_acc.add(arrays.actions);
+    if (arrays.states.defined()) state_acc.add(arrays.states);
+    info.episodes.push_back(entry);
+    if (on_episode) on_episode();
+  }
+  if (options.height > 0 && options.width > 0) info.height = options.height, info.width = options.width;
+  if (!info.action_stats && action_acc.count() > 0) info.action_stats = action_acc.finish();
+  if (!info.state_stats && state_acc.count() > 0) info.state_stats = state_acc.finish();
+  if (info.state_stats && info.state_dim == 0) info.state_dim = info.state_stats->dim();
+  if (info.embodiment == Embodiment::kHuman)
+    info.action_dim = info.state_dim = 0, info.action_stats.reset(), info.state_stats.reset();
+  write_dataset_info(dst, info);
+  return result;
+}
+
+}  // namespace dojo::data
