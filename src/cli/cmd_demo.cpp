@@ -8,6 +8,7 @@
 #include <torch/torch.h>
 #include <CLI/CLI.hpp>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -50,8 +51,12 @@ struct DemoOptions {
 };
 
 // Shares of the training budget; the rest (generation, caching, evaluation) is not budgeted.
-constexpr int64_t kMaxClips = 384;  // per dataset in the latent cache
-constexpr double kLamShare = 0.12, kTokenizerShare = 0.30, kPretrainShare = 0.24, kPosttrainShare = 0.24;
+constexpr int64_t kMaxClips = 192;  // per dataset in the latent cache
+// Training stages share the time left after generation, minus a reserve for evaluation, in
+// these proportions; each stage's budget is recomputed from the clock when it starts, so a slow
+// stage (or a busy machine) shortens the later ones instead of overrunning --minutes.
+constexpr double kLamWeight = 0.12, kTokenizerWeight = 0.30, kPretrainWeight = 0.29, kPosttrainWeight = 0.29;
+constexpr double kEvalReserve = 0.10;  // of --minutes
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -68,6 +73,11 @@ int run_demo(const DemoOptions& o) {
   fs::create_directories(out);
   const auto start = std::chrono::steady_clock::now();
   const double budget_s = o.minutes * 60.0;
+  // Seconds for a stage with weight `w`, given the weights of the stages still to run (w included).
+  auto stage_budget = [&](double w, double weights_left) {
+    const double left = budget_s * (1 - kEvalReserve) - seconds_since(start);
+    return std::max(1.0, left * w / weights_left);
+  };
   nlohmann::json report;
   std::vector<std::pair<std::string, double>> stage_seconds;
 
@@ -99,7 +109,9 @@ int run_demo(const DemoOptions& o) {
   stage_seconds.emplace_back("generate DojoSim data", seconds_since(t0));
 
   // 2. Latent action model on human and robot video (no actions used).
-  LOG_INFO("[2/7] LAM: latent actions from video alone (", fixed(budget_s * kLamShare / 60, 1), " min)");
+  const double weights = kLamWeight + kTokenizerWeight + kPretrainWeight + kPosttrainWeight;
+  const double lam_s = stage_budget(kLamWeight, weights);
+  LOG_INFO("[2/7] LAM: latent actions from video alone (", fixed(lam_s / 60, 1), " min)");
   t0 = std::chrono::steady_clock::now();
   train::LamTrainJob lam;
   lam.datasets = {{out / "human", 1.0}, {out / "robot", 1.0}};
@@ -110,13 +122,14 @@ int run_demo(const DemoOptions& o) {
   lam.steps = 1000000;
   lam.save_every = 100;
   lam.seed = o.seed;
-  lam.time_budget_s = budget_s * kLamShare;
+  lam.time_budget_s = lam_s;
   const auto lam_stats = train::run_lam_training(lam);
   report["lam"] = {{"mse", lam_stats.mse}, {"psnr", lam_stats.psnr}};
   stage_seconds.emplace_back("train LAM", seconds_since(t0));
 
   // 3. Tokenizer.
-  LOG_INFO("[3/7] tokenizer: Wan2.1-architecture VAE (", fixed(budget_s * kTokenizerShare / 60, 1), " min)");
+  const double tok_s = stage_budget(kTokenizerWeight, weights - kLamWeight);
+  LOG_INFO("[3/7] tokenizer: Wan2.1-architecture VAE (", fixed(tok_s / 60, 1), " min)");
   t0 = std::chrono::steady_clock::now();
   {
     models::WanVaeConfig cfg;
@@ -141,7 +154,7 @@ int run_demo(const DemoOptions& o) {
     t.checkpoint_dir = out / "tokenizer" / "checkpoint";
     t.loss_curve = out / "tokenizer" / "loss.csv";
     t.stats_batches = 8;
-    t.time_budget_s = budget_s * kTokenizerShare;
+    t.time_budget_s = tok_s;
     fs::create_directories(out / "tokenizer");
     torch::manual_seed(o.seed);
     const auto r = train::train_tokenizer(vae, next, t);
@@ -179,22 +192,24 @@ int run_demo(const DemoOptions& o) {
     job.seed = o.seed;
     return train::run_wm_training(job);
   };
-  LOG_INFO("[4/7] world model pretraining on human video with latent actions (",
-           fixed(budget_s * kPretrainShare / 60, 1), " min)");
+  const double pre_s = stage_budget(kPretrainWeight, kPretrainWeight + kPosttrainWeight);
+  LOG_INFO("[4/7] world model pretraining on human video with latent actions (", fixed(pre_s / 60, 1),
+           " min, latent caching included)");
   t0 = std::chrono::steady_clock::now();
   const auto pre = wm_job(train::WmStage::kPretrain, out / "human", "all", train::ActionMode::kLatent,
-                          out / "wm_pretrain", budget_s * kPretrainShare);
+                          out / "wm_pretrain", pre_s);
   report["wm_pretrain"] = {{"steps", pre.steps},
                            {"loss_first", pre.first_loss},
                            {"loss_last", pre.last_loss},
                            {"clips_per_second", pre.clips_per_second}};
   stage_seconds.emplace_back("world model pretrain", seconds_since(t0));
 
-  LOG_INFO("[5/7] world model post-training on robot actions (", fixed(budget_s * kPosttrainShare / 60, 1),
-           " min)");
+  const double post_s = stage_budget(kPosttrainWeight, kPosttrainWeight);
+  LOG_INFO("[5/7] world model post-training on robot actions (", fixed(post_s / 60, 1),
+           " min, latent caching included)");
   t0 = std::chrono::steady_clock::now();
   const auto post = wm_job(train::WmStage::kPosttrain, out / "robot", "train", train::ActionMode::kDataset,
-                           out / "wm_posttrain", budget_s * kPosttrainShare);
+                           out / "wm_posttrain", post_s);
   report["wm_posttrain"] = {{"steps", post.steps},
                             {"loss_first", post.first_loss},
                             {"loss_last", post.last_loss},

@@ -7,6 +7,7 @@
 #include "core/log.h"
 #include "core/progress.h"
 #include "data/clip_loader.h"
+#include "data/episode_source.h"
 #include "data/episode_store.h"
 #include "eval/lpips.h"
 #include "eval/metrics.h"
@@ -45,16 +46,17 @@ nlohmann::json WmEvalResult::to_json() const {
 WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& dataset, const std::string& split,
                                   const WmEvalOptions& o) {
   DOJO_CHECK(o.chunks > 0, "eval: --chunks must be positive");
-  const auto store = data::EpisodeStore::open(dataset);
+  const auto source = data::open_dataset(dataset);
+  const auto& info = source->info();
   data::ClipConfig clip;
   clip.num_frames = 1 + 12 * o.chunks;
   clip.strides = {1};
-  clip.height = store.info().height;
-  clip.width = store.info().width;
-  data::ClipDataset ds(store, clip, split);
+  clip.height = info.height;
+  clip.width = info.width;
+  data::ClipDataset ds(source, clip, split);
   std::vector<size_t> episodes;
   for (size_t ep : ds.episodes())
-    if (data::window_fits(store.info().episodes[ep].frames, 1, clip.num_frames)) episodes.push_back(ep);
+    if (data::window_fits(info.episodes[ep].frames, 1, clip.num_frames)) episodes.push_back(ep);
   DOJO_CHECK(!episodes.empty(), dataset.string() + ": no episode of split '" + split + "' is long enough for " +
                                     std::to_string(clip.num_frames) + " frames");
   if (o.max_episodes > 0 && static_cast<int>(episodes.size()) > o.max_episodes) episodes.resize(o.max_episodes);
@@ -83,7 +85,7 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
     for (size_t i = b; i < e; ++i) {
       const int64_t k = static_cast<int64_t>(i - b);
       VideoScore s;
-      s.episode = store.info().episodes[episodes[i]].id;
+      s.episode = info.episodes[episodes[i]].id;
       const auto m = video_metrics(pred[k], gt[k], o.lpips);
       const auto copy = first[k].unsqueeze(0).expand_as(gt[k]).contiguous();
       const auto mc = video_metrics(copy, gt[k], o.lpips);
@@ -96,7 +98,7 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
       if (!o.video_dir.empty() && static_cast<int>(r.videos.size()) < o.videos) {
         s.video = (o.video_dir / (split + "_" + s.episode + ".mp4")).string();
         io::write_comparison_video(s.video, {gt[k], pred[k], copy}, {"ground truth", "world model", "copy frame 0"},
-                                   store.info().fps);
+                                   info.fps);
       }
       r.videos.push_back(s);
     }

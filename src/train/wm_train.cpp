@@ -17,6 +17,7 @@
 #include "core/state_dict.h"
 #include "data/actions.h"
 #include "data/clip_loader.h"
+#include "data/episode_source.h"
 #include "data/episode_store.h"
 #include "train/lam_train.h"
 #include "train/tokenizer_trainer.h"
@@ -121,19 +122,24 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
                spec.lam.string() + ": LAM latent size " + std::to_string((*lam)->config.latent_dim) +
                    " does not fill the " + std::to_string(data::slots::kLatent.width()) + "-wide latent slot");
   }
-  const auto store = data::EpisodeStore::open(spec.dataset);
+  // Any format the readers know (our episodes, LeRobot, EgoDex, video folders).
+  const auto source = data::open_dataset(spec.dataset);
+  const auto& info = source->info();
   data::ClipConfig clip;
   clip.strides = spec.strides;
   clip.relative_actions = spec.relative_actions;
-  clip.height = spec.size > 0 ? spec.size : store.info().height;
-  clip.width = spec.size > 0 ? spec.size : store.info().width;
-  data::ClipDataset dataset(store, clip, spec.split);
+  clip.height = spec.size > 0 ? spec.size : info.height;
+  clip.width = spec.size > 0 ? spec.size : info.width;
+  DOJO_CHECK(clip.height > 0 && clip.width > 0 && clip.height % 8 == 0 && clip.width % 8 == 0,
+             spec.dataset.string() + ": frame size " + std::to_string(clip.height) + "x" +
+                 std::to_string(clip.width) + " is not a multiple of 8; give a --size");
+  data::ClipDataset dataset(source, clip, spec.split);
   DOJO_CHECK(!dataset.episodes().empty(), spec.dataset.string() + ": no episodes in split '" + spec.split + "'");
 
   std::vector<std::pair<size_t, data::ClipWindow>> windows;
   for (size_t ep : dataset.episodes())
     for (int stride : spec.strides)
-      for (auto& w : data::all_windows(store.info().episodes[ep].frames, stride, clip.num_frames, spec.hop))
+      for (auto& w : data::all_windows(info.episodes[ep].frames, stride, clip.num_frames, spec.hop))
         windows.emplace_back(ep, std::move(w));
   if (spec.max_clips > 0 && static_cast<int64_t>(windows.size()) > spec.max_clips) {
     // Evenly spaced, so every episode and stride stays represented.
@@ -165,7 +171,7 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
       case ActionMode::kNone: a.zero_(); break;
       case ActionMode::kGroundTruth: {
         DOJO_CHECK(c.hidden_motion.defined(),
-                   spec.dataset.string() + ": episode " + store.info().episodes[ep].id +
+                   spec.dataset.string() + ": episode " + info.episodes[ep].id +
                        " has no hidden_motion for ground-truth actions");
         const auto m = chunk_relative_motion(c.hidden_motion, clip.action_chunk);
         a.zero_();

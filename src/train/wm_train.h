@@ -124,7 +124,7 @@ struct WmTrainJob {
   WmTrainOptions options;
   int batch_size = 8;
   int64_t steps = 2000;        // total steps (a resumed job continues up to this)
-  double time_budget_s = 0;    // stop early (and checkpoint) after this many seconds; 0: none
+  double time_budget_s = 0;    // wall-clock budget of the job, latent caching included; 0: none
   int64_t save_every = 100;
   uint64_t seed = 0;
 };
