@@ -23,13 +23,21 @@ namespace dojo::cli {
 
 namespace {
 
+// Defaults follow train::recommended_tokenizer_options() (measured in docs/benchmarks.md).
 struct TrainArgs {
   std::vector<std::string> data;
-  std::string out, split = "train";
-  int64_t steps = 2000, save_every = 200;
+  std::string out, split = "train", loss = "mse";
+  int64_t steps = 2000, save_every = 200, warmup = 0;
   int batch = 4, frames = 5, size = 64, dim = 16, workers = 2;
-  double lr = 1e-3, kl = 1e-6;
+  double lr = 0, kl = 0;
+  bool cosine = true, sample = false;
   uint64_t seed = 0;
+
+  TrainArgs() {
+    const auto r = train::recommended_tokenizer_options();
+    lr = r.lr, kl = r.kl_weight, warmup = r.warmup_steps, cosine = r.cosine;
+    sample = r.sample_posterior, loss = r.l1 ? "l1" : "mse";
+  }
 };
 
 struct EvalArgs {
@@ -42,6 +50,7 @@ struct EvalArgs {
 int run_train(const TrainArgs& a) {
   DOJO_CHECK((a.frames - 1) % 4 == 0, "--frames must be 1 + 4k (got " + std::to_string(a.frames) + ")");
   DOJO_CHECK(a.size % 8 == 0, "--size must be a multiple of 8");
+  DOJO_CHECK(a.loss == "mse" || a.loss == "l1", "--loss must be mse or l1 (got " + a.loss + ")");
   models::WanVaeConfig cfg;
   cfg.dim = a.dim;
   models::WanVae vae(cfg);
@@ -59,10 +68,14 @@ int run_train(const TrainArgs& a) {
           mixture, data::LoaderOptions{a.batch, a.workers, 4, a.seed}, step);
     return train::video_to_model(loader->next().video);
   };
-  train::TokenizerTrainOptions o;
+  auto o = train::recommended_tokenizer_options();
   o.steps = a.steps;
   o.lr = a.lr;
   o.kl_weight = a.kl;
+  o.warmup_steps = a.warmup;
+  o.cosine = a.cosine;
+  o.sample_posterior = a.sample;
+  o.l1 = a.loss == "l1";
   o.save_every = a.save_every;
   o.checkpoint_dir = a.out;
   o.stats_batches = 8;
@@ -216,6 +229,14 @@ void register_tokenizer(CLI::App& app) {
   train_cmd->add_option("--dim", ta->dim, "Base width (released: 96)")->capture_default_str();
   train_cmd->add_option("--lr", ta->lr, "AdamW learning rate")->capture_default_str();
   train_cmd->add_option("--kl", ta->kl, "KL weight")->capture_default_str();
+  train_cmd->add_option("--warmup", ta->warmup, "Linear lr warm-up steps")->capture_default_str();
+  train_cmd->add_flag("--cosine,!--no-cosine", ta->cosine, "Cosine lr decay to 5% after warm-up")
+      ->capture_default_str();
+  train_cmd->add_option("--loss", ta->loss, "Reconstruction loss: mse | l1")->capture_default_str();
+  train_cmd
+      ->add_flag("--sample-posterior,!--decode-mean", ta->sample,
+                 "Train on a posterior sample (default: decode the posterior mean)")
+      ->capture_default_str();
   train_cmd->add_option("--save-every", ta->save_every, "Checkpoint interval in steps")
       ->capture_default_str();
   train_cmd->add_option("--workers", ta->workers, "Loader threads")->capture_default_str();

@@ -1,5 +1,6 @@
 #include "train/tokenizer_trainer.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -15,15 +16,39 @@ namespace dojo::train {
 
 using models::WanVae;
 
-TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, double kl_weight,
-                             bool sample_posterior) {
+TokenizerTrainOptions recommended_tokenizer_options() {
+  TokenizerTrainOptions o;
+  o.lr = 2e-3;
+  o.warmup_steps = 50;
+  o.cosine = true;
+  o.sample_posterior = false;
+  o.l1 = true;
+  o.kl_weight = 1e-6;
+  return o;
+}
+
+double tokenizer_lr(const TokenizerTrainOptions& o, int64_t step) {
+  if (o.warmup_steps > 0 && step < o.warmup_steps)
+    return o.lr * static_cast<double>(step + 1) / static_cast<double>(o.warmup_steps);
+  if (!o.cosine) return o.lr;
+  const int64_t decay_steps = std::max<int64_t>(1, o.steps - o.warmup_steps);
+  const double progress =
+      std::min(1.0, static_cast<double>(step - o.warmup_steps) / static_cast<double>(decay_steps));
+  const double floor = o.min_lr_fraction * o.lr;
+  return floor + (o.lr - floor) * 0.5 * (1.0 + std::cos(std::acos(-1.0) * progress));
+}
+
+TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, double kl_weight, bool sample_posterior,
+                             bool l1) {
   auto enc = vae->encode(video, /*chunked=*/false);     // mu, log_var: [B, z, T', h, w]
   const auto log_var = enc.log_var.clamp(-30.0, 20.0);  // the release's clamp
   auto z = enc.mu;
   if (sample_posterior) z = z + torch::exp(0.5 * log_var) * torch::randn_like(z);
   const auto recon = vae->decode(z, /*chunked=*/false);  // [B, 3, T, H, W]
   TokenizerLoss loss;
-  loss.recon = torch::mse_loss(recon, video);
+  loss.mse = torch::mse_loss(recon, video);
+  // L1 penalises small errors more than MSE does, which sharpens edges late in training.
+  loss.recon = l1 ? torch::l1_loss(recon, video) : loss.mse;
   // KL(N(mu, sigma) || N(0, 1)), mean over latent elements.
   loss.kl = 0.5 * (enc.mu.pow(2) + log_var.exp() - 1.0 - log_var).mean();
   loss.total = loss.recon + kl_weight * loss.kl;
@@ -106,17 +131,19 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
   if (!o.loss_curve.empty()) curve.emplace(o.loss_curve, "step,recon,kl,seconds", start);
   for (int64_t step = start; step < o.steps; ++step) {
     const auto video = next_batch(step);
-    auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior);
+    const double lr = tokenizer_lr(o, step);
+    for (auto& group : opt.param_groups()) static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
+    auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior, o.l1);
     opt.zero_grad();
     loss.total.backward();
     if (o.grad_clip > 0) torch::nn::utils::clip_grad_norm_(params, o.grad_clip);
     opt.step();
-    const double recon = loss.recon.item<double>();
+    const double recon = loss.mse.item<double>();
     if (first) result.first_loss = recon, first = false;
     result.last_loss = recon;
     if (progress) {
       char note[96];
-      std::snprintf(note, sizeof note, "recon %.5f kl %.3f", recon, loss.kl.item<double>());
+      std::snprintf(note, sizeof note, "mse %.5f kl %.3f lr %.2g", recon, loss.kl.item<double>(), lr);
       progress->advance(1, note);
     }
     if (curve) {

@@ -1,8 +1,9 @@
 // Training and evaluation of small Wan2.1-architecture VAEs (the video tokenizer).
-// Loss: mean squared reconstruction error of the decoded posterior sample plus a small KL term
-// (the released VAE is a KL-regularised autoencoder; the tiny weight keeps latents near a
+// Loss: reconstruction error (MSE or L1) of the decoded posterior sample (or mean) plus a small KL
+// term (the released VAE is a KL-regularised autoencoder; the tiny weight keeps latents near a
 // Gaussian without blurring reconstructions). Uses the whole-clip causal path, which equals
-// the chunked inference path (tested in wan_vae_test.cpp).
+// the chunked inference path (tested in wan_vae_test.cpp). Learning rate: linear warm-up, then
+// optional cosine decay.
 #pragma once
 
 #include <torch/torch.h>
@@ -25,6 +26,10 @@ struct TokenizerTrainOptions {
   double kl_weight = 1e-6;
   double grad_clip = 1.0;        // max global grad norm (0: off)
   bool sample_posterior = true;  // decode mu + sigma * eps (false: decode mu)
+  bool l1 = false;               // L1 reconstruction loss instead of MSE
+  int64_t warmup_steps = 0;      // linear lr warm-up from lr / warmup_steps
+  bool cosine = false;           // cosine decay from lr to min_lr_fraction * lr after warm-up
+  double min_lr_fraction = 0.05;
   int64_t log_every = 50;
   int64_t save_every = 0;                // 0: only at the end (when checkpoint_dir is set)
   std::filesystem::path checkpoint_dir;  // empty: no checkpoints
@@ -37,17 +42,25 @@ struct TokenizerTrainOptions {
   std::filesystem::path loss_curve;   // CSV "step,recon,kl,seconds" when set
 };
 
+// The recipe measured best for small DojoSim tokenizers on CPU (docs/benchmarks.md, "Small
+// DojoSim tokenizer"): what `dojo tokenizer train` uses by default. Steps are left to the caller.
+TokenizerTrainOptions recommended_tokenizer_options();
+
+// Learning rate of `step` (0-based) under the options' warm-up / cosine schedule.
+double tokenizer_lr(const TokenizerTrainOptions& options, int64_t step);
+
 struct TokenizerLoss {
-  torch::Tensor total, recon, kl;  // scalars (total has grad)
+  torch::Tensor total, recon, kl;  // scalars (total has grad); recon: the optimised term
+  torch::Tensor mse;               // MSE of the reconstruction (for logs, whatever the loss)
 };
 
 // video: [B, 3, T, H, W] in [-1, 1], T = 1 + 4k.
 TokenizerLoss tokenizer_loss(models::WanVae& vae, const torch::Tensor& video, double kl_weight,
-                             bool sample_posterior);
+                             bool sample_posterior, bool l1 = false);
 
 struct TokenizerTrainResult {
   int64_t steps_done = 0;                // total optimisation steps (including resumed ones)
-  double first_loss = 0, last_loss = 0;  // recon loss of the first / last logged step of this run
+  double first_loss = 0, last_loss = 0;  // reconstruction MSE of the first / last step of this run
   double seconds = 0;
 };
 
