@@ -44,6 +44,19 @@ int run_in_child_killed_at(int kill_at, const std::function<void()>& work);
 // Runs the built `dojo` executable with the given argument string.
 CommandResult run_dojo(const std::string& args);
 
+// Holds libtorch at one intra-op thread for a test's scope: on a shared 2-core machine a second
+// OpenMP thread competing with other processes makes small ops many times slower, not faster.
+class OneThread {
+ public:
+  OneThread() : saved_(torch::get_num_threads()) { torch::set_num_threads(1); }
+  ~OneThread() { torch::set_num_threads(saved_); }
+  OneThread(const OneThread&) = delete;
+  OneThread& operator=(const OneThread&) = delete;
+
+ private:
+  int saved_;
+};
+
 }  // namespace dojo::test
 
 // GPU tests are named *_CUDA and start with this line, so they skip cleanly on CPU machines.

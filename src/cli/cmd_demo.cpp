@@ -50,7 +50,6 @@ struct DemoOptions {
   int workers = 0;
 };
 
-// Shares of the training budget; the rest (generation, caching, evaluation) is not budgeted.
 constexpr int64_t kMaxClips = 192;  // per dataset in the latent cache
 // Training stages share the time left after generation, minus a reserve for evaluation, in
 // these proportions; each stage's budget is recomputed from the clock when it starts, so a slow
@@ -140,16 +139,20 @@ int run_demo(const DemoOptions& o) {
     clip.num_frames = 5;
     clip.strides = {1, 2};
     clip.height = clip.width = 64;
-    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "human"), clip, "all"), 1.0);
-    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "robot"), clip, "train"), 1.0);
+    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "human"), clip, "all"),
+                 1.0);
+    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "robot"), clip, "train"),
+                 1.0);
     std::unique_ptr<data::PrefetchLoader> loader;
     auto next = [&](int64_t step) {
-      if (!loader) loader = std::make_unique<data::PrefetchLoader>(mixture, data::LoaderOptions{4, 1, 4, o.seed}, step);
+      if (!loader)
+        loader = std::make_unique<data::PrefetchLoader>(mixture, data::LoaderOptions{4, 1, 4, o.seed}, step);
       return train::video_to_model(loader->next().video);
     };
-    train::TokenizerTrainOptions t;
-    t.steps = 1000000;
-    t.lr = 2e-3;
+    // The measured recipe (docs/tokenizer.md): L1, lr 2e-3 with warm-up and cosine decay,
+    // posterior mean, KL 1e-6.
+    train::TokenizerTrainOptions t = train::recommended_tokenizer_options();
+    t.steps = std::max<int64_t>(200, static_cast<int64_t>(tok_s / 1.0));  // cosine horizon ~ the budget
     t.save_every = 100;
     t.checkpoint_dir = out / "tokenizer" / "checkpoint";
     t.loss_curve = out / "tokenizer" / "loss.csv";
@@ -158,14 +161,15 @@ int run_demo(const DemoOptions& o) {
     fs::create_directories(out / "tokenizer");
     torch::manual_seed(o.seed);
     const auto r = train::train_tokenizer(vae, next, t);
-    report["tokenizer"] = {{"steps", r.steps_done}, {"recon_first", r.first_loss}, {"recon_last", r.last_loss}};
+    report["tokenizer"] = {
+        {"steps", r.steps_done}, {"recon_first", r.first_loss}, {"recon_last", r.last_loss}};
   }
   stage_seconds.emplace_back("train tokenizer", seconds_since(t0));
   const fs::path tokenizer = out / "tokenizer" / "checkpoint";
 
   // 4-5. World model: pretrain on human video with latent actions, post-train on robot actions.
-  auto wm_job = [&](train::WmStage stage, const fs::path& dataset, const std::string& split, train::ActionMode mode,
-                    const fs::path& dir, double seconds) {
+  auto wm_job = [&](train::WmStage stage, const fs::path& dataset, const std::string& split,
+                    train::ActionMode mode, const fs::path& dir, double seconds) {
     train::WmTrainJob job;
     job.stage = stage;
     train::LatentCacheSpec spec;
@@ -217,7 +221,8 @@ int run_demo(const DemoOptions& o) {
   stage_seconds.emplace_back("world model post-train", seconds_since(t0));
 
   // 6. Rollouts and evaluation.
-  LOG_INFO("[6/7] rollouts: 49 frames (4 chunks, 3 resets) on held-out and out-of-distribution robot episodes");
+  LOG_INFO(
+      "[6/7] rollouts: 49 frames (4 chunks, 3 resets) on held-out and out-of-distribution robot episodes");
   t0 = std::chrono::steady_clock::now();
   auto model = infer::WorldModel::load(out / "wm_posttrain" / "checkpoint", tokenizer);
   eval::WmEvalOptions eo;
@@ -242,35 +247,43 @@ int run_demo(const DemoOptions& o) {
   LOG_INFO("[7/7] report: ", (out / "report.html").string());
   eval::HtmlReport html("DreamDojo.cpp demo on DojoSim");
   html.paragraph(
-      "Everything below was made by `dojo demo` on this machine: DojoSim generated human and robot episodes; a "
-      "small latent action model learned actions from video alone; a small Wan2.1-architecture tokenizer learned "
+      "Everything below was made by `dojo demo` on this machine: DojoSim generated human and robot episodes; "
+      "a "
+      "small latent action model learned actions from video alone; a small Wan2.1-architecture tokenizer "
+      "learned "
       "the latent space; the action-conditioned DiT was pretrained on human video with latent actions and "
-      "post-trained on robot actions; it then rolled out 49-frame videos (4 chunks of 12 actions, 3 autoregressive "
+      "post-trained on robot actions; it then rolled out 49-frame videos (4 chunks of 12 actions, 3 "
+      "autoregressive "
       "resets) from the first frame and the recorded actions of episodes it never saw.");
   html.heading("Rollouts vs ground truth");
   html.paragraph(
-      "PSNR/SSIM per frame (piq conventions), mean per video, then over videos. The copy-frame-0 baseline repeats "
+      "PSNR/SSIM per frame (piq conventions), mean per video, then over videos. The copy-frame-0 baseline "
+      "repeats "
       "the conditioning frame: a model that ignores the actions scores about that.");
   std::vector<std::vector<std::string>> rows;
   for (const auto& r : results)
-    rows.push_back({r.split, std::to_string(r.videos.size()), fixed(r.psnr), fixed(r.copy_psnr), fixed(r.ssim, 3),
-                    fixed(r.copy_ssim, 3), fixed(r.frames_per_second, 1)});
-  html.table({"split", "videos", "PSNR (dB)", "copy-frame PSNR", "SSIM", "copy-frame SSIM", "frames/s"}, rows);
+    rows.push_back({r.split, std::to_string(r.videos.size()), fixed(r.psnr), fixed(r.copy_psnr),
+                    fixed(r.ssim, 3), fixed(r.copy_ssim, 3), fixed(r.frames_per_second, 1)});
+  html.table({"split", "videos", "PSNR (dB)", "copy-frame PSNR", "SSIM", "copy-frame SSIM", "frames/s"},
+             rows);
   for (const auto& r : results)
     for (const auto& v : r.videos)
       if (!v.video.empty())
-        html.video(v.video, r.split + " / " + v.episode + ": ground truth | world model | copy frame 0 (PSNR " +
-                                fixed(v.psnr) + " vs " + fixed(v.copy_psnr) + ")");
+        html.video(v.video, r.split + " / " + v.episode +
+                                ": ground truth | world model | copy frame 0 (PSNR " + fixed(v.psnr) +
+                                " vs " + fixed(v.copy_psnr) + ")");
   html.heading("Training");
-  html.line_chart("World model: flow-matching loss",
-                  {eval::read_csv_series(out / "wm_pretrain" / "loss.csv", "step", "loss", "pretrain (human, latent)"),
-                   eval::read_csv_series(out / "wm_posttrain" / "loss.csv", "step", "loss", "post-train (robot)")},
-                  "step", "loss", true, 20);
+  html.line_chart(
+      "World model: flow-matching loss",
+      {eval::read_csv_series(out / "wm_pretrain" / "loss.csv", "step", "loss", "pretrain (human, latent)"),
+       eval::read_csv_series(out / "wm_posttrain" / "loss.csv", "step", "loss", "post-train (robot)")},
+      "step", "loss", true, 20);
   html.line_chart("Tokenizer: reconstruction MSE",
-                  {eval::read_csv_series(out / "tokenizer" / "loss.csv", "step", "recon", "recon")}, "step", "mse",
-                  true, 20);
+                  {eval::read_csv_series(out / "tokenizer" / "loss.csv", "step", "recon", "recon")}, "step",
+                  "mse", true, 20);
   html.line_chart("LAM: reconstruction PSNR",
-                  {eval::read_csv_series(out / "lam" / "loss.csv", "step", "psnr", "psnr")}, "step", "dB", false, 20);
+                  {eval::read_csv_series(out / "lam" / "loss.csv", "step", "psnr", "psnr")}, "step", "dB",
+                  false, 20);
   html.heading("Data");
   html.video(out / "preview_human.mp4", "human episodes (no actions)");
   html.video(out / "preview_robot.mp4", "robot episodes");
@@ -289,19 +302,21 @@ int run_demo(const DemoOptions& o) {
   std::printf("\nDreamDojo.cpp demo finished in %.1f min. Open %s in a browser.\n\n%s\n",
               report["seconds"].get<double>() / 60.0, (out / "report.html").string().c_str(),
               eval::markdown_table(results).c_str());
-  std::printf("Outputs in %s/: datasets (human/, robot*/), lam/, tokenizer/, wm_pretrain/, wm_posttrain/, "
-              "rollouts/, eval.md, demo.json. Re-running resumes finished stages.\n",
-              out.string().c_str());
+  std::printf(
+      "Outputs in %s/: datasets (human/, robot*/), lam/, tokenizer/, wm_pretrain/, wm_posttrain/, "
+      "rollouts/, eval.md, demo.json. Re-running resumes finished stages.\n",
+      out.string().c_str());
   return 0;
 }
 
 }  // namespace
 
 void register_demo(CLI::App& app) {
-  auto* cmd = app.add_subcommand("demo",
-                                 "The whole pipeline on the built-in DojoSim world: generate data, train LAM, "
-                                 "tokenizer and world model (pretrain + post-train), roll out, evaluate, and "
-                                 "write report.html");
+  auto* cmd =
+      app.add_subcommand("demo",
+                         "The whole pipeline on the built-in DojoSim world: generate data, train LAM, "
+                         "tokenizer and world model (pretrain + post-train), roll out, evaluate, and "
+                         "write report.html");
   auto o = std::make_shared<DemoOptions>();
   cmd->add_option("--out,-o", o->out, "Output directory")->capture_default_str();
   cmd->add_option("--minutes,-m", o->minutes, "Training time budget shared by the stages")
@@ -320,7 +335,8 @@ void register_demo(CLI::App& app) {
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
   cmd->add_option("--seed", o->seed, "Random seed")->capture_default_str();
-  cmd->add_option("--workers,-j", o->workers, "Parallel generation workers (0 = all cores)")->capture_default_str();
+  cmd->add_option("--workers,-j", o->workers, "Parallel generation workers (0 = all cores)")
+      ->capture_default_str();
   cmd->callback([o] { set_action([o] { return run_demo(*o); }); });
 }
 

@@ -86,7 +86,7 @@ int run_wm_train(const WmTrainArgs& a) {
 
 struct RolloutArgs {
   std::string checkpoint, tokenizer, data, split = "val", episode, actions_file, out, solver = "unipc",
-                                                                                  concat = "aligned";
+                                           concat = "aligned";
   int chunks = 4, steps = 35;
   uint64_t seed = 0;
 };
@@ -121,8 +121,9 @@ int run_rollout(const RolloutArgs& a) {
   if (!a.actions_file.empty()) {
     // Counterfactual: the episode's first frame with actions from a file.
     actions = SafetensorsFile::open(a.actions_file).tensor("actions", true).to(torch::kFloat);
-    DOJO_CHECK(actions.dim() == 2 && actions.size(1) == 384 && actions.size(0) % 12 == 0 && actions.size(0) > 0,
-               a.actions_file + ": tensor 'actions' must be [12 K, 384]");
+    DOJO_CHECK(
+        actions.dim() == 2 && actions.size(1) == 384 && actions.size(0) % 12 == 0 && actions.size(0) > 0,
+        a.actions_file + ": tensor 'actions' must be [12 K, 384]");
     counterfactual = true;
   }
   infer::SamplerOptions sampler;
@@ -167,12 +168,13 @@ int run_eval(const EvalArgs& a) {
     o.lpips = &lpips;
   }
   std::vector<eval::WmEvalResult> results;
-  nlohmann::json j = {{"checkpoint", a.checkpoint},
-                      {"tokenizer", a.tokenizer},
-                      {"sampler", {{"solver", a.solver}, {"steps", a.steps}, {"shift", o.sampler.shift}}},
-                      {"concat", a.concat},
-                      {"metrics", "PSNR/SSIM per frame (piq conventions), mean per video, then mean over videos"},
-                      {"splits", nlohmann::json::array()}};
+  nlohmann::json j = {
+      {"checkpoint", a.checkpoint},
+      {"tokenizer", a.tokenizer},
+      {"sampler", {{"solver", a.solver}, {"steps", a.steps}, {"shift", o.sampler.shift}}},
+      {"concat", a.concat},
+      {"metrics", "PSNR/SSIM per frame (piq conventions), mean per video, then mean over videos"},
+      {"splits", nlohmann::json::array()}};
   for (const auto& s : a.splits) {
     results.push_back(eval::evaluate_world_model(model, a.data, s, o));
     j["splits"].push_back(results.back().to_json());
@@ -197,24 +199,31 @@ void register_wm(CLI::App& app) {
   wm->require_subcommand(1);
 
   auto t = std::make_shared<WmTrainArgs>();
-  auto* train_cmd = wm->add_subcommand("train", "Train on cached tokenizer latents: pretrain, posttrain or scratch");
-  train_cmd->add_option("--stage", t->stage, "pretrain (human video) | posttrain (robot, needs --init) | scratch")
+  auto* train_cmd =
+      wm->add_subcommand("train", "Train on cached tokenizer latents: pretrain, posttrain or scratch");
+  train_cmd
+      ->add_option("--stage", t->stage, "pretrain (human video) | posttrain (robot, needs --init) | scratch")
       ->capture_default_str();
   train_cmd->add_option("--data,-d", t->data, "Dataset directory (repeat to mix)")->required();
   train_cmd->add_option("--split", t->split, "Split to train on")->capture_default_str();
-  train_cmd->add_option("--tokenizer", t->tokenizer, "Tokenizer checkpoint (dojo tokenizer train)")->required();
+  train_cmd->add_option("--tokenizer", t->tokenizer, "Tokenizer checkpoint (dojo tokenizer train)")
+      ->required();
   train_cmd->add_option("--lam", t->lam, "LAM checkpoint, for --actions latent");
-  train_cmd->add_option("--actions", t->actions,
-                        "dataset | latent | none | ground-truth (default: latent for pretrain, else dataset)");
+  train_cmd->add_option(
+      "--actions", t->actions,
+      "dataset | latent | none | ground-truth (default: latent for pretrain, else dataset)");
   train_cmd->add_option("--init", t->init, "Pretrained world-model checkpoint (posttrain)");
-  train_cmd->add_option("--out,-o", t->out, "Output directory (checkpoint/, loss.csv, latent caches)")->required();
+  train_cmd->add_option("--out,-o", t->out, "Output directory (checkpoint/, loss.csv, latent caches)")
+      ->required();
   train_cmd->add_option("--model", t->model, "Network size: small | 2b | 14b")->capture_default_str();
   train_cmd->add_option("--steps", t->steps, "Total optimiser steps")->capture_default_str();
-  train_cmd->add_option("--minutes", t->minutes, "Stop (and checkpoint) after this many minutes; 0 = no limit");
+  train_cmd->add_option("--minutes", t->minutes,
+                        "Stop (and checkpoint) after this many minutes; 0 = no limit");
   train_cmd->add_option("--batch,-b", t->batch, "Clips per step")->capture_default_str();
   train_cmd->add_option("--lr", t->lr, "AdamW learning rate")->capture_default_str();
   train_cmd->add_option("--weight-decay", t->weight_decay, "AdamW weight decay")->capture_default_str();
-  train_cmd->add_option("--grad-clip", t->grad_clip, "Global gradient-norm clip (0 = off)")->capture_default_str();
+  train_cmd->add_option("--grad-clip", t->grad_clip, "Global gradient-norm clip (0 = off)")
+      ->capture_default_str();
   train_cmd->add_option("--warmup", t->warmup, "Linear learning-rate warm-up steps")->capture_default_str();
   train_cmd->add_option("--temporal-axis", t->temporal_axis, "Temporal-consistency loss axis: time | channel")
       ->check(CLI::IsMember({"time", "channel"}))
@@ -236,9 +245,11 @@ void register_wm(CLI::App& app) {
   roll->add_option("--checkpoint,-c", r->checkpoint, "World-model checkpoint")->required();
   roll->add_option("--tokenizer", r->tokenizer, "Tokenizer checkpoint")->required();
   roll->add_option("--data,-d", r->data, "Dataset the episode comes from")->required();
-  roll->add_option("--split", r->split, "Split (first episode is used unless --episode)")->capture_default_str();
+  roll->add_option("--split", r->split, "Split (first episode is used unless --episode)")
+      ->capture_default_str();
   roll->add_option("--episode", r->episode, "Episode id");
-  roll->add_option("--actions", r->actions_file, "safetensors file with 'actions' [12 K, 384] (counterfactual)");
+  roll->add_option("--actions", r->actions_file,
+                   "safetensors file with 'actions' [12 K, 384] (counterfactual)");
   roll->add_option("--chunks", r->chunks, "Chunks of 12 actions")->capture_default_str();
   roll->add_option("--steps", r->steps, "Sampler steps")->capture_default_str();
   roll->add_option("--solver", r->solver, "unipc | euler")->capture_default_str();
@@ -248,7 +259,8 @@ void register_wm(CLI::App& app) {
   roll->callback([r] { set_action([r] { return run_rollout(*r); }); });
 
   auto e = std::make_shared<EvalArgs>();
-  auto* ev = app.add_subcommand("eval", "Evaluate a world model: PSNR/SSIM of rollouts vs ground truth per split");
+  auto* ev =
+      app.add_subcommand("eval", "Evaluate a world model: PSNR/SSIM of rollouts vs ground truth per split");
   ev->add_option("--checkpoint,-c", e->checkpoint, "World-model checkpoint")->required();
   ev->add_option("--tokenizer", e->tokenizer, "Tokenizer checkpoint")->required();
   ev->add_option("--data,-d", e->data, "Dataset directory")->required();

@@ -17,7 +17,7 @@ struct ClipConfig {
   // false: rows hold the normalised absolute actions at steps 1..T-1 instead of chunk-relative
   // deltas (the paper's "relative actions" ablation).
   bool relative_actions = true;
-  int height = 64;       // output size after centre crop + resize
+  int height = 64;  // output size after centre crop + resize
   int width = 64;
 };
 

@@ -17,11 +17,20 @@ std::string html_escape(const std::string& text) {
   out.reserve(text.size());
   for (char c : text) {
     switch (c) {
-      case '&': out += "&amp;"; break;
-      case '<': out += "&lt;"; break;
-      case '>': out += "&gt;"; break;
-      case '"': out += "&quot;"; break;
-      default: out += c;
+      case '&':
+        out += "&amp;";
+        break;
+      case '<':
+        out += "&lt;";
+        break;
+      case '>':
+        out += "&gt;";
+        break;
+      case '"':
+        out += "&quot;";
+        break;
+      default:
+        out += c;
     }
   }
   return out;
@@ -78,8 +87,8 @@ std::string fmt(double v) {
 
 }  // namespace
 
-Series read_csv_series(const std::filesystem::path& csv, const std::string& x_column, const std::string& y_column,
-                       const std::string& name) {
+Series read_csv_series(const std::filesystem::path& csv, const std::string& x_column,
+                       const std::string& y_column, const std::string& name) {
   std::ifstream in(csv);
   DOJO_CHECK(in.good(), csv.string() + ": cannot open");
   std::string line;
@@ -111,7 +120,8 @@ void HtmlReport::heading(const std::string& text) { body_ += "<h2>" + html_escap
 
 void HtmlReport::paragraph(const std::string& text) { body_ += "<p>" + html_escape(text) + "</p>\n"; }
 
-void HtmlReport::table(const std::vector<std::string>& header, const std::vector<std::vector<std::string>>& rows) {
+void HtmlReport::table(const std::vector<std::string>& header,
+                       const std::vector<std::vector<std::string>>& rows) {
   body_ += "<table><tr>";
   for (const auto& h : header) body_ += "<th>" + html_escape(h) + "</th>";
   body_ += "</tr>\n";
@@ -129,8 +139,8 @@ void HtmlReport::video(const std::filesystem::path& mp4, const std::string& capt
            "</figcaption></figure>\n";
 }
 
-void HtmlReport::line_chart(const std::string& title, const std::vector<Series>& series, const std::string& x_label,
-                            const std::string& y_label, bool log_y, int smooth) {
+void HtmlReport::line_chart(const std::string& title, const std::vector<Series>& series,
+                            const std::string& x_label, const std::string& y_label, bool log_y, int smooth) {
   constexpr double kW = 640, kH = 300, kLeft = 60, kRight = 150, kTop = 30, kBottom = 40;
   static const char* kColors[] = {"#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"};
   std::vector<Series> shown;
@@ -175,28 +185,29 @@ void HtmlReport::line_chart(const std::string& title, const std::vector<Series>&
     const double y = y0 + (y1 - y0) * i / 4.0;
     svg += "<line x1=\"" + fmt(kLeft) + "\" x2=\"" + fmt(kW - kRight) + "\" y1=\"" + fmt(py(y)) + "\" y2=\"" +
            fmt(py(y)) + "\" stroke=\"#eee\"/>";
-    svg += "<text x=\"" + fmt(kLeft - 4) + "\" y=\"" + fmt(py(y) + 4) + "\" text-anchor=\"end\">" + label_y(y) +
-           "</text>";
+    svg += "<text x=\"" + fmt(kLeft - 4) + "\" y=\"" + fmt(py(y) + 4) + "\" text-anchor=\"end\">" +
+           label_y(y) + "</text>";
   }
   svg += "<text x=\"" + fmt(kLeft) + "\" y=\"" + fmt(kH - kBottom + 15) + "\">" + fmt(x0) + "</text>";
-  svg += "<text x=\"" + fmt(kW - kRight) + "\" y=\"" + fmt(kH - kBottom + 15) + "\" text-anchor=\"end\">" + fmt(x1) +
-         "</text>";
-  svg += "<text x=\"" + fmt((kLeft + kW - kRight) / 2) + "\" y=\"" + fmt(kH - 8) + "\" text-anchor=\"middle\">" +
-         html_escape(x_label) + "</text>";
+  svg += "<text x=\"" + fmt(kW - kRight) + "\" y=\"" + fmt(kH - kBottom + 15) + "\" text-anchor=\"end\">" +
+         fmt(x1) + "</text>";
+  svg += "<text x=\"" + fmt((kLeft + kW - kRight) / 2) + "\" y=\"" + fmt(kH - 8) +
+         "\" text-anchor=\"middle\">" + html_escape(x_label) + "</text>";
   svg += "<text x=\"12\" y=\"" + fmt((kTop + kH - kBottom) / 2) + "\" transform=\"rotate(-90 12 " +
          fmt((kTop + kH - kBottom) / 2) + ")\" text-anchor=\"middle\">" +
          html_escape(y_label + (log_y ? " (log)" : "")) + "</text>";
   for (size_t k = 0; k < shown.size(); ++k) {
     const char* color = kColors[k % 6];
     std::string points;
-    for (size_t i = 0; i < shown[k].x.size(); ++i) points += fmt(px(shown[k].x[i])) + "," + fmt(py(shown[k].y[i])) + " ";
-    svg += "<polyline fill=\"none\" stroke=\"" + std::string(color) + "\" stroke-width=\"1.5\" points=\"" + points +
-           "\"/>";
+    for (size_t i = 0; i < shown[k].x.size(); ++i)
+      points += fmt(px(shown[k].x[i])) + "," + fmt(py(shown[k].y[i])) + " ";
+    svg += "<polyline fill=\"none\" stroke=\"" + std::string(color) + "\" stroke-width=\"1.5\" points=\"" +
+           points + "\"/>";
     const double ly = kTop + 14.0 * static_cast<double>(k) + 6;
     svg += "<line x1=\"" + fmt(kW - kRight + 10) + "\" x2=\"" + fmt(kW - kRight + 30) + "\" y1=\"" + fmt(ly) +
            "\" y2=\"" + fmt(ly) + "\" stroke=\"" + color + "\" stroke-width=\"2\"/>";
-    svg += "<text x=\"" + fmt(kW - kRight + 34) + "\" y=\"" + fmt(ly + 4) + "\">" + html_escape(shown[k].name) +
-           "</text>";
+    svg += "<text x=\"" + fmt(kW - kRight + 34) + "\" y=\"" + fmt(ly + 4) + "\">" +
+           html_escape(shown[k].name) + "</text>";
   }
   svg += "</svg>\n";
   body_ += svg;
@@ -204,8 +215,10 @@ void HtmlReport::line_chart(const std::string& title, const std::vector<Series>&
 
 std::string HtmlReport::html() const {
   return "<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>" + html_escape(title_) +
-         "</title>\n<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}"
-         "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:4px 10px;text-align:right}"
+         "</title>\n<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 "
+         "1em;color:#222}"
+         "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:4px "
+         "10px;text-align:right}"
          "th{background:#f4f4f4}td:first-child,th:first-child{text-align:left}"
          "figure{display:inline-block;margin:0.5em}video{image-rendering:pixelated;max-width:100%}"
          "figcaption{font-size:0.85em;color:#555}</style></head><body>\n<h1>" +

@@ -15,8 +15,8 @@ struct Series {
 
 // Columns `x_column` and `y_column` of a CSV with a header row (empty cells skipped).
 // Throws dojo::Error naming the file when it or a column is missing.
-Series read_csv_series(const std::filesystem::path& csv, const std::string& x_column, const std::string& y_column,
-                       const std::string& name);
+Series read_csv_series(const std::filesystem::path& csv, const std::string& x_column,
+                       const std::string& y_column, const std::string& name);
 
 class HtmlReport {
  public:

@@ -20,22 +20,25 @@ namespace dojo::eval {
 nlohmann::json WmEvalResult::to_json() const {
   nlohmann::json per = nlohmann::json::array();
   for (const auto& v : videos) {
-    nlohmann::json j = {{"episode", v.episode},     {"psnr", v.psnr},           {"ssim", v.ssim},
-                        {"copy_psnr", v.copy_psnr}, {"copy_ssim", v.copy_ssim}};
+    nlohmann::json j = {{"episode", v.episode},
+                        {"psnr", v.psnr},
+                        {"ssim", v.ssim},
+                        {"copy_psnr", v.copy_psnr},
+                        {"copy_ssim", v.copy_ssim}};
     if (!std::isnan(v.lpips)) j["lpips"] = v.lpips, j["copy_lpips"] = v.copy_lpips;
     if (!v.video.empty()) j["video"] = v.video;
     per.push_back(j);
   }
   nlohmann::json out = {{"dataset", dataset},
-          {"split", split},
-          {"videos", static_cast<int>(videos.size())},
-          {"frames_per_video", frames},
-          {"psnr", psnr},
-          {"ssim", ssim},
-          {"copy_first_frame", {{"psnr", copy_psnr}, {"ssim", copy_ssim}}},
-          {"seconds", seconds},
-          {"frames_per_second", frames_per_second},
-          {"per_video", per}};
+                        {"split", split},
+                        {"videos", static_cast<int>(videos.size())},
+                        {"frames_per_video", frames},
+                        {"psnr", psnr},
+                        {"ssim", ssim},
+                        {"copy_first_frame", {{"psnr", copy_psnr}, {"ssim", copy_ssim}}},
+                        {"seconds", seconds},
+                        {"frames_per_second", frames_per_second},
+                        {"per_video", per}};
   if (!std::isnan(lpips)) {
     out["lpips"] = lpips;
     out["copy_first_frame"]["lpips"] = copy_lpips;
@@ -57,9 +60,10 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
   std::vector<size_t> episodes;
   for (size_t ep : ds.episodes())
     if (data::window_fits(info.episodes[ep].frames, 1, clip.num_frames)) episodes.push_back(ep);
-  DOJO_CHECK(!episodes.empty(), dataset.string() + ": no episode of split '" + split + "' is long enough for " +
-                                    std::to_string(clip.num_frames) + " frames");
-  if (o.max_episodes > 0 && static_cast<int>(episodes.size()) > o.max_episodes) episodes.resize(o.max_episodes);
+  DOJO_CHECK(!episodes.empty(), dataset.string() + ": no episode of split '" + split +
+                                    "' is long enough for " + std::to_string(clip.num_frames) + " frames");
+  if (o.max_episodes > 0 && static_cast<int>(episodes.size()) > o.max_episodes)
+    episodes.resize(o.max_episodes);
   if (!o.video_dir.empty()) fs::create_directories(o.video_dir);
 
   WmEvalResult r;
@@ -78,8 +82,9 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
     }
     const auto gt = torch::stack(gt_videos);  // [n, 1 + 12K, H, W, 3]
     const auto t0 = std::chrono::steady_clock::now();
-    const auto pred = model.rollout(gt.select(1, 0).contiguous(), torch::stack(gt_actions), o.seed, o.sampler, o.concat,
-                                    [&](int64_t) { progress.advance(static_cast<int64_t>(e - b)); });
+    const auto pred =
+        model.rollout(gt.select(1, 0).contiguous(), torch::stack(gt_actions), o.seed, o.sampler, o.concat,
+                      [&](int64_t) { progress.advance(static_cast<int64_t>(e - b)); });
     rollout_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     const auto first = pred.select(1, 0);  // the tokenizer's version of the conditioning frame
     for (size_t i = b; i < e; ++i) {
@@ -97,8 +102,8 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
       s.copy_ssim = mc.ssim;
       if (!o.video_dir.empty() && static_cast<int>(r.videos.size()) < o.videos) {
         s.video = (o.video_dir / (split + "_" + s.episode + ".mp4")).string();
-        io::write_comparison_video(s.video, {gt[k], pred[k], copy}, {"ground truth", "world model", "copy frame 0"},
-                                   info.fps);
+        io::write_comparison_video(s.video, {gt[k], pred[k], copy},
+                                   {"ground truth", "world model", "copy frame 0"}, info.fps);
       }
       r.videos.push_back(s);
     }
@@ -129,12 +134,14 @@ std::string markdown_table(const std::vector<WmEvalResult>& results) {
   std::string s = "| split | videos | PSNR | SSIM |";
   s += with_lpips ? " LPIPS |" : "";
   s += " copy-frame PSNR | copy-frame SSIM |";
-  s += with_lpips ? " copy-frame LPIPS |\n|---|---|---|---|---|---|---|---|\n" : "\n|---|---|---|---|---|---|\n";
+  s += with_lpips ? " copy-frame LPIPS |\n|---|---|---|---|---|---|---|---|\n"
+                  : "\n|---|---|---|---|---|---|\n";
   char line[320];
   for (const auto& r : results) {
     if (with_lpips)
-      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f |\n", r.split.c_str(),
-                    r.videos.size(), r.psnr, r.ssim, r.lpips, r.copy_psnr, r.copy_ssim, r.copy_lpips);
+      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f |\n",
+                    r.split.c_str(), r.videos.size(), r.psnr, r.ssim, r.lpips, r.copy_psnr, r.copy_ssim,
+                    r.copy_lpips);
     else
       std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f |\n", r.split.c_str(),
                     r.videos.size(), r.psnr, r.ssim, r.copy_psnr, r.copy_ssim);

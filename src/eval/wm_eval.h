@@ -36,7 +36,7 @@ struct VideoScore {
   double lpips = std::nan("");          // NaN without LPIPS weights
   double copy_psnr = 0, copy_ssim = 0;  // copy-first-frame baseline
   double copy_lpips = std::nan("");
-  std::string video;                    // side-by-side file, when written
+  std::string video;  // side-by-side file, when written
 };
 
 struct WmEvalResult {
@@ -44,8 +44,8 @@ struct WmEvalResult {
   std::vector<VideoScore> videos;
   double psnr = 0, ssim = 0, copy_psnr = 0, copy_ssim = 0;  // means over videos
   double lpips = std::nan(""), copy_lpips = std::nan("");
-  int frames = 0;                                           // per video
-  double seconds = 0, frames_per_second = 0;                // generated frames / rollout time
+  int frames = 0;                             // per video
+  double seconds = 0, frames_per_second = 0;  // generated frames / rollout time
   nlohmann::json to_json() const;
 };
 

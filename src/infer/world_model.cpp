@@ -33,11 +33,11 @@ WorldModel WorldModel::load(const std::filesystem::path& checkpoint, const std::
 torch::Tensor WorldModel::reconstruct_frames(const torch::Tensor& frames) {
   torch::NoGradGuard no_grad;
   const auto z = tokenizer_->encode_latents(train::video_to_model(frames.unsqueeze(1)));  // [B, 16, 1, h, w]
-  return train::model_to_video(tokenizer_->decode_latents(z)).select(1, 0);             // [B, H, W, 3]
+  return train::model_to_video(tokenizer_->decode_latents(z)).select(1, 0);               // [B, H, W, 3]
 }
 
-torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::Tensor& actions, uint64_t seed,
-                                        const SamplerOptions& sampler) {
+torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::Tensor& actions,
+                                        uint64_t seed, const SamplerOptions& sampler) {
   DOJO_CHECK(cond.dim() == 4 && cond.size(3) == 3 && cond.scalar_type() == torch::kUInt8,
              "predict_chunk: conditioning frames must be [B, H, W, 3] uint8");
   DOJO_CHECK(actions.dim() == 3 && actions.size(0) == cond.size(0) && actions.size(1) == kChunkActions,
@@ -46,7 +46,8 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
   const int64_t batch = cond.size(0);
   // The causal tokenizer encodes frame 0 on its own, so the conditioning latent of a
   // [cond, 12 blank frames] clip is the latent of cond alone.
-  const auto z_cond = tokenizer_->encode_latents(train::video_to_model(cond.unsqueeze(1)));  // [B, 16, 1, h, w]
+  const auto z_cond =
+      tokenizer_->encode_latents(train::video_to_model(cond.unsqueeze(1)));  // [B, 16, 1, h, w]
   const int64_t latent_frames = 1 + kChunkActions / 4;
   auto gt = torch::zeros({batch, z_cond.size(1), latent_frames, z_cond.size(3), z_cond.size(4)});
   gt.narrow(2, 0, 1).copy_(z_cond);  // [B, 16, 4, h, w]
@@ -68,7 +69,7 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
   // The sampler starts from pure noise at sigma = 0.999, so the conditioning latent ends ~1e-3
   // off its clean value; put it back exactly, so frame 0 is the tokenizer's round trip of cond.
   x0 = gt * mask + x0 * (1 - mask);
-  return train::model_to_video(tokenizer_->decode_latents(x0));                      // [B, 13, H, W, 3]
+  return train::model_to_video(tokenizer_->decode_latents(x0));  // [B, 13, H, W, 3]
 }
 
 torch::Tensor WorldModel::rollout(const torch::Tensor& first, const torch::Tensor& actions, uint64_t seed,

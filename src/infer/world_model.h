@@ -18,7 +18,7 @@
 namespace dojo::infer {
 
 struct SamplerOptions {
-  int steps = 35;     // as released
+  int steps = 35;  // as released
   double shift = 5.0;
   diffusion::Solver solver = diffusion::Solver::kUniPC;
 };

@@ -753,8 +753,8 @@ torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
   const int64_t lead = in.frame_offset == 0 ? 1 : 0;
   const int64_t action_frames = T - lead;
   if (in.actions.defined() && c.whole_clip_actions > 0) {
-    DOJO_CHECK(in.actions.dim() == 3 && in.actions.size(0) == B && in.actions.size(1) == c.whole_clip_actions &&
-                   in.actions.size(2) == c.action_dim,
+    DOJO_CHECK(in.actions.dim() == 3 && in.actions.size(0) == B &&
+                   in.actions.size(1) == c.whole_clip_actions && in.actions.size(2) == c.action_dim,
                "DiT: actions must be [B, " + std::to_string(c.whole_clip_actions) + ", " +
                    std::to_string(c.action_dim) + "] (whole-clip injection)");
     const auto row = in.actions.to(dtype).reshape({B, 1, c.whole_clip_actions * c.action_dim});  // [B, 1, NA]
@@ -814,6 +814,29 @@ torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
   return out.view({B, T, Hp, Wp, p, p, Co})
       .permute({0, 6, 1, 2, 4, 3, 5})  // B C T Hp p1 Wp p2
       .reshape({B, Co, T, H, W});
+}
+
+double dit_forward_flops(const DitConfig& c, int64_t T, int64_t H, int64_t W, int64_t context_len) {
+  const double D = static_cast<double>(c.model_channels);
+  const double L = static_cast<double>(T * (H / c.patch_spatial) * (W / c.patch_spatial));  // tokens
+  const double Lc = static_cast<double>(context_len), Dc = static_cast<double>(c.crossattn_dim());
+  const double lora = static_cast<double>(c.adaln_lora_dim), frames = static_cast<double>(T);
+  double per_block = 0;
+  per_block += L * 4 * D * D;                    // self-attention q, k, v, output projections
+  per_block += 2 * L * L * D;                    // scores and weighted values
+  per_block += L * 2 * D * D + Lc * 2 * Dc * D;  // cross-attention q, output; k, v of the context
+  per_block += 2 * L * Lc * D;                   // cross-attention scores and values
+  per_block += L * 2 * D * static_cast<double>(c.mlp_hidden());  // MLP
+  per_block += frames * 3 * (D * lora + lora * 3 * D);           // three modulation MLPs per frame
+  double total = static_cast<double>(c.num_blocks) * per_block;
+  total += L * static_cast<double>(c.patch_in_features()) * D;  // patch embedding
+  total += L * D * static_cast<double>(c.patch_out_features()) + frames * (D * lora + lora * 2 * D);  // final
+  total += frames * (D * D + D * 3 * D);  // timestep MLP
+  total += frames * 2 * static_cast<double>(c.action_in_features() * c.action_hidden()) +
+           frames * static_cast<double>(c.action_hidden()) * 4 * D;  // both action MLPs
+  if (c.use_crossattn_projection)
+    total += Lc * static_cast<double>(c.crossattn_emb_channels) * static_cast<double>(c.crossattn_proj_dim);
+  return 2 * total;
 }
 
 torch::Tensor denoise_velocity(ActionDitImpl& net, const DitInputs& base, const torch::Tensor& x_t,

@@ -331,6 +331,12 @@ class ActionDitImpl : public torch::nn::Module {
 };
 TORCH_MODULE(ActionDit);
 
+// Matmul FLOPs (2 per multiply-add) of one forward pass over one sample of T latent frames of
+// H x W latents with a context of context_len tokens: patch embed, per block self-attention
+// (projections, scores, values), cross-attention, MLP and the per-frame modulation MLPs, the
+// final layer, and the timestep/action MLPs. A training step costs about 3x this per sample.
+double dit_forward_flops(const DitConfig& config, int64_t T, int64_t H, int64_t W, int64_t context_len = 1);
+
 // Frame-replace denoising (cosmos_dit.md §9): the conditioning frames of x_t are replaced by gt_x0
 // before the net, and the output on them is overwritten with noise − gt_x0 (their exact velocity).
 // base supplies everything but x and condition_mask. x_t, gt_x0, noise: [B, 16, T, H, W];

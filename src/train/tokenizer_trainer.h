@@ -38,8 +38,8 @@ struct TokenizerTrainOptions {
   // Batches (next_batch(steps + i), i < stats_batches) used after training to fit the latent
   // normalisation constants before the final checkpoint (0: keep the configured constants).
   int64_t stats_batches = 0;
-  double time_budget_s = 0;           // stop early (fit stats, checkpoint) after this long; 0: none
-  std::filesystem::path loss_curve;   // CSV "step,recon,kl,seconds" when set
+  double time_budget_s = 0;          // stop early (fit stats, checkpoint) after this long; 0: none
+  std::filesystem::path loss_curve;  // CSV "step,recon,kl,seconds" when set
 };
 
 // The recipe measured best for small DojoSim tokenizers on CPU (docs/benchmarks.md, "Small

@@ -37,10 +37,14 @@ ActionMode parse_action_mode(const std::string& text) {
 
 std::string to_string(ActionMode mode) {
   switch (mode) {
-    case ActionMode::kDataset: return "dataset";
-    case ActionMode::kLatent: return "latent";
-    case ActionMode::kNone: return "none";
-    case ActionMode::kGroundTruth: return "ground-truth";
+    case ActionMode::kDataset:
+      return "dataset";
+    case ActionMode::kLatent:
+      return "latent";
+    case ActionMode::kNone:
+      return "none";
+    case ActionMode::kGroundTruth:
+      return "ground-truth";
   }
   return "?";
 }
@@ -54,9 +58,12 @@ WmStage parse_wm_stage(const std::string& text) {
 
 std::string to_string(WmStage stage) {
   switch (stage) {
-    case WmStage::kPretrain: return "pretrain";
-    case WmStage::kPosttrain: return "posttrain";
-    case WmStage::kScratch: return "scratch";
+    case WmStage::kPretrain:
+      return "pretrain";
+    case WmStage::kPosttrain:
+      return "posttrain";
+    case WmStage::kScratch:
+      return "scratch";
   }
   return "?";
 }
@@ -120,7 +127,8 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
     lam = load_lam(spec.lam);
     DOJO_CHECK((*lam)->config.latent_dim == data::slots::kLatent.width(),
                spec.lam.string() + ": LAM latent size " + std::to_string((*lam)->config.latent_dim) +
-                   " does not fill the " + std::to_string(data::slots::kLatent.width()) + "-wide latent slot");
+                   " does not fill the " + std::to_string(data::slots::kLatent.width()) +
+                   "-wide latent slot");
   }
   // Any format the readers know (our episodes, LeRobot, EgoDex, video folders).
   const auto source = data::open_dataset(spec.dataset);
@@ -134,7 +142,8 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
              spec.dataset.string() + ": frame size " + std::to_string(clip.height) + "x" +
                  std::to_string(clip.width) + " is not a multiple of 8; give a --size");
   data::ClipDataset dataset(source, clip, spec.split);
-  DOJO_CHECK(!dataset.episodes().empty(), spec.dataset.string() + ": no episodes in split '" + spec.split + "'");
+  DOJO_CHECK(!dataset.episodes().empty(),
+             spec.dataset.string() + ": no episodes in split '" + spec.split + "'");
 
   std::vector<std::pair<size_t, data::ClipWindow>> windows;
   for (size_t ep : dataset.episodes())
@@ -166,13 +175,17 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
     auto a = c.actions.clone();  // [12, 384]
     auto slot = a.slice(1, data::slots::kLatent.begin, data::slots::kLatent.end);
     switch (spec.mode) {
-      case ActionMode::kDataset: break;
-      case ActionMode::kLatent: slot.mul_(lam_encode_episode(*lam, c.video)); break;  // mask * z
-      case ActionMode::kNone: a.zero_(); break;
+      case ActionMode::kDataset:
+        break;
+      case ActionMode::kLatent:
+        slot.mul_(lam_encode_episode(*lam, c.video));
+        break;  // mask * z
+      case ActionMode::kNone:
+        a.zero_();
+        break;
       case ActionMode::kGroundTruth: {
-        DOJO_CHECK(c.hidden_motion.defined(),
-                   spec.dataset.string() + ": episode " + info.episodes[ep].id +
-                       " has no hidden_motion for ground-truth actions");
+        DOJO_CHECK(c.hidden_motion.defined(), spec.dataset.string() + ": episode " + info.episodes[ep].id +
+                                                  " has no hidden_motion for ground-truth actions");
         const auto m = chunk_relative_motion(c.hidden_motion, clip.action_chunk);
         a.zero_();
         a.slice(1, data::slots::kLatent.begin, data::slots::kLatent.begin + m.size(1)).copy_(m);
@@ -207,7 +220,8 @@ LatentClips concat_latent_clips(const std::vector<LatentClips>& sets) {
   for (const auto& s : sets) {
     DOJO_CHECK(s.latents.sizes().slice(1) == sets[0].latents.sizes().slice(1),
                "latent caches disagree in shape: " + s.meta.value("dataset", std::string("?")) + " vs " +
-                   sets[0].meta.value("dataset", std::string("?")) + " (same frame size and tokenizer needed)");
+                   sets[0].meta.value("dataset", std::string("?")) +
+                   " (same frame size and tokenizer needed)");
     l.push_back(s.latents);
     a.push_back(s.actions);
     meta.push_back(s.meta);
@@ -241,8 +255,10 @@ WmTrainOptions WmTrainOptions::from_json(const nlohmann::json& j) {
     o.flow.high_sigma_prob = f.value("high_sigma_prob", o.flow.high_sigma_prob);
     o.flow.temporal_weight = f.value("temporal_weight", o.flow.temporal_weight);
     const auto axis = f.value("temporal_axis", std::string("time"));
-    DOJO_CHECK(axis == "time" || axis == "channel", "flow.temporal_axis must be time or channel (got " + axis + ")");
-    o.flow.temporal_axis = axis == "time" ? diffusion::TemporalAxis::kTime : diffusion::TemporalAxis::kChannel;
+    DOJO_CHECK(axis == "time" || axis == "channel",
+               "flow.temporal_axis must be time or channel (got " + axis + ")");
+    o.flow.temporal_axis =
+        axis == "time" ? diffusion::TemporalAxis::kTime : diffusion::TemporalAxis::kChannel;
   }
   return o;
 }
@@ -293,10 +309,12 @@ WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options)
 
 double WmTrainer::lr_at(int64_t step) const {
   if (options_.warmup_steps <= 0) return options_.lr;
-  return options_.lr * std::min(1.0, static_cast<double>(step + 1) / static_cast<double>(options_.warmup_steps));
+  return options_.lr *
+         std::min(1.0, static_cast<double>(step + 1) / static_cast<double>(options_.warmup_steps));
 }
 
-WmStepStats WmTrainer::step(const torch::Tensor& x0, const torch::Tensor& actions, torch::Generator generator) {
+WmStepStats WmTrainer::step(const torch::Tensor& x0, const torch::Tensor& actions,
+                            torch::Generator generator) {
   net_->train();
   WmStepStats s;
   s.lr = lr_at(steps_);
@@ -374,7 +392,8 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
 
   std::vector<LatentClips> sets;
   for (size_t i = 0; i < job.data.size(); ++i)
-    sets.push_back(load_or_build_latent_clips(job.data[i], job.out / ("latents-" + std::to_string(i) + ".safetensors")));
+    sets.push_back(
+        load_or_build_latent_clips(job.data[i], job.out / ("latents-" + std::to_string(i) + ".safetensors")));
   const auto clips = concat_latent_clips(sets);
   const int64_t n = clips.size();
 
@@ -440,13 +459,13 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
       for (double v : recent) sum += v;
       result.first_loss = sum / static_cast<double>(recent.size());
     }
-    const bool save_now = trainer.steps_done() % job.save_every == 0 || trainer.steps_done() == job.steps ||
-                          budget.expired();
+    const bool save_now =
+        trainer.steps_done() % job.save_every == 0 || trainer.steps_done() == job.steps || budget.expired();
     double probe_loss = std::nan("");
     if (save_now) probe_loss = trainer.eval_loss(probe_x0, probe_actions, probe_seed);
     std::ostringstream row;
-    row << trainer.steps_done() << ',' << s.loss << ',' << s.mse << ',' << s.temporal << ',' << s.grad_norm << ','
-        << s.lr << ',' << job.batch_size / secs << ',';
+    row << trainer.steps_done() << ',' << s.loss << ',' << s.mse << ',' << s.temporal << ',' << s.grad_norm
+        << ',' << s.lr << ',' << job.batch_size / secs << ',';
     if (!std::isnan(probe_loss)) row << probe_loss;
     curve.add(row.str());
     std::ostringstream note;
@@ -467,7 +486,13 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   result.steps = trainer.steps_done();
   result.heldout_loss_end = trainer.eval_loss(probe_x0, probe_actions, probe_seed);
   result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - run_start).count();
-  result.clips_per_second = timed_seconds > 0 ? static_cast<double>(timed_steps * job.batch_size) / timed_seconds : 0;
+  result.clips_per_second =
+      timed_seconds > 0 ? static_cast<double>(timed_steps * job.batch_size) / timed_seconds : 0;
+  const auto& lat = clips.latents;  // [N, 16, T, h, w]
+  result.gflops = result.clips_per_second * 3 *
+                  models::dit_forward_flops(trainer.net()->config, lat.size(2), lat.size(3), lat.size(4)) /
+                  1e9;
+  LOG_INFO("wm train: ", result.clips_per_second, " clips/s (", result.gflops, " GFLOP/s of matmul work)");
   const nlohmann::json summary = {{"stage", to_string(job.stage)},
                                   {"steps", result.steps},
                                   {"clips", n},
@@ -477,6 +502,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
                                   {"fixed_batch_loss_end", result.heldout_loss_end},
                                   {"seconds", result.seconds},
                                   {"clips_per_second", result.clips_per_second},
+                                  {"gflops", result.gflops},
                                   {"options", job.options.to_json()}};
   write_file_atomic(job.out / "train_summary.json", summary.dump(2) + "\n");
   return result;

@@ -42,9 +42,9 @@ struct LatentCacheSpec {
   std::filesystem::path lam;        // checkpoint directory (ActionMode::kLatent only)
   ActionMode mode = ActionMode::kDataset;
   std::vector<int> strides = {1, 2};
-  int64_t hop = 2;        // window starts advance by this many frames
-  int size = 0;           // frame size fed to the tokenizer (0: the dataset's)
-  int64_t max_clips = 0;  // 0: all windows
+  int64_t hop = 2;               // window starts advance by this many frames
+  int size = 0;                  // frame size fed to the tokenizer (0: the dataset's)
+  int64_t max_clips = 0;         // 0: all windows
   bool relative_actions = true;  // false: absolute normalised actions (ablation)
   nlohmann::json to_json() const;
 };
@@ -66,7 +66,7 @@ LatentClips concat_latent_clips(const std::vector<LatentClips>& sets);
 struct WmTrainOptions {
   double lr = 1.6e-4;  // AdamW as released (betas 0.9/0.999)
   double weight_decay = 0.1;
-  double grad_clip = 0.1;     // global norm, as released; <= 0 disables
+  double grad_clip = 0.1;      // global norm, as released; <= 0 disables
   int64_t warmup_steps = 100;  // linear warm-up of the learning rate from 0
   double ema_sigma_rel = 0.1;  // power EMA, as released
   diffusion::FlowMatchingConfig flow;
@@ -123,17 +123,18 @@ struct WmTrainJob {
   models::DitConfig model = models::DitConfig::small();
   WmTrainOptions options;
   int batch_size = 8;
-  int64_t steps = 2000;        // total steps (a resumed job continues up to this)
-  double time_budget_s = 0;    // wall-clock budget of the job, latent caching included; 0: none
+  int64_t steps = 2000;      // total steps (a resumed job continues up to this)
+  double time_budget_s = 0;  // wall-clock budget of the job, latent caching included; 0: none
   int64_t save_every = 100;
   uint64_t seed = 0;
 };
 
 struct WmTrainResult {
-  int64_t steps = 0;  // total steps done (including resumed ones)
+  int64_t steps = 0;                     // total steps done (including resumed ones)
   double first_loss = 0, last_loss = 0;  // smoothed training loss at the start / end of this run
   double heldout_loss_start = 0, heldout_loss_end = 0;  // EMA net on a fixed batch
   double seconds = 0, clips_per_second = 0;
+  double gflops = 0;  // matmul work per second of training steps (3x forward FLOPs per clip)
   int64_t clips = 0;  // cached training clips
 };
 

@@ -29,14 +29,16 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   ASSERT_EQ(r.exit_code, 0) << r.output;
 
   const std::string common = " --data " + data + " --tokenizer " + tok + " --batch 2 --hop 4 --save-every 2";
-  r = test::run_dojo("--threads 1 wm train --stage scratch --steps 3" + common + " --out " + (tmp / "s").string());
+  r = test::run_dojo("--threads 1 wm train --stage scratch --steps 3" + common + " --out " +
+                     (tmp / "s").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(std::filesystem::exists(tmp / "s" / "checkpoint" / "model.safetensors"));
   EXPECT_TRUE(std::filesystem::exists(tmp / "s" / "latents-0.safetensors"));
   EXPECT_NE(test::read_file(tmp / "s" / "loss.csv").find("\n3,"), std::string::npos);
 
   // Continuing to more steps resumes from the checkpoint.
-  r = test::run_dojo("--threads 1 wm train --stage scratch --steps 4" + common + " --out " + (tmp / "s").string());
+  r = test::run_dojo("--threads 1 wm train --stage scratch --steps 4" + common + " --out " +
+                     (tmp / "s").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("4 steps"), std::string::npos) << r.output;
 
@@ -48,8 +50,9 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   torch::manual_seed(0);
   eval::LpipsVgg lpips;
   save_safetensors(tmp / "lpips.safetensors", state_dict(*lpips));
-  r = test::run_dojo("--threads 1 eval --checkpoint " + (tmp / "p" / "checkpoint").string() + " --tokenizer " + tok +
-                     " --data " + data + " --split val --split train --chunks 1 --steps 2 --json --out " +
+  r = test::run_dojo("--threads 1 eval --checkpoint " + (tmp / "p" / "checkpoint").string() +
+                     " --tokenizer " + tok + " --data " + data +
+                     " --split val --split train --chunks 1 --steps 2 --json --out " +
                      (tmp / "eval").string() + " --lpips-weights " + (tmp / "lpips.safetensors").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto j = nlohmann::json::parse(r.output.substr(r.output.find('{')));
@@ -63,8 +66,9 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   EXPECT_TRUE(std::filesystem::exists(tmp / "eval" / "metrics.md"));
   EXPECT_FALSE(std::filesystem::is_empty(tmp / "eval" / "videos"));
 
-  r = test::run_dojo("--threads 1 wm rollout --checkpoint " + (tmp / "p" / "checkpoint").string() + " --tokenizer " +
-                     tok + " --data " + data + " --chunks 2 --steps 2 --out " + (tmp / "roll.mp4").string());
+  r = test::run_dojo("--threads 1 wm rollout --checkpoint " + (tmp / "p" / "checkpoint").string() +
+                     " --tokenizer " + tok + " --data " + data + " --chunks 2 --steps 2 --out " +
+                     (tmp / "roll.mp4").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("25 frames"), std::string::npos) << r.output;
 
@@ -83,8 +87,10 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
 TEST(WmCli, DemoRunsEndToEndOnATinyBudgetAndWritesTheReport) {
   test::TempDir tmp;
   const auto out = (tmp / "demo").string();
-  auto r = test::run_dojo("--threads 1 demo --minutes 0.3 --episodes 2 --eval-episodes 1 --frames 50 "
-                          "--sampler-steps 2 --workers 1 --out " + out);
+  auto r = test::run_dojo(
+      "--threads 1 demo --minutes 0.3 --episodes 2 --eval-episodes 1 --frames 50 "
+      "--sampler-steps 2 --workers 1 --out " +
+      out);
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto html = test::read_file(tmp / "demo" / "report.html");
   EXPECT_NE(html.find("data:video/mp4;base64,"), std::string::npos);

@@ -51,7 +51,8 @@ TEST(HtmlReport, EmbedsVideosTablesAndCharts) {
   HtmlReport report("Title <1>");
   report.table({"split", "PSNR"}, {{"val & test", "12.50"}});
   report.video(dir / "clip.mp4", "a clip");
-  report.line_chart("loss", {{"run", {1, 2, 3, 4}, {4, 3, 2, 1}}}, "step", "loss", /*log_y=*/true, /*smooth=*/2);
+  report.line_chart("loss", {{"run", {1, 2, 3, 4}, {4, 3, 2, 1}}}, "step", "loss", /*log_y=*/true,
+                    /*smooth=*/2);
   report.write(dir / "report.html");
   const auto html = test::read_file(dir / "report.html");
   EXPECT_NE(html.find("<title>Title &lt;1&gt;</title>"), std::string::npos);

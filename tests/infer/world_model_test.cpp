@@ -8,11 +8,6 @@
 namespace dojo::infer {
 namespace {
 
-struct OneThread {
-  int saved = torch::get_num_threads();
-  OneThread() { torch::set_num_threads(1); }
-  ~OneThread() { torch::set_num_threads(saved); }
-};
 
 WorldModel random_model() {
   torch::manual_seed(0);
@@ -29,7 +24,7 @@ WorldModel random_model() {
 }
 
 TEST(WorldModel, RolloutChainsChunksDeterministically) {
-  OneThread one;
+  test::OneThread one;
   auto model = random_model();
   const auto first = torch::randint(0, 255, {2, 16, 16, 3}, torch::kByte);
   const auto actions = torch::rand({2, 24, 384}) * 2 - 1;
@@ -55,7 +50,7 @@ TEST(WorldModel, RolloutChainsChunksDeterministically) {
 }
 
 TEST(WorldModel, ActionsChangeThePrediction) {
-  OneThread one;
+  test::OneThread one;
   auto model = random_model();
   const auto first = torch::randint(0, 255, {1, 16, 16, 3}, torch::kByte);
   SamplerOptions s;
@@ -70,10 +65,13 @@ TEST(WorldModel, ActionsChangeThePrediction) {
 TEST(WorldModel, RejectsBadShapesClearly) {
   auto model = random_model();
   const auto first = torch::zeros({1, 16, 16, 3}, torch::kByte);
-  EXPECT_NE(test::error_message([&] { model.rollout(first, torch::zeros({1, 10, 384}), 0); }).find("multiple of 12"),
+  EXPECT_NE(test::error_message([&] {
+              model.rollout(first, torch::zeros({1, 10, 384}), 0);
+            }).find("multiple of 12"),
             std::string::npos);
-  EXPECT_NE(test::error_message([&] { model.predict_chunk(first.to(torch::kFloat), torch::zeros({1, 12, 384}), 0); })
-                .find("uint8"),
+  EXPECT_NE(test::error_message([&] {
+              model.predict_chunk(first.to(torch::kFloat), torch::zeros({1, 12, 384}), 0);
+            }).find("uint8"),
             std::string::npos);
   EXPECT_EQ(parse_solver("euler"), diffusion::Solver::kEuler);
   EXPECT_NE(test::error_message([] { parse_solver("ddim"); }).find("ddim"), std::string::npos);

@@ -99,16 +99,6 @@ DitInputs random_inputs(const DitConfig& c, int64_t B, int64_t T, int64_t H, int
   return in;
 }
 
-// Runs a test body on one intra-op thread: on the shared 2-core machine a second OpenMP thread
-// competing with other processes makes these small ops 10-25x slower, not faster.
-class OneThread {
- public:
-  OneThread() : saved_(torch::get_num_threads()) { torch::set_num_threads(1); }
-  ~OneThread() { torch::set_num_threads(saved_); }
-
- private:
-  int saved_;
-};
 
 }  // namespace
 
@@ -343,7 +333,7 @@ DitInputs tiny_inputs(const TinyGolden& g, const std::string& case_name) {
 }  // namespace
 
 TEST(DitGolden, TinyForwardAndIntermediates) {
-  OneThread one_thread;
+  test::OneThread one_thread;
   auto g = open_tiny();
   if (!g) GTEST_SKIP() << "golden fixture not present";
   auto net = tiny_model(*g);
@@ -414,7 +404,7 @@ TEST(DitGolden, TinyDenoiseVelocity) {
 // --- behaviour on the small config --------------------------------------------------------------
 
 TEST(DitSmall, WholeClipActionInjectionAblation) {
-  OneThread one_thread;
+  test::OneThread one_thread;
   auto c = DitConfig::small();
   c.model_channels = 64;
   c.num_heads = 2;
@@ -439,8 +429,22 @@ TEST(DitSmall, WholeClipActionInjectionAblation) {
   EXPECT_EQ(DitConfig::from_json(c.to_json()).whole_clip_actions, 12);
 }
 
+TEST(DitFlops, CountsTokenLinearsAndAttention) {
+  // 2B at 480x640, 13 frames: 4 x 30 x 40 = 4800 tokens. Per token and block the linear maps
+  // hold 4 D^2 (self-attn) + 2 D^2 (cross q, o) + 8 D^2 (MLP) weights; attention adds 2 L D for
+  // scores and values. Everything else (context, modulation, embeddings) is a few percent.
+  const auto c = DitConfig::released_2b();
+  const double D = 2048, L = 4800;
+  const double blocks = 2 * 28 * (L * 14 * D * D + 2 * L * L * D);
+  const double flops = dit_forward_flops(c, 4, 60, 80, 512);
+  EXPECT_GT(flops, blocks);
+  EXPECT_LT(flops, 1.1 * blocks);
+  // Linear in the batch-free sizes it should be: twice the frames, a bit over twice the work.
+  EXPECT_GT(dit_forward_flops(c, 8, 60, 80, 512), 2 * flops * 0.99);
+}
+
 TEST(DitSmall, BatchIndependence) {
-  OneThread one_thread;
+  test::OneThread one_thread;
   const auto c = DitConfig::small();
   ActionDit net(c);
   default_init_with_actions(*net, 11);
@@ -462,7 +466,7 @@ TEST(DitSmall, BatchIndependence) {
 }
 
 TEST(DitSmall, BlockCausalMaskEqualsKvCacheStreaming) {
-  OneThread one_thread;
+  test::OneThread one_thread;
   const auto c = DitConfig::small();
   ActionDit net(c);
   default_init_with_actions(*net, 21);
@@ -581,7 +585,7 @@ TEST(DitSmall, PaddingMaskIsResizedToTheLatentGrid) {
 }
 
 TEST(DitSmall, TrainsOnFixedTarget) {
-  OneThread one_thread;
+  test::OneThread one_thread;
   const auto c = DitConfig::small();
   torch::manual_seed(51);
   ActionDit net(c);

@@ -44,13 +44,6 @@ torch::Tensor moving_squares(int64_t batch, int64_t frames, int64_t size, uint64
 constexpr int64_t kSteps = 160;
 constexpr double kMinGainDb = 4.0;
 
-// Tiny tensors: one thread avoids OpenMP synchronisation that dominates (and, on a loaded
-// machine, multiplies) the run time.
-struct OneThread {
-  int saved = torch::get_num_threads();
-  OneThread() { torch::set_num_threads(1); }
-  ~OneThread() { torch::set_num_threads(saved); }
-};
 
 #ifdef DOJO_WITH_SIM
 // A small DojoSim dataset (robot bin task, 32x32): two episodes to train on and a third, never
@@ -58,7 +51,7 @@ struct OneThread {
 // target here: the tiny model does not generalise across them within a capped run, while DojoSim
 // scenes share their structure (table, bins, arm) the way the real data does.
 TEST(TokenizerTrainer, LearnsToReconstructHeldOutClips) {
-  OneThread one_thread;
+  test::OneThread one_thread;
   test::TempDir tmp;
   sim::GenerateOptions g;
   g.episodes = 3;
@@ -129,7 +122,7 @@ TEST(TokenizerTrainer, LearningRateSchedule) {
 }
 
 TEST(TokenizerTrainer, ResumesFromCheckpoint) {
-  OneThread one_thread;
+  test::OneThread one_thread;
   test::TempDir dir;
   torch::manual_seed(1);
   models::WanVae vae(models::WanVaeConfig::tiny());

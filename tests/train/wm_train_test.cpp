@@ -35,11 +35,6 @@ models::DitConfig tiny_dit() {
   return c;
 }
 
-struct OneThread {
-  int saved = torch::get_num_threads();
-  OneThread() { torch::set_num_threads(1); }
-  ~OneThread() { torch::set_num_threads(saved); }
-};
 
 torch::Generator gen(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
 
@@ -76,11 +71,12 @@ TEST(WmTrain, OptionsRoundTripThroughJson) {
   EXPECT_EQ(back.flow.temporal_weight, 0.25);
   auto bad = o.to_json();
   bad["flow"]["temporal_axis"] = "space";
-  EXPECT_NE(test::error_message([&] { WmTrainOptions::from_json(bad); }).find("temporal_axis"), std::string::npos);
+  EXPECT_NE(test::error_message([&] { WmTrainOptions::from_json(bad); }).find("temporal_axis"),
+            std::string::npos);
 }
 
 TEST(WmTrain, LearnsActionDrivenLatentsAndBeatsCopyingTheFirstFrame) {
-  OneThread one;
+  test::OneThread one;
   torch::manual_seed(0);
   torch::Tensor x0, actions;
   action_driven_latents(64, x0, actions, 1);
@@ -112,20 +108,21 @@ TEST(WmTrain, LearnsActionDrivenLatentsAndBeatsCopyingTheFirstFrame) {
     in.actions = probe_a;
     return models::denoise_velocity(*net, in, x, probe_x0, noise, mask);
   };
-  const auto sample = diffusion::sample_flow(v, noise, diffusion::flow_sigma_schedule(10, 5.0), diffusion::Solver::kUniPC);
+  const auto sample =
+      diffusion::sample_flow(v, noise, diffusion::flow_sigma_schedule(10, 5.0), diffusion::Solver::kUniPC);
   const auto future = probe_x0.narrow(2, 1, 3);
   const double model_mse = (sample.narrow(2, 1, 3) - future).pow(2).mean().item<double>();
   const double copy_mse = (probe_x0.narrow(2, 0, 1).expand_as(future) - future).pow(2).mean().item<double>();
   // The conditioning frame stays on its interpolation path up to the grid's start at
   // sigma = 0.999 rather than 1 (the sampler starts from pure noise): within ~1e-3 of gt.
   EXPECT_LT((sample.narrow(2, 0, 1) - probe_x0.narrow(2, 0, 1)).abs().max().item<double>(), 5e-3);
-  std::printf("fixed-batch loss %.4f -> %.4f; future-latent MSE model %.4f vs copy-frame-0 %.4f\n", before, after,
-              model_mse, copy_mse);
+  std::printf("fixed-batch loss %.4f -> %.4f; future-latent MSE model %.4f vs copy-frame-0 %.4f\n", before,
+              after, model_mse, copy_mse);
   EXPECT_LT(model_mse, 0.5 * copy_mse) << "model " << model_mse << " vs copy-frame-0 " << copy_mse;
 }
 
 TEST(WmTrain, ResumeContinuesExactly) {
-  OneThread one;
+  test::OneThread one;
   torch::Tensor x0, actions;
   action_driven_latents(8, x0, actions, 2);
   WmTrainOptions o;
@@ -195,7 +192,7 @@ struct CacheFixture {
 };
 
 TEST(WmTrain, LatentCacheHoldsTokenizerLatentsAndLamActions) {
-  OneThread one;
+  test::OneThread one;
   CacheFixture f;
   const auto spec = f.spec(ActionMode::kLatent);
   const auto clips = load_or_build_latent_clips(spec, f.dir / "cache.safetensors");
@@ -254,12 +251,14 @@ TEST(WmTrain, LatentActionsWithoutLamFailClearly) {
   CacheFixture f;
   auto spec = f.spec(ActionMode::kLatent);
   spec.lam.clear();
-  EXPECT_NE(test::error_message([&] { load_or_build_latent_clips(spec, f.dir / "c.safetensors"); }).find("LAM"),
-            std::string::npos);
+  EXPECT_NE(
+      test::error_message([&] { load_or_build_latent_clips(spec, f.dir / "c.safetensors"); }).find("LAM"),
+      std::string::npos);
   spec = f.spec(ActionMode::kDataset);
   spec.tokenizer = f.dir / "nope";
-  EXPECT_NE(test::error_message([&] { load_or_build_latent_clips(spec, f.dir / "c.safetensors"); }).find("nope"),
-            std::string::npos);
+  EXPECT_NE(
+      test::error_message([&] { load_or_build_latent_clips(spec, f.dir / "c.safetensors"); }).find("nope"),
+      std::string::npos);
 }
 
 }  // namespace
