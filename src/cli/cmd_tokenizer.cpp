@@ -28,7 +28,9 @@ struct TrainArgs {
   std::vector<std::string> data;
   std::string out, split = "train", loss = "mse";
   int64_t steps = 2000, save_every = 200, warmup = 0;
-  int batch = 4, frames = 5, size = 64, dim = 16, workers = 2;
+  // 9 frames (3 latent frames) so the steady-state causal chunk is trained, not only the first
+  // two latent frames; world-model clips decode 4 latent frames.
+  int batch = 4, frames = 9, size = 64, dim = 16, workers = 2;
   double lr = 0, kl = 0;
   bool cosine = true, sample = false;
   uint64_t seed = 0;
