@@ -4,7 +4,6 @@
 
 #include <chrono>
 #include <cmath>
-#include <fstream>
 #include <limits>
 #include <map>
 #include <sstream>
@@ -157,25 +156,7 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   data::PrefetchLoader loader(mixture, lo, trainer.steps_done());
 
   // Loss curve: CSV with a header, appended across resumes (rows past the resume step dropped).
-  std::vector<std::string> rows;
-  {
-    std::ifstream in(curve);
-    std::string line;
-    while (std::getline(in, line)) {
-      if (line.empty()) continue;
-      if (!rows.empty()) {
-        const int64_t step = std::stoll(line.substr(0, line.find(',')));
-        if (step > trainer.steps_done()) continue;
-      }
-      rows.push_back(line);
-    }
-    if (rows.empty()) rows.push_back("step,loss,mse,kl,psnr,grad_norm,clips_per_s");
-  }
-  auto write_curve = [&] {
-    std::string text;
-    for (const auto& r : rows) text += r + "\n";
-    write_file_atomic(curve, text);
-  };
+  LossCurve loss_curve(curve, "step,loss,mse,kl,psnr,grad_norm,clips_per_s", trainer.steps_done());
 
   torch::Generator aug_gen = at::make_generator<at::CPUGeneratorImpl>(job.seed + 7919 * trainer.steps_done());
   Progress progress("lam train", job.steps - trainer.steps_done(), "step");
@@ -193,7 +174,7 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
     std::ostringstream row;
     row << trainer.steps_done() << ',' << last.loss << ',' << last.mse << ',' << last.kl << ',' << last.psnr
         << ',' << last.grad_norm << ',' << batch.video.size(0) / secs;
-    rows.push_back(row.str());
+    loss_curve.add(row.str());
     if (++seen_steps > 2) {  // the first steps warm up allocators and threads
       ++timed_steps;
       timed_clips += static_cast<double>(batch.video.size(0));
@@ -205,7 +186,7 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
     const bool out_of_time = budget.expired();
     if (trainer.steps_done() % job.save_every == 0 || trainer.steps_done() == job.steps || out_of_time) {
       trainer.save(ckpt_dir);
-      write_curve();
+      loss_curve.write();
     }
     if (out_of_time) {
       LOG_INFO("lam train: time budget of ", job.time_budget_s, " s reached at step ", trainer.steps_done());
@@ -213,7 +194,7 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
     }
   }
   progress.finish();
-  write_curve();
+  loss_curve.write();
   if (timed_steps > 0) {
     const double clips_per_s = timed_clips / timed_seconds;
     LOG_INFO("lam train: ", clips_per_s, " clips/s over ", timed_steps, " steps (",
