@@ -139,10 +139,12 @@ void add_probe(CLI::App& lam) {
           DOJO_CHECK(src.defined(), "lam probe: episode " + store.episode_dir(i).string() + " has no " +
                                         (use_action ? "actions" : "hidden_motion"));
           used = use_action ? "action_delta" : "motion_delta";
-          const auto y = src.slice(0, 1) - src.slice(0, 0, -1);  // [T - 1, K]
-          const auto x = train::lam_encode_episode(model, ep.frames);
-          xs[i >= n_train].push_back(x);
-          ys[i >= n_train].push_back(y);
+          // Robot hidden motion is a measured pose; actions and the human hand's rows are commands.
+          const bool commanded = use_action || store.info().embodiment == data::Embodiment::kHuman;
+          const auto pairs = train::probe_deltas(src, commanded);                  // [n, K]
+          const auto z = train::lam_encode_episode(model, ep.frames);               // [T - 1, latent]
+          xs[i >= n_train].push_back(z.narrow(0, pairs.first_pair, pairs.deltas.size(0)));
+          ys[i >= n_train].push_back(pairs.deltas);
         }
         const auto r = train::ridge_probe(torch::cat(xs[0]), torch::cat(ys[0]), torch::cat(xs[1]),
                                           torch::cat(ys[1]), *lambda);
@@ -153,7 +155,8 @@ void add_probe(CLI::App& lam) {
                                       {"train_pairs", r.n_train},
                                       {"heldout_pairs", r.n_heldout},
                                       {"r2_train", r.r2_train},
-                                      {"r2_heldout", r.r2_heldout}});
+                                      {"r2_heldout", r.r2_heldout},
+                                      {"r2_heldout_per_dim", r.r2_heldout_per_dim}});
       }
       if (*json) {
         std::printf("%s\n", result.dump(2).c_str());

@@ -30,8 +30,8 @@ struct TrainArgs {
   int64_t steps = 2000, save_every = 200, warmup = 0;
   // 9 frames (3 latent frames) so the steady-state causal chunk is trained, not only the first
   // two latent frames; world-model clips decode 4 latent frames.
-  int batch = 4, frames = 9, size = 64, dim = 16, workers = 2;
-  double lr = 0, kl = 0;
+  int batch = 4, frames = 9, size = 64, dim = 16, workers = 2, crop = 0;
+  double lr = 0, kl = 0, minutes = 0;
   bool cosine = true, sample = false;
   uint64_t seed = 0;
 
@@ -52,6 +52,8 @@ struct EvalArgs {
 int run_train(const TrainArgs& a) {
   DOJO_CHECK((a.frames - 1) % 4 == 0, "--frames must be 1 + 4k (got " + std::to_string(a.frames) + ")");
   DOJO_CHECK(a.size % 8 == 0, "--size must be a multiple of 8");
+  DOJO_CHECK(a.crop % 8 == 0 && a.crop <= a.size, "--crop must be a multiple of 8 and at most --size (got " +
+                                                       std::to_string(a.crop) + ")");
   DOJO_CHECK(a.loss == "mse" || a.loss == "l1", "--loss must be mse or l1 (got " + a.loss + ")");
   models::WanVaeConfig cfg;
   cfg.dim = a.dim;
@@ -79,6 +81,8 @@ int run_train(const TrainArgs& a) {
   o.sample_posterior = a.sample;
   o.l1 = a.loss == "l1";
   o.save_every = a.save_every;
+  o.crop = a.crop;
+  o.time_budget_s = a.minutes * 60;
   o.checkpoint_dir = a.out;
   o.stats_batches = 8;
   torch::manual_seed(a.seed);
@@ -229,6 +233,12 @@ void register_tokenizer(CLI::App& app) {
   train_cmd->add_option("--frames", ta->frames, "Frames per clip (1 + 4k)")->capture_default_str();
   train_cmd->add_option("--size", ta->size, "Clip height and width (multiple of 8)")->capture_default_str();
   train_cmd->add_option("--dim", ta->dim, "Base width (released: 96)")->capture_default_str();
+  train_cmd->add_option("--crop", ta->crop, "Train on random CROPxCROP windows of the clips (0: whole frames)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  train_cmd->add_option("--minutes", ta->minutes, "Stop after this many minutes (0: run all --steps)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   train_cmd->add_option("--lr", ta->lr, "AdamW learning rate")->capture_default_str();
   train_cmd->add_option("--kl", ta->kl, "KL weight")->capture_default_str();
   train_cmd->add_option("--warmup", ta->warmup, "Linear lr warm-up steps")->capture_default_str();

@@ -72,21 +72,34 @@ void Progress::draw(bool force) {
     if (singular.size() > 2 && singular.back() == 's') singular.pop_back();
     std::snprintf(rate_text, sizeof rate_text, "%.2f s/%s", 1.0 / rate, singular.c_str());
   }
-  const double eta = rate > 0 && total_ > 0 ? (total_ - done_) / rate : NAN;
+  double eta = rate > 0 && total_ > 0 ? (total_ - done_) / rate : NAN;
+  int64_t total = total_;
+  double frac = total_ > 0 ? std::min(1.0, static_cast<double>(done_) / total_) : 0.0;
+  std::string total_prefix;
+  if (time_budget_s_ > 0) {
+    const double left = std::max(0.0, time_budget_s_ - elapsed);
+    if (std::isnan(eta) || left < eta) {
+      eta = left;
+      frac = std::min(1.0, elapsed / time_budget_s_);
+      if (rate > 0) {
+        total = std::min<int64_t>(total_, done_ + static_cast<int64_t>(left * rate));
+        total_prefix = "~";
+      }
+    }
+  }
 
   if (tty_) {
     constexpr int kWidth = 30;
-    const double frac = total_ > 0 ? std::min(1.0, static_cast<double>(done_) / total_) : 0.0;
     const int filled = static_cast<int>(frac * kWidth);
     std::string bar(kWidth, ' ');
     for (int i = 0; i < filled; ++i) bar[i] = '=';
     if (filled < kWidth) bar[filled] = '>';
-    std::fprintf(stderr, "\r%s [%s] %lld/%lld %s ETA %s %s\033[K", label_.c_str(), bar.c_str(),
-                 static_cast<long long>(done_), static_cast<long long>(total_), rate_text,
+    std::fprintf(stderr, "\r%s [%s] %lld/%s%lld %s ETA %s %s\033[K", label_.c_str(), bar.c_str(),
+                 static_cast<long long>(done_), total_prefix.c_str(), static_cast<long long>(total), rate_text,
                  format_duration(eta).c_str(), note_.c_str());
     std::fflush(stderr);
   } else {
-    LOG_INFO(label_, ": ", done_, "/", total_, " ", unit_, ", ", rate_text, ", ETA ", format_duration(eta),
+    LOG_INFO(label_, ": ", done_, "/", total_prefix, total, " ", unit_, ", ", rate_text, ", ETA ", format_duration(eta),
              note_.empty() ? "" : ", ", note_);
   }
 }

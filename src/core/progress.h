@@ -19,6 +19,10 @@ class Progress {
   // Advances by n; `note` is shown after the numbers (e.g. "loss 0.123").
   void advance(int64_t n = 1, const std::string& note = "");
   void set_note(const std::string& note);
+  // A loop that also stops when `seconds` have passed since construction (a training time
+  // budget): the bar and ETA follow whichever limit comes first, and the total reads "~N" as
+  // the step count the budget allows at the current rate. 0 = none.
+  void set_time_budget(double seconds) { time_budget_s_ = seconds; }
   // Prints the summary: "label: done N unit in T s (R unit/s)". Idempotent.
   void finish();
 
@@ -41,6 +45,7 @@ class Progress {
   std::chrono::steady_clock::time_point start_;
   std::chrono::steady_clock::time_point last_draw_;
   double log_every_seconds_ = 10.0;
+  double time_budget_s_ = 0;
 };
 
 }  // namespace dojo

@@ -24,7 +24,9 @@ nlohmann::json WmEvalResult::to_json() const {
                         {"psnr", v.psnr},
                         {"ssim", v.ssim},
                         {"copy_psnr", v.copy_psnr},
-                        {"copy_ssim", v.copy_ssim}};
+                        {"copy_ssim", v.copy_ssim},
+                        {"tokenizer_psnr", v.recon_psnr},
+                        {"tokenizer_ssim", v.recon_ssim}};
     if (!std::isnan(v.lpips)) j["lpips"] = v.lpips, j["copy_lpips"] = v.copy_lpips;
     if (!v.video.empty()) j["video"] = v.video;
     per.push_back(j);
@@ -36,6 +38,7 @@ nlohmann::json WmEvalResult::to_json() const {
                         {"psnr", psnr},
                         {"ssim", ssim},
                         {"copy_first_frame", {{"psnr", copy_psnr}, {"ssim", copy_ssim}}},
+                        {"tokenizer_round_trip", {{"psnr", recon_psnr}, {"ssim", recon_ssim}}},
                         {"seconds", seconds},
                         {"frames_per_second", frames_per_second},
                         {"per_video", per}};
@@ -86,14 +89,17 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
         model.rollout(gt.select(1, 0).contiguous(), torch::stack(gt_actions), o.seed, o.sampler, o.concat,
                       [&](int64_t) { progress.advance(static_cast<int64_t>(e - b)); });
     rollout_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    const auto first = pred.select(1, 0);  // the tokenizer's version of the conditioning frame
+    const auto recon = model.reconstruct_video(gt);  // [n, 1 + 12K, H, W, 3]
     for (size_t i = b; i < e; ++i) {
       const int64_t k = static_cast<int64_t>(i - b);
       VideoScore s;
       s.episode = info.episodes[episodes[i]].id;
       const auto m = video_metrics(pred[k], gt[k], o.lpips);
-      const auto copy = first[k].unsqueeze(0).expand_as(gt[k]).contiguous();
+      const auto copy = gt[k].select(0, 0).unsqueeze(0).expand_as(gt[k]).contiguous();
       const auto mc = video_metrics(copy, gt[k], o.lpips);
+      const auto mr = video_metrics(recon[k], gt[k], nullptr);
+      s.recon_psnr = mr.psnr;
+      s.recon_ssim = mr.ssim;
       s.lpips = m.lpips;
       s.copy_lpips = mc.lpips;
       s.psnr = m.psnr;
@@ -102,8 +108,8 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
       s.copy_ssim = mc.ssim;
       if (!o.video_dir.empty() && static_cast<int>(r.videos.size()) < o.videos) {
         s.video = (o.video_dir / (split + "_" + s.episode + ".mp4")).string();
-        io::write_comparison_video(s.video, {gt[k], pred[k], copy},
-                                   {"ground truth", "world model", "copy frame 0"}, info.fps);
+        io::write_comparison_video(s.video, {gt[k], pred[k], copy, recon[k]},
+                                   {"ground truth", "world model", "copy frame 0", "tokenizer"}, info.fps);
       }
       r.videos.push_back(s);
     }
@@ -114,6 +120,8 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
     r.ssim += v.ssim;
     r.copy_psnr += v.copy_psnr;
     r.copy_ssim += v.copy_ssim;
+    r.recon_psnr += v.recon_psnr;
+    r.recon_ssim += v.recon_ssim;
   }
   const double n = static_cast<double>(r.videos.size());
   if (o.lpips) {
@@ -124,6 +132,8 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
   r.ssim /= n;
   r.copy_psnr /= n;
   r.copy_ssim /= n;
+  r.recon_psnr /= n;
+  r.recon_ssim /= n;
   r.seconds = rollout_seconds;
   r.frames_per_second = rollout_seconds > 0 ? n * (r.frames - 1) / rollout_seconds : 0;
   return r;
@@ -134,17 +144,18 @@ std::string markdown_table(const std::vector<WmEvalResult>& results) {
   std::string s = "| split | videos | PSNR | SSIM |";
   s += with_lpips ? " LPIPS |" : "";
   s += " copy-frame PSNR | copy-frame SSIM |";
-  s += with_lpips ? " copy-frame LPIPS |\n|---|---|---|---|---|---|---|---|\n"
-                  : "\n|---|---|---|---|---|---|\n";
+  s += with_lpips ? " copy-frame LPIPS |" : "";
+  s += " tokenizer round-trip PSNR |";
+  s += with_lpips ? "\n|---|---|---|---|---|---|---|---|---|\n" : "\n|---|---|---|---|---|---|---|\n";
   char line[320];
   for (const auto& r : results) {
     if (with_lpips)
-      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f |\n",
+      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f |\n",
                     r.split.c_str(), r.videos.size(), r.psnr, r.ssim, r.lpips, r.copy_psnr, r.copy_ssim,
-                    r.copy_lpips);
+                    r.copy_lpips, r.recon_psnr);
     else
-      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f |\n", r.split.c_str(),
-                    r.videos.size(), r.psnr, r.ssim, r.copy_psnr, r.copy_ssim);
+      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f | %.3f |\n", r.split.c_str(),
+                    r.videos.size(), r.psnr, r.ssim, r.copy_psnr, r.copy_ssim, r.recon_psnr);
     s += line;
   }
   return s;

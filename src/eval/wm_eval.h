@@ -1,8 +1,10 @@
 // The paper's teacher evaluation on a dataset split: for each episode, the first ground-truth
 // frame and the episode's actions drive a rollout of 1 + 12 K frames (K = 4 chunks: 49 frames,
 // 3 autoregressive resets); PSNR and SSIM are taken per frame, averaged per video, then over
-// videos. The copy-first-frame baseline (the conditioning frame, as the tokenizer returns it,
-// repeated) is scored the same way: a world model that ignores actions cannot beat it by much.
+// videos. Two references are scored the same way: the copy-first-frame baseline (the real
+// conditioning frame repeated: what a predictor that ignores the actions gets for free) and the
+// tokenizer round trip of the ground-truth video (the ceiling any rollout decoded by this
+// tokenizer can reach).
 #pragma once
 
 #include <cmath>
@@ -36,6 +38,7 @@ struct VideoScore {
   double lpips = std::nan("");          // NaN without LPIPS weights
   double copy_psnr = 0, copy_ssim = 0;  // copy-first-frame baseline
   double copy_lpips = std::nan("");
+  double recon_psnr = 0, recon_ssim = 0;  // tokenizer round trip of the ground truth
   std::string video;  // side-by-side file, when written
 };
 
@@ -43,6 +46,7 @@ struct WmEvalResult {
   std::string dataset, split;
   std::vector<VideoScore> videos;
   double psnr = 0, ssim = 0, copy_psnr = 0, copy_ssim = 0;  // means over videos
+  double recon_psnr = 0, recon_ssim = 0;
   double lpips = std::nan(""), copy_lpips = std::nan("");
   int frames = 0;                             // per video
   double seconds = 0, frames_per_second = 0;  // generated frames / rollout time

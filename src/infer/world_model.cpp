@@ -36,6 +36,14 @@ torch::Tensor WorldModel::reconstruct_frames(const torch::Tensor& frames) {
   return train::model_to_video(tokenizer_->decode_latents(z)).select(1, 0);               // [B, H, W, 3]
 }
 
+torch::Tensor WorldModel::reconstruct_video(const torch::Tensor& video) {
+  torch::NoGradGuard no_grad;
+  DOJO_CHECK(video.dim() == 5 && (video.size(1) - 1) % 4 == 0,
+             "reconstruct_video: expected [B, 1 + 4k, H, W, 3] frames");
+  const auto z = tokenizer_->encode_latents(train::video_to_model(video));  // [B, 16, 1 + k, h, w]
+  return train::model_to_video(tokenizer_->decode_latents(z));             // [B, 1 + 4k, H, W, 3]
+}
+
 torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::Tensor& actions,
                                         uint64_t seed, const SamplerOptions& sampler) {
   DOJO_CHECK(cond.dim() == 4 && cond.size(3) == 3 && cond.scalar_type() == torch::kUInt8,

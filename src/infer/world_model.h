@@ -49,6 +49,10 @@ class WorldModel {
 
   // The tokenizer round trip of single frames: [B, H, W, 3] -> [B, H, W, 3] uint8.
   torch::Tensor reconstruct_frames(const torch::Tensor& frames);
+  // The tokenizer round trip of whole videos, encoded and decoded causally in one pass:
+  // [B, 1 + 4k, H, W, 3] -> the same shape, uint8. The best a rollout decoded by this tokenizer
+  // can score against ground truth.
+  torch::Tensor reconstruct_video(const torch::Tensor& video);
 
   models::ActionDit& net() { return net_; }
   models::WanVae& tokenizer() { return tokenizer_; }

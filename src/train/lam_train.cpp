@@ -164,6 +164,7 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   int64_t seen_steps = 0, timed_steps = 0;
   double timed_clips = 0, timed_seconds = 0;
   TimeBudget budget(job.time_budget_s);
+  progress.set_time_budget(job.time_budget_s);
   while (trainer.steps_done() < job.steps) {
     auto batch = loader.next();
     const auto t0 = std::chrono::steady_clock::now();
@@ -281,12 +282,31 @@ ProbeResult ridge_probe(const torch::Tensor& x_train, const torch::Tensor& y_tra
     return (1 - sse / sst).mean().item<double>();
   };
   ProbeResult r;
+  {
+    auto yd = y_test.to(torch::kDouble);
+    auto sse = (yd - (norm(x_test).mm(w) + ym)).pow(2).sum(0);
+    auto per_dim = (1 - sse / (yd - yd.mean(0)).pow(2).sum(0).clamp_min(1e-12)).contiguous();
+    r.r2_heldout_per_dim.assign(per_dim.data_ptr<double>(), per_dim.data_ptr<double>() + per_dim.numel());
+  }
   r.r2_train = r2(x_train, y_train);
   r.r2_heldout = r2(x_test, y_test);
   r.n_train = x_train.size(0);
   r.n_heldout = x_test.size(0);
   r.target_dims = y_train.size(1);
   return r;
+}
+
+ProbePairs probe_deltas(const torch::Tensor& rows, bool commanded) {
+  DOJO_CHECK(rows.dim() == 2 && rows.size(0) >= 3, "lam probe: need at least 3 rows of targets per episode");
+  const int64_t T = rows.size(0);
+  ProbePairs p;
+  if (commanded) {
+    p.first_pair = 1;
+    p.deltas = rows.slice(0, 1, T - 1) - rows.slice(0, 0, T - 2);  // pairs 1..T-2: cmd[t] - cmd[t-1]
+  } else {
+    p.deltas = rows.slice(0, 1) - rows.slice(0, 0, -1);  // pairs 0..T-2: pose[t+1] - pose[t]
+  }
+  return p;
 }
 
 }  // namespace dojo::train

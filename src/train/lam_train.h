@@ -103,9 +103,20 @@ LamLabelSummary label_lam_dataset(models::LatentActionModel& model, const std::f
 
 struct ProbeResult {
   double r2_train = 0, r2_heldout = 0;  // mean over target dims of 1 - SSE / SST
+  std::vector<double> r2_heldout_per_dim;
   int64_t n_train = 0, n_heldout = 0;
   int64_t target_dims = 0;
 };
+
+// What moved between frames t and t+1, for pairing with the latent action of that frame pair.
+// `commanded` rows (actions, and human hand commands) are issued after frame t is observed and
+// executed during step t (the LeRobot convention), so the pair's motion is cmd[t] - cmd[t-1] and
+// the first pair has no target. Measured rows (poses observed with frame t) give pose[t+1] - pose[t].
+struct ProbePairs {
+  int64_t first_pair = 0;  // latent-action rows [first_pair, first_pair + deltas.size(0)) match
+  torch::Tensor deltas;    // [n, K]
+};
+ProbePairs probe_deltas(const torch::Tensor& rows, bool commanded);
 // Ridge regression (with intercept) from x [N, D] to y [N, K], fitted on the train rows.
 ProbeResult ridge_probe(const torch::Tensor& x_train, const torch::Tensor& y_train,
                         const torch::Tensor& x_test, const torch::Tensor& y_test, double lambda = 1e-3);

@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <random>
 
 #include "core/checkpoint.h"
 #include "core/error.h"
@@ -27,15 +28,29 @@ TokenizerTrainOptions recommended_tokenizer_options() {
   return o;
 }
 
-double tokenizer_lr(const TokenizerTrainOptions& o, int64_t step) {
+double tokenizer_lr(const TokenizerTrainOptions& o, int64_t step, double budget_fraction) {
   if (o.warmup_steps > 0 && step < o.warmup_steps)
     return o.lr * static_cast<double>(step + 1) / static_cast<double>(o.warmup_steps);
   if (!o.cosine) return o.lr;
   const int64_t decay_steps = std::max<int64_t>(1, o.steps - o.warmup_steps);
-  const double progress =
-      std::min(1.0, static_cast<double>(step - o.warmup_steps) / static_cast<double>(decay_steps));
+  const double progress = std::min(
+      1.0, std::max(static_cast<double>(step - o.warmup_steps) / static_cast<double>(decay_steps), budget_fraction));
   const double floor = o.min_lr_fraction * o.lr;
   return floor + (o.lr - floor) * 0.5 * (1.0 + std::cos(std::acos(-1.0) * progress));
+}
+
+torch::Tensor random_spatial_crop(const torch::Tensor& video, int64_t size, uint64_t seed) {
+  const int64_t H = video.size(3), W = video.size(4);
+  if (size <= 0 || (size >= H && size >= W)) return video;
+  const int64_t ch = std::min(size, H), cw = std::min(size, W);
+  std::mt19937_64 rng(seed * 0x9E3779B97F4A7C15ull + 0x5851F42D4C957F2Dull);
+  std::vector<torch::Tensor> clips;
+  for (int64_t b = 0; b < video.size(0); ++b) {
+    const auto y = static_cast<int64_t>(rng() % static_cast<uint64_t>(H - ch + 1));
+    const auto x = static_cast<int64_t>(rng() % static_cast<uint64_t>(W - cw + 1));
+    clips.push_back(video[b].narrow(2, y, ch).narrow(3, x, cw));  // [C, T, ch, cw]
+  }
+  return torch::stack(clips).contiguous();  // [B, C, T, ch, cw]
 }
 
 TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, double kl_weight, bool sample_posterior,
@@ -127,11 +142,13 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
   if (o.progress) progress.emplace("tokenizer train", o.steps - start, "step");
   bool first = true;
   TimeBudget budget(o.time_budget_s);
+  if (progress) progress->set_time_budget(o.time_budget_s);
   std::optional<LossCurve> curve;
   if (!o.loss_curve.empty()) curve.emplace(o.loss_curve, "step,recon,kl,seconds", start);
   for (int64_t step = start; step < o.steps; ++step) {
-    const auto video = next_batch(step);
-    const double lr = tokenizer_lr(o, step);
+    const auto video = random_spatial_crop(next_batch(step), o.crop, static_cast<uint64_t>(step));
+    const double lr =
+        tokenizer_lr(o, step, o.time_budget_s > 0 ? std::min(1.0, budget.elapsed() / o.time_budget_s) : 0.0);
     for (auto& group : opt.param_groups()) static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
     auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior, o.l1);
     opt.zero_grad();

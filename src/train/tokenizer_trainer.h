@@ -38,6 +38,10 @@ struct TokenizerTrainOptions {
   // Batches (next_batch(steps + i), i < stats_batches) used after training to fit the latent
   // normalisation constants before the final checkpoint (0: keep the configured constants).
   int64_t stats_batches = 0;
+  // Train on random crop x crop windows (a multiple of 8) of every clip, one window per clip and
+  // the same for all its frames; 0 = whole frames. The network is convolutional, so a crop costs
+  // (crop / size)^2 of a full frame: more optimiser steps for the same compute.
+  int64_t crop = 0;
   double time_budget_s = 0;          // stop early (fit stats, checkpoint) after this long; 0: none
   std::filesystem::path loss_curve;  // CSV "step,recon,kl,seconds" when set
 };
@@ -46,8 +50,15 @@ struct TokenizerTrainOptions {
 // DojoSim tokenizer"): what `dojo tokenizer train` uses by default. Steps are left to the caller.
 TokenizerTrainOptions recommended_tokenizer_options();
 
-// Learning rate of `step` (0-based) under the options' warm-up / cosine schedule.
-double tokenizer_lr(const TokenizerTrainOptions& options, int64_t step);
+// A random size x size window of each clip of `video` [B, C, T, H, W] (the same window for all
+// frames of a clip), chosen deterministically from `seed`. Returns the video when it is no larger.
+torch::Tensor random_spatial_crop(const torch::Tensor& video, int64_t size, uint64_t seed);
+
+// Learning rate of `step` (0-based) under the options' warm-up / cosine schedule. With a time
+// budget the cosine runs over whichever ends first, the steps or the budget: `budget_fraction`
+// is the part of the budget used so far (0 when there is none), so a run cut short by its
+// budget still ends at the floor instead of at a high learning rate.
+double tokenizer_lr(const TokenizerTrainOptions& options, int64_t step, double budget_fraction = 0);
 
 struct TokenizerLoss {
   torch::Tensor total, recon, kl;  // scalars (total has grad); recon: the optimised term

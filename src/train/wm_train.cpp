@@ -432,6 +432,8 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   LossCurve curve(job.out / "loss.csv", "step,loss,mse,temporal,grad_norm,lr,clips_per_s,fixed_batch_loss",
                   trainer.steps_done());
   Progress progress("wm " + to_string(job.stage), job.steps - trainer.steps_done(), "step");
+  // The budget clock started before caching: what is left of it bounds the steps.
+  if (job.time_budget_s > 0) progress.set_time_budget(std::max(1.0, job.time_budget_s - budget.elapsed()));
   std::deque<double> recent;
   double timed_seconds = 0;
   int64_t timed_steps = 0, run_steps = 0;

@@ -105,6 +105,26 @@ TEST(TokenizerTrainer, LearnsToReconstructHeldOutClips) {
 }
 #endif
 
+// Each clip gets one window, the same for all its frames, and the same seed gives the same windows.
+TEST(TokenizerTrainer, RandomCropIsOneWindowPerClip) {
+  const auto video = torch::arange(2 * 3 * 5 * 16 * 24, torch::kFloat32).reshape({2, 3, 5, 16, 24});
+  const auto a = random_spatial_crop(video, 8, 11);
+  ASSERT_EQ(a.sizes(), (std::vector<int64_t>{2, 3, 5, 8, 8}));
+  EXPECT_TRUE(torch::equal(a, random_spatial_crop(video, 8, 11)));
+  for (int64_t b = 0; b < 2; ++b) {
+    // Values encode their position: recover the window's corner from the first element.
+    const int64_t first = a[b][0][0][0][0].item<int64_t>() - video[b][0][0][0][0].item<int64_t>();
+    const int64_t y = first / 24, x = first % 24;
+    EXPECT_TRUE(torch::equal(a[b], video[b].narrow(2, y, 8).narrow(3, x, 8)));
+  }
+  bool moved = false;  // some seed puts a window elsewhere
+  for (uint64_t seed = 0; seed < 8 && !moved; ++seed)
+    moved = !torch::equal(random_spatial_crop(video, 8, seed), a);
+  EXPECT_TRUE(moved);
+  EXPECT_TRUE(torch::equal(random_spatial_crop(video, 0, 1), video));
+  EXPECT_TRUE(torch::equal(random_spatial_crop(video, 32, 1), video));
+}
+
 TEST(TokenizerTrainer, LearningRateSchedule) {
   TokenizerTrainOptions o;
   o.steps = 110;
@@ -117,6 +137,11 @@ TEST(TokenizerTrainer, LearningRateSchedule) {
   EXPECT_NEAR(tokenizer_lr(o, 10), 1e-3, 1e-12);    // cosine starts at lr
   EXPECT_NEAR(tokenizer_lr(o, 60), 0.55e-3, 1e-9);  // half way: midpoint of lr and the floor
   EXPECT_NEAR(tokenizer_lr(o, 110), 1e-4, 1e-12);   // floor
+  // A time budget half used puts the cosine at least half way, whatever the step.
+  EXPECT_NEAR(tokenizer_lr(o, 10, 0.5), 0.55e-3, 1e-9);
+  EXPECT_NEAR(tokenizer_lr(o, 10, 1.0), 1e-4, 1e-12);
+  EXPECT_NEAR(tokenizer_lr(o, 60, 0.1), 0.55e-3, 1e-9);  // the step count leads: it wins
+  EXPECT_NEAR(tokenizer_lr(o, 5, 0.9), 0.6e-3, 1e-12);   // warm-up is by steps only
   o.cosine = false;
   EXPECT_NEAR(tokenizer_lr(o, 100), 1e-3, 1e-12);
 }
