@@ -18,9 +18,11 @@
 
 #include "cli/commands.h"
 #include "core/atomic_file.h"
+#include "core/autocast.h"
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
+#include "core/runtime.h"
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
 #include "eval/html_report.h"
@@ -48,6 +50,7 @@ struct DemoOptions {
   int sampler_steps = 35;
   uint64_t seed = 0;
   int workers = 0;
+  std::string device = "cpu", precision = "fp32";  // world-model training and rollouts
 };
 
 constexpr int64_t kMaxClips = 192;  // per dataset in the latent cache
@@ -68,6 +71,11 @@ std::string fixed(double v, int digits = 2) {
 }
 
 int run_demo(const DemoOptions& o) {
+  // First, so a CUDA request without CUDA (or fp16, which training rejects) fails before any work.
+  const auto device = parse_device(o.device);
+  const auto precision = parse_precision(o.precision);
+  if (precision == Precision::kFloat16)
+    throw UsageError("demo: --precision fp16 cannot train the world model (no loss scaling); use bf16");
   const fs::path out = o.out;
   fs::create_directories(out);
   const auto start = std::chrono::steady_clock::now();
@@ -78,6 +86,8 @@ int run_demo(const DemoOptions& o) {
     return std::max(1.0, left * w / weights_left);
   };
   nlohmann::json report;
+  report["device"] = device.str();
+  report["precision"] = to_string(precision);
   std::vector<std::pair<std::string, double>> stage_seconds;
 
   // 1. The world.
@@ -198,6 +208,8 @@ int run_demo(const DemoOptions& o) {
     job.time_budget_s = seconds;
     job.save_every = 100;
     job.seed = o.seed;
+    job.device = device;
+    job.precision = precision;
     return train::run_wm_training(job);
   };
   const double pre_s = stage_budget(kPretrainWeight, kPretrainWeight + kPosttrainWeight);
@@ -228,7 +240,7 @@ int run_demo(const DemoOptions& o) {
   LOG_INFO(
       "[6/7] rollouts: 49 frames (4 chunks, 3 resets) on held-out and out-of-distribution robot episodes");
   t0 = std::chrono::steady_clock::now();
-  auto model = infer::WorldModel::load(out / "wm_posttrain" / "checkpoint", tokenizer);
+  auto model = infer::WorldModel::load(out / "wm_posttrain" / "checkpoint", tokenizer, device, precision);
   eval::WmEvalOptions eo;
   eo.max_episodes = o.eval_episodes;
   eo.sampler.steps = o.sampler_steps;
@@ -342,6 +354,10 @@ void register_demo(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--seed", o->seed, "Random seed")->capture_default_str();
   cmd->add_option("--workers,-j", o->workers, "Parallel generation workers (0 = all cores)")
+      ->capture_default_str();
+  cmd->add_option("--device", o->device, "World model training and rollouts: cpu | cuda | cuda:N | auto")
+      ->capture_default_str();
+  cmd->add_option("--precision", o->precision, "World model: fp32 | bf16 (autocast forward, fp32 weights)")
       ->capture_default_str();
   cmd->callback([o] { set_action([o] { return run_demo(*o); }); });
 }

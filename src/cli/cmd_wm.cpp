@@ -8,8 +8,10 @@
 
 #include "cli/commands.h"
 #include "core/atomic_file.h"
+#include "core/autocast.h"
 #include "core/error.h"
 #include "core/log.h"
+#include "core/runtime.h"
 #include "core/safetensors.h"
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
@@ -26,7 +28,7 @@ namespace {
 
 struct WmTrainArgs {
   std::string stage = "pretrain", actions, split = "train", tokenizer, lam, init, out, model = "small",
-              temporal_axis = "time";
+              temporal_axis = "time", device = "cpu", precision = "fp32";
   std::vector<std::string> data;
   int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100;
   int batch = 8;
@@ -42,8 +44,19 @@ models::DitConfig model_preset(const std::string& name) {
   throw UsageError("--model must be small, 2b or 14b (got '" + name + "')");
 }
 
+// --device and --precision of the world-model commands: same flags, same help everywhere.
+void add_device_options(CLI::App* cmd, std::string& device, std::string& precision) {
+  cmd->add_option("--device", device, "Where the networks run: cpu | cuda | cuda:N | auto")
+      ->capture_default_str();
+  cmd->add_option("--precision", precision,
+                  "fp32 | bf16 | fp16 (CUDA only): the DiT forward under autocast; weights stay fp32")
+      ->capture_default_str();
+}
+
 int run_wm_train(const WmTrainArgs& a) {
   train::WmTrainJob job;
+  job.device = parse_device(a.device);  // a CUDA request without CUDA fails here, before any work
+  job.precision = parse_precision(a.precision);
   job.stage = train::parse_wm_stage(a.stage);
   const auto mode = train::parse_action_mode(
       !a.actions.empty() ? a.actions : (job.stage == train::WmStage::kPretrain ? "latent" : "dataset"));
@@ -86,13 +99,14 @@ int run_wm_train(const WmTrainArgs& a) {
 
 struct RolloutArgs {
   std::string checkpoint, tokenizer, data, split = "val", episode, actions_file, out, solver = "unipc",
-                                           concat = "aligned";
+                                           concat = "aligned", device = "cpu", precision = "fp32";
   int chunks = 4, steps = 35;
   uint64_t seed = 0;
 };
 
 int run_rollout(const RolloutArgs& a) {
-  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer);
+  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, parse_device(a.device),
+                                       parse_precision(a.precision));
   const auto store = data::EpisodeStore::open(a.data);
   const auto indices = store.split_indices(a.split);
   DOJO_CHECK(!indices.empty(), a.data + ": no episodes in split '" + a.split + "'");
@@ -141,7 +155,8 @@ int run_rollout(const RolloutArgs& a) {
 }
 
 struct EvalArgs {
-  std::string checkpoint, tokenizer, data, out, solver = "unipc", concat = "aligned";
+  std::string checkpoint, tokenizer, data, out, solver = "unipc", concat = "aligned", device = "cpu",
+                                                precision = "fp32";
   std::vector<std::string> splits = {"val"};
   std::vector<std::string> lpips_weights;
   int chunks = 4, episodes = 16, steps = 35, videos = 4, batch = 4;
@@ -150,7 +165,8 @@ struct EvalArgs {
 };
 
 int run_eval(const EvalArgs& a) {
-  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer);
+  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, parse_device(a.device),
+                                       parse_precision(a.precision));
   eval::WmEvalOptions o;
   o.chunks = a.chunks;
   o.max_episodes = a.episodes;
@@ -173,6 +189,8 @@ int run_eval(const EvalArgs& a) {
       {"tokenizer", a.tokenizer},
       {"sampler", {{"solver", a.solver}, {"steps", a.steps}, {"shift", o.sampler.shift}}},
       {"concat", a.concat},
+      {"device", model.device().str()},
+      {"precision", to_string(model.precision())},
       {"metrics", "PSNR/SSIM per frame (piq conventions), mean per video, then mean over videos"},
       {"splits", nlohmann::json::array()}};
   for (const auto& s : a.splits) {
@@ -238,6 +256,7 @@ void register_wm(CLI::App& app) {
                       "Ablation: one embedding of all 12 actions added to every frame (no per-frame chunks)");
   train_cmd->add_option("--save-every", t->save_every, "Checkpoint interval in steps")->capture_default_str();
   train_cmd->add_option("--seed", t->seed, "Random seed")->capture_default_str();
+  add_device_options(train_cmd, t->device, t->precision);
   train_cmd->callback([t] { set_action([t] { return run_wm_train(*t); }); });
 
   auto r = std::make_shared<RolloutArgs>();
@@ -256,6 +275,7 @@ void register_wm(CLI::App& app) {
   roll->add_option("--concat", r->concat, "aligned | released (chunk joining)")->capture_default_str();
   roll->add_option("--seed", r->seed, "Noise seed")->capture_default_str();
   roll->add_option("--out,-o", r->out, "Output mp4")->required();
+  add_device_options(roll, r->device, r->precision);
   roll->callback([r] { set_action([r] { return run_rollout(*r); }); });
 
   auto e = std::make_shared<EvalArgs>();
@@ -278,6 +298,7 @@ void register_wm(CLI::App& app) {
   ev->add_option("--lpips-weights", e->lpips_weights,
                  "LPIPS-VGG weights (safetensors; see docs/evaluation.md); adds LPIPS to the metrics");
   ev->add_flag("--json", e->json, "Print JSON instead of a table");
+  add_device_options(ev, e->device, e->precision);
   ev->callback([e] { set_action([e] { return run_eval(*e); }); });
 }
 

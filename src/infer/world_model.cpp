@@ -20,20 +20,27 @@ ConcatMode parse_concat_mode(const std::string& text) {
   throw Error("unknown concat mode '" + text + "' (expected aligned or released)");
 }
 
-WorldModel::WorldModel(models::ActionDit net, models::WanVae tokenizer)
-    : net_(std::move(net)), tokenizer_(std::move(tokenizer)) {
+WorldModel::WorldModel(models::ActionDit net, models::WanVae tokenizer, torch::Device device,
+                       Precision precision)
+    : net_(std::move(net)), tokenizer_(std::move(tokenizer)), device_(device), precision_(precision) {
+  check_precision_supported(precision_, device_.type());
+  net_->to(device_);
+  tokenizer_->to(device_);
   net_->eval();
   tokenizer_->eval();
 }
 
-WorldModel WorldModel::load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer) {
-  return WorldModel(train::load_world_model(checkpoint), train::load_tokenizer(tokenizer));
+WorldModel WorldModel::load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer,
+                            torch::Device device, Precision precision) {
+  check_precision_supported(precision, device.type());  // before reading any weights
+  return WorldModel(train::load_world_model(checkpoint), train::load_tokenizer(tokenizer), device, precision);
 }
 
 torch::Tensor WorldModel::reconstruct_frames(const torch::Tensor& frames) {
   torch::NoGradGuard no_grad;
-  const auto z = tokenizer_->encode_latents(train::video_to_model(frames.unsqueeze(1)));  // [B, 16, 1, h, w]
-  return train::model_to_video(tokenizer_->decode_latents(z)).select(1, 0);               // [B, H, W, 3]
+  const auto video = train::video_to_model(frames.to(device_).unsqueeze(1));  // [B, 3, 1, H, W]
+  const auto z = tokenizer_->encode_latents(video);                           // [B, 16, 1, h, w]
+  return train::model_to_video(tokenizer_->decode_latents(z)).select(1, 0).to(torch::kCPU);  // [B, H, W, 3]
 }
 
 torch::Tensor WorldModel::reconstruct_video(const torch::Tensor& video) {
@@ -54,30 +61,34 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
   const int64_t batch = cond.size(0);
   // The causal tokenizer encodes frame 0 on its own, so the conditioning latent of a
   // [cond, 12 blank frames] clip is the latent of cond alone.
-  const auto z_cond =
-      tokenizer_->encode_latents(train::video_to_model(cond.unsqueeze(1)));  // [B, 16, 1, h, w]
+  const auto z_cond = tokenizer_->encode_latents(
+      train::video_to_model(cond.to(device_).unsqueeze(1)));  // [B, 16, 1, h, w] float32
+  const auto opts = z_cond.options();
   const int64_t latent_frames = 1 + kChunkActions / 4;
-  auto gt = torch::zeros({batch, z_cond.size(1), latent_frames, z_cond.size(3), z_cond.size(4)});
+  auto gt = torch::zeros({batch, z_cond.size(1), latent_frames, z_cond.size(3), z_cond.size(4)}, opts);
   gt.narrow(2, 0, 1).copy_(z_cond);  // [B, 16, 4, h, w]
-  auto mask = torch::zeros({batch, 1, latent_frames, z_cond.size(3), z_cond.size(4)});
+  auto mask = torch::zeros({batch, 1, latent_frames, z_cond.size(3), z_cond.size(4)}, opts);
   mask.narrow(2, 0, 1).fill_(1);
+  // Drawn on the CPU and moved, so a seed gives the same noise on every device.
   auto gen = at::make_generator<at::CPUGeneratorImpl>(seed);
-  const auto noise = torch::randn(gt.sizes(), gen);
-  const auto acts = actions.to(torch::kFloat);
+  const auto noise = torch::randn(gt.sizes(), gen).to(opts);
+  const auto acts = actions.to(device_, torch::kFloat);
 
   const diffusion::VelocityFn velocity = [&](const torch::Tensor& x, double /*sigma*/, int64_t timestep) {
     models::DitInputs in;
-    in.timesteps = torch::full({batch, 1}, static_cast<double>(timestep));
+    in.timesteps = torch::full({batch, 1}, static_cast<double>(timestep), opts);
     in.condition_mask = mask;
     in.actions = acts;
-    return models::denoise_velocity(*net_, in, x, gt, noise, mask);
+    // Only the network runs in the lower precision; the solver's updates stay float32.
+    AutocastGuard autocast(device_.type(), precision_);
+    return models::denoise_velocity(*net_, in, x, gt, noise, mask).to(torch::kFloat32);
   };
   const auto schedule = diffusion::flow_sigma_schedule(sampler.steps, sampler.shift);
   auto x0 = diffusion::sample_flow(velocity, noise, schedule, sampler.solver);  // [B, 16, 4, h, w]
   // The sampler starts from pure noise at sigma = 0.999, so the conditioning latent ends ~1e-3
   // off its clean value; put it back exactly, so frame 0 is the tokenizer's round trip of cond.
   x0 = gt * mask + x0 * (1 - mask);
-  return train::model_to_video(tokenizer_->decode_latents(x0));  // [B, 13, H, W, 3]
+  return train::model_to_video(tokenizer_->decode_latents(x0)).to(torch::kCPU);  // [B, 13, H, W, 3]
 }
 
 torch::Tensor WorldModel::rollout(const torch::Tensor& first, const torch::Tensor& actions, uint64_t seed,

@@ -11,6 +11,7 @@
 #include <functional>
 #include <string>
 
+#include "core/autocast.h"
 #include "diffusion/samplers.h"
 #include "models/dit.h"
 #include "models/wan_vae.h"
@@ -30,11 +31,16 @@ diffusion::Solver parse_solver(const std::string& text);  // unipc | euler
 enum class ConcatMode { kAligned, kReleased };
 ConcatMode parse_concat_mode(const std::string& text);  // aligned | released
 
+// Both networks live on `device`. With precision bf16 (or fp16, CUDA only) the DiT's velocity
+// calls run under autocast; the tokenizer runs in float32. Inputs may be on any device; outputs
+// come back on the CPU.
 class WorldModel {
  public:
-  WorldModel(models::ActionDit net, models::WanVae tokenizer);
+  WorldModel(models::ActionDit net, models::WanVae tokenizer, torch::Device device = torch::kCPU,
+             Precision precision = Precision::kFloat32);
   // A world-model checkpoint and the tokenizer it was trained with.
-  static WorldModel load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer);
+  static WorldModel load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer,
+                         torch::Device device = torch::kCPU, Precision precision = Precision::kFloat32);
 
   // cond: [B, H, W, 3] uint8, actions: [B, 12, 384] -> [B, 13, H, W, 3] uint8. Frame 0 is the
   // tokenizer's reconstruction of cond. Noise is drawn from `seed` (same seed, same video).
@@ -56,11 +62,15 @@ class WorldModel {
 
   models::ActionDit& net() { return net_; }
   models::WanVae& tokenizer() { return tokenizer_; }
+  const torch::Device& device() const { return device_; }
+  Precision precision() const { return precision_; }
   static constexpr int64_t kChunkActions = 12;
 
  private:
   models::ActionDit net_;
   models::WanVae tokenizer_;
+  torch::Device device_;
+  Precision precision_;
 };
 
 }  // namespace dojo::infer

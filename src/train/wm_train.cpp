@@ -275,25 +275,43 @@ struct FlowLoss {
   torch::Tensor total, mse;
 };
 
+// x0 and actions on the network's device. Only the network's forward runs under autocast; its
+// velocity is taken back to float32 so the loss (and the start of the backward pass) is float32.
 FlowLoss flow_loss(models::ActionDit& net, const diffusion::FlowMatchingConfig& flow, const torch::Tensor& x0,
-                   const torch::Tensor& actions, torch::Generator gen) {
-  const auto noise = diffusion::sample_training_noise(x0, flow, gen);
+                   const torch::Tensor& actions, torch::Generator gen, Precision precision) {
+  const auto noise = diffusion::sample_training_noise(x0, flow, gen);  // drawn on CPU, on x0's device
   const auto mask = condition_mask_like(x0);
   models::DitInputs in;
   in.timesteps = noise.timesteps.view({x0.size(0), 1});  // [B, 1]
   in.condition_mask = mask;
   in.actions = actions;
-  const auto v = models::denoise_velocity(*net, in, noise.x_t, x0, noise.noise, mask);  // [B, 16, T, h, w]
+  torch::Tensor v;  // [B, 16, T, h, w]
+  {
+    AutocastGuard autocast(x0.device().type(), precision);
+    v = models::denoise_velocity(*net, in, noise.x_t, x0, noise.noise, mask);
+  }
+  v = v.to(torch::kFloat32);
   return {diffusion::flow_matching_loss(v, noise.target_velocity, flow),
           (v - noise.target_velocity).pow(2).mean()};
 }
 
 torch::Generator make_cpu_generator(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
 
+void check_training_precision(Precision precision) {
+  // fp16's 5 exponent bits underflow small gradients unless the loss is scaled; bf16 has
+  // float32's range and is what the release trains in.
+  if (precision == Precision::kFloat16)
+    throw UsageError("wm train: precision fp16 is not supported for training (no loss scaling); use bf16");
+}
+
 }  // namespace
 
-WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options)
-    : net_(std::move(net)), ema_(net_->config), options_(options) {
+WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options, torch::Device device, Precision precision)
+    : net_(std::move(net)), ema_(net_->config), options_(options), device_(device), precision_(precision) {
+  check_training_precision(precision_);
+  // Moved before the optimiser sees the parameters: Module::to swaps their data in place.
+  net_->to(device_);
+  ema_->to(device_);
   // The EMA starts as an exact copy; it never trains.
   load_state_dict(*ema_, state_dict(*net_));
   ema_->eval();
@@ -321,7 +339,8 @@ WmStepStats WmTrainer::step(const torch::Tensor& x0, const torch::Tensor& action
   for (auto& group : optimizer_->param_groups())
     static_cast<torch::optim::AdamWOptions&>(group.options()).lr(s.lr);
   optimizer_->zero_grad();
-  const auto loss = flow_loss(net_, options_.flow, x0, actions, generator);
+  const auto loss =
+      flow_loss(net_, options_.flow, x0.to(device_), actions.to(device_), generator, precision_);
   loss.total.backward();
   const double clip = options_.grad_clip > 0 ? options_.grad_clip : std::numeric_limits<double>::infinity();
   s.grad_norm = torch::nn::utils::clip_grad_norm_(params_, clip);
@@ -337,19 +356,24 @@ WmStepStats WmTrainer::step(const torch::Tensor& x0, const torch::Tensor& action
 double WmTrainer::eval_loss(const torch::Tensor& x0, const torch::Tensor& actions, uint64_t seed) {
   torch::NoGradGuard no_grad;
   ema_->eval();
-  return flow_loss(ema_, options_.flow, x0, actions, make_cpu_generator(seed)).total.item<double>();
+  return flow_loss(ema_, options_.flow, x0.to(device_), actions.to(device_), make_cpu_generator(seed),
+                   precision_)
+      .total.item<double>();
 }
 
 void WmTrainer::save(const fs::path& dir, const nlohmann::json& extra) const {
+  // Weights and moments are float32 on every precision; only their device varies. (.to(kCPU)
+  // of a CPU tensor is the tensor itself, so CPU checkpoints stay bit-exact.)
+  auto cpu = [](const torch::Tensor& t) { return t.detach().to(torch::kCPU); };
   CheckpointData data;
   data.config = {{"model", "action_dit"}, {"config", net_->config.to_json()}};
-  for (const auto& [name, t] : state_dict(*ema_)) data.model.emplace_back("net." + name, t);
+  for (const auto& [name, t] : state_dict(*ema_)) data.model.emplace_back("net." + name, cpu(t));
   TrainerState ts;
   ts.step = steps_;
   ts.extra = extra;
   ts.extra["options"] = options_.to_json();
-  for (const auto& [name, t] : state_dict(*net_)) ts.tensors.emplace_back("train." + name, t);
-  for (auto& t : adamw_state(*optimizer_, *net_)) ts.tensors.push_back(std::move(t));
+  for (const auto& [name, t] : state_dict(*net_)) ts.tensors.emplace_back("train." + name, cpu(t));
+  for (auto& t : adamw_state(*optimizer_, *net_)) ts.tensors.emplace_back(t.first, cpu(t.second));
   for (auto& t : capture_rng_state()) ts.tensors.push_back(std::move(t));
   data.trainer = ts;
   save_checkpoint(dir, data);
@@ -370,7 +394,7 @@ void WmTrainer::resume(const fs::path& dir) {
   restore_rng_state(tensors);
 }
 
-models::ActionDit load_world_model(const fs::path& dir) {
+models::ActionDit load_world_model(const fs::path& dir, torch::Device device) {
   auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
   const auto& cfg = ckpt.config();
   DOJO_CHECK(cfg.value("model", std::string()) == "action_dit" && cfg.contains("config"),
@@ -379,6 +403,7 @@ models::ActionDit load_world_model(const fs::path& dir) {
   LoadOptions opts;
   opts.prefix = "net.";
   load_state_dict(*net, ckpt.model(), opts);
+  net->to(device);
   net->eval();
   return net;
 }
@@ -386,6 +411,7 @@ models::ActionDit load_world_model(const fs::path& dir) {
 WmTrainResult run_wm_training(const WmTrainJob& job) {
   DOJO_CHECK(!job.data.empty(), "wm train: no dataset given");
   DOJO_CHECK(job.batch_size > 0, "wm train: batch size must be positive");
+  check_training_precision(job.precision);  // before the (slow) latent caching
   TimeBudget budget(job.time_budget_s);
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint";
@@ -412,7 +438,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   } else {
     net.emplace(job.model);
   }
-  WmTrainer trainer(*net, job.options);
+  WmTrainer trainer(*net, job.options, job.device, job.precision);
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("wm train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
@@ -496,6 +522,8 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
                   1e9;
   LOG_INFO("wm train: ", result.clips_per_second, " clips/s (", result.gflops, " GFLOP/s of matmul work)");
   const nlohmann::json summary = {{"stage", to_string(job.stage)},
+                                  {"device", job.device.str()},
+                                  {"precision", dojo::to_string(job.precision)},
                                   {"steps", result.steps},
                                   {"clips", n},
                                   {"first_loss", result.first_loss},

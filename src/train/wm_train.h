@@ -19,6 +19,7 @@
 #include <string>
 #include <vector>
 
+#include "core/autocast.h"
 #include "diffusion/flow_matching.h"
 #include "models/dit.h"
 
@@ -82,9 +83,14 @@ struct WmStepStats {
 
 class WmTrainer {
  public:
-  WmTrainer(models::ActionDit net, WmTrainOptions options);
-  // x0: [B, 16, T, h, w] clean latents, actions: [B, 4 (T - 1), 384]. One optimiser step; the
-  // noise and time draws come from `generator`.
+  // The network, its EMA copy and the AdamW moments live on `device`. With precision bf16 the
+  // forward pass runs under autocast while weights, gradients, optimiser and loss stay float32;
+  // fp16 (which would need loss scaling) is rejected.
+  WmTrainer(models::ActionDit net, WmTrainOptions options, torch::Device device = torch::kCPU,
+            Precision precision = Precision::kFloat32);
+  // x0: [B, 16, T, h, w] clean latents, actions: [B, 4 (T - 1), 384], on any device (moved to
+  // the trainer's). One optimiser step; the noise and time draws come from `generator` (a CPU
+  // generator, so a seed gives the same draws on every device).
   WmStepStats step(const torch::Tensor& x0, const torch::Tensor& actions, torch::Generator generator);
   // Flow-matching loss of the EMA network on a fixed batch and fixed noise (no update).
   double eval_loss(const torch::Tensor& x0, const torch::Tensor& actions, uint64_t seed);
@@ -93,10 +99,13 @@ class WmTrainer {
   models::ActionDit& ema() { return ema_; }
   int64_t steps_done() const { return steps_; }
   const WmTrainOptions& options() const { return options_; }
+  const torch::Device& device() const { return device_; }
+  Precision precision() const { return precision_; }
 
   // Checkpoint: model.safetensors holds the EMA weights as "net.*" (what inference loads, as
   // in the released converted checkpoints); trainer_state holds the raw weights, AdamW moments
-  // and RNG.
+  // and RNG. Always CPU float32 tensors, whatever the device and precision; resume() loads them
+  // onto the trainer's device.
   void save(const std::filesystem::path& dir, const nlohmann::json& extra = nlohmann::json::object()) const;
   void resume(const std::filesystem::path& dir);
 
@@ -105,6 +114,8 @@ class WmTrainer {
 
   models::ActionDit net_, ema_;
   WmTrainOptions options_;
+  torch::Device device_;
+  Precision precision_;
   std::vector<torch::Tensor> params_, ema_params_;
   std::unique_ptr<torch::optim::AdamW> optimizer_;
   double ema_gamma_;
@@ -127,6 +138,8 @@ struct WmTrainJob {
   double time_budget_s = 0;  // wall-clock budget of the job, latent caching included; 0: none
   int64_t save_every = 100;
   uint64_t seed = 0;
+  torch::Device device = torch::kCPU;         // where the network trains (latent caching stays on CPU)
+  Precision precision = Precision::kFloat32;  // bf16: autocast forward, float32 master weights
 };
 
 struct WmTrainResult {
@@ -141,7 +154,7 @@ struct WmTrainResult {
 // Trains, resuming from out/checkpoint when it exists. Returns what the run measured.
 WmTrainResult run_wm_training(const WmTrainJob& job);
 
-// Saved world-model checkpoint -> EMA network in eval mode.
-models::ActionDit load_world_model(const std::filesystem::path& dir);
+// Saved world-model checkpoint -> EMA network in eval mode (float32, on `device`).
+models::ActionDit load_world_model(const std::filesystem::path& dir, torch::Device device = torch::kCPU);
 
 }  // namespace dojo::train

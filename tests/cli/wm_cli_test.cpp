@@ -2,6 +2,7 @@
 // robot episodes, post-train from it, roll out, evaluate; and the whole demo on a tiny budget.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <nlohmann/json.hpp>
 
@@ -42,9 +43,13 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("4 steps"), std::string::npos) << r.output;
 
-  r = test::run_dojo("--threads 1 wm train --stage posttrain --steps 2" + common + " --init " +
-                     (tmp / "s" / "checkpoint").string() + " --out " + (tmp / "p").string());
+  // Post-training in bf16 (CPU autocast); its float32 checkpoint is evaluated in fp32 below.
+  r = test::run_dojo("--threads 1 wm train --stage posttrain --steps 2 --precision bf16" + common +
+                     " --init " + (tmp / "s" / "checkpoint").string() + " --out " + (tmp / "p").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto summary = nlohmann::json::parse(test::read_file(tmp / "p" / "train_summary.json"));
+  EXPECT_EQ(summary.at("precision"), "bf16");
+  EXPECT_EQ(summary.at("device"), "cpu");
 
   // LPIPS with random weights: the wiring is what is tested here (values are checked in metrics_test).
   torch::manual_seed(0);
@@ -67,8 +72,8 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   EXPECT_FALSE(std::filesystem::is_empty(tmp / "eval" / "videos"));
 
   r = test::run_dojo("--threads 1 wm rollout --checkpoint " + (tmp / "p" / "checkpoint").string() +
-                     " --tokenizer " + tok + " --data " + data + " --chunks 2 --steps 2 --out " +
-                     (tmp / "roll.mp4").string());
+                     " --tokenizer " + tok + " --data " + data +
+                     " --chunks 2 --steps 2 --precision bf16 --out " + (tmp / "roll.mp4").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("25 frames"), std::string::npos) << r.output;
 
@@ -82,6 +87,32 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   r = test::run_dojo("eval --checkpoint " + tok + " --tokenizer " + tok + " --data " + data);
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("not a world-model checkpoint"), std::string::npos) << r.output;
+}
+
+TEST(WmCli, CudaOnACpuMachineAndBadPrecisionsFailInOneLine) {
+  if (torch::cuda::is_available()) GTEST_SKIP() << "CUDA is available here";
+  test::TempDir tmp;
+  const auto d = (tmp / "none").string();  // nothing is read: the flags fail first
+  const std::vector<std::string> commands = {
+      "wm train --data " + d + " --tokenizer " + d + " --out " + d,
+      "wm rollout --checkpoint " + d + " --tokenizer " + d + " --data " + d + " --out " + d + ".mp4",
+      "eval --checkpoint " + d + " --tokenizer " + d + " --data " + d, "demo --out " + d};
+  for (const auto& command : commands) {
+    const auto r = test::run_dojo(command + " --device cuda");
+    EXPECT_EQ(r.exit_code, 2) << command << "\n" << r.output;
+    EXPECT_EQ(r.output.rfind("error: device 'cuda' requested but CUDA is not available", 0), 0u) << r.output;
+    EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 1) << r.output;
+  }
+  auto r = test::run_dojo(commands[0] + " --precision fp8");
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_NE(r.output.find("unknown precision 'fp8'"), std::string::npos) << r.output;
+  r = test::run_dojo(commands[0] + " --precision fp16");
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_NE(r.output.find("loss scaling"), std::string::npos) << r.output;
+  r = test::run_dojo(commands[1] + " --precision fp16");
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_NE(r.output.find("fp16 needs a CUDA device"), std::string::npos) << r.output;
+  EXPECT_FALSE(std::filesystem::exists(d));
 }
 
 TEST(WmCli, DemoRunsEndToEndOnATinyBudgetAndWritesTheReport) {
