@@ -19,7 +19,6 @@
 namespace dojo::cli {
 namespace {
 
-
 // "DIR" or "DIR:WEIGHT".
 std::pair<std::filesystem::path, double> parse_dataset(const std::string& text) {
   const auto colon = text.rfind(':');
@@ -141,8 +140,8 @@ void add_probe(CLI::App& lam) {
           used = use_action ? "action_delta" : "motion_delta";
           // Robot hidden motion is a measured pose; actions and the human hand's rows are commands.
           const bool commanded = use_action || store.info().embodiment == data::Embodiment::kHuman;
-          const auto pairs = train::probe_deltas(src, commanded);                  // [n, K]
-          const auto z = train::lam_encode_episode(model, ep.frames);               // [T - 1, latent]
+          const auto pairs = train::probe_deltas(src, commanded);      // [n, K]
+          const auto z = train::lam_encode_episode(model, ep.frames);  // [T - 1, latent]
           xs[i >= n_train].push_back(z.narrow(0, pairs.first_pair, pairs.deltas.size(0)));
           ys[i >= n_train].push_back(pairs.deltas);
         }

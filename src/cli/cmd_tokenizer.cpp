@@ -52,8 +52,8 @@ struct EvalArgs {
 int run_train(const TrainArgs& a) {
   DOJO_CHECK((a.frames - 1) % 4 == 0, "--frames must be 1 + 4k (got " + std::to_string(a.frames) + ")");
   DOJO_CHECK(a.size % 8 == 0, "--size must be a multiple of 8");
-  DOJO_CHECK(a.crop % 8 == 0 && a.crop <= a.size, "--crop must be a multiple of 8 and at most --size (got " +
-                                                       std::to_string(a.crop) + ")");
+  DOJO_CHECK(a.crop % 8 == 0 && a.crop <= a.size,
+             "--crop must be a multiple of 8 and at most --size (got " + std::to_string(a.crop) + ")");
   DOJO_CHECK(a.loss == "mse" || a.loss == "l1", "--loss must be mse or l1 (got " + a.loss + ")");
   models::WanVaeConfig cfg;
   cfg.dim = a.dim;
@@ -233,7 +233,8 @@ void register_tokenizer(CLI::App& app) {
   train_cmd->add_option("--frames", ta->frames, "Frames per clip (1 + 4k)")->capture_default_str();
   train_cmd->add_option("--size", ta->size, "Clip height and width (multiple of 8)")->capture_default_str();
   train_cmd->add_option("--dim", ta->dim, "Base width (released: 96)")->capture_default_str();
-  train_cmd->add_option("--crop", ta->crop, "Train on random CROPxCROP windows of the clips (0: whole frames)")
+  train_cmd
+      ->add_option("--crop", ta->crop, "Train on random CROPxCROP windows of the clips (0: whole frames)")
       ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
   train_cmd->add_option("--minutes", ta->minutes, "Stop after this many minutes (0: run all --steps)")

@@ -95,12 +95,12 @@ void Progress::draw(bool force) {
     for (int i = 0; i < filled; ++i) bar[i] = '=';
     if (filled < kWidth) bar[filled] = '>';
     std::fprintf(stderr, "\r%s [%s] %lld/%s%lld %s ETA %s %s\033[K", label_.c_str(), bar.c_str(),
-                 static_cast<long long>(done_), total_prefix.c_str(), static_cast<long long>(total), rate_text,
-                 format_duration(eta).c_str(), note_.c_str());
+                 static_cast<long long>(done_), total_prefix.c_str(), static_cast<long long>(total),
+                 rate_text, format_duration(eta).c_str(), note_.c_str());
     std::fflush(stderr);
   } else {
-    LOG_INFO(label_, ": ", done_, "/", total_prefix, total, " ", unit_, ", ", rate_text, ", ETA ", format_duration(eta),
-             note_.empty() ? "" : ", ", note_);
+    LOG_INFO(label_, ": ", done_, "/", total_prefix, total, " ", unit_, ", ", rate_text, ", ETA ",
+             format_duration(eta), note_.empty() ? "" : ", ", note_);
   }
 }
 

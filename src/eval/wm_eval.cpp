@@ -20,13 +20,10 @@ namespace dojo::eval {
 nlohmann::json WmEvalResult::to_json() const {
   nlohmann::json per = nlohmann::json::array();
   for (const auto& v : videos) {
-    nlohmann::json j = {{"episode", v.episode},
-                        {"psnr", v.psnr},
-                        {"ssim", v.ssim},
-                        {"copy_psnr", v.copy_psnr},
-                        {"copy_ssim", v.copy_ssim},
-                        {"tokenizer_psnr", v.recon_psnr},
-                        {"tokenizer_ssim", v.recon_ssim}};
+    nlohmann::json j = {
+        {"episode", v.episode},          {"psnr", v.psnr},           {"ssim", v.ssim},
+        {"copy_psnr", v.copy_psnr},      {"copy_ssim", v.copy_ssim}, {"tokenizer_psnr", v.recon_psnr},
+        {"tokenizer_ssim", v.recon_ssim}};
     if (!std::isnan(v.lpips)) j["lpips"] = v.lpips, j["copy_lpips"] = v.copy_lpips;
     if (!v.video.empty()) j["video"] = v.video;
     per.push_back(j);
@@ -89,7 +86,7 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
         model.rollout(gt.select(1, 0).contiguous(), torch::stack(gt_actions), o.seed, o.sampler, o.concat,
                       [&](int64_t) { progress.advance(static_cast<int64_t>(e - b)); });
     rollout_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    const auto recon = model.reconstruct_video(gt);  // [n, 1 + 12K, H, W, 3]
+    const auto recon = model.reconstruct_chunks(gt, o.concat);  // [n, 1 + 12K, H, W, 3]
     for (size_t i = b; i < e; ++i) {
       const int64_t k = static_cast<int64_t>(i - b);
       VideoScore s;

@@ -3,8 +3,8 @@
 // 3 autoregressive resets); PSNR and SSIM are taken per frame, averaged per video, then over
 // videos. Two references are scored the same way: the copy-first-frame baseline (the real
 // conditioning frame repeated: what a predictor that ignores the actions gets for free) and the
-// tokenizer round trip of the ground-truth video (the ceiling any rollout decoded by this
-// tokenizer can reach).
+// tokenizer round trip of the ground truth, chunked as the rollout is (the ceiling for a rollout
+// decoded by this tokenizer: every latent predicted perfectly).
 #pragma once
 
 #include <cmath>
@@ -39,7 +39,7 @@ struct VideoScore {
   double copy_psnr = 0, copy_ssim = 0;  // copy-first-frame baseline
   double copy_lpips = std::nan("");
   double recon_psnr = 0, recon_ssim = 0;  // tokenizer round trip of the ground truth
-  std::string video;  // side-by-side file, when written
+  std::string video;                      // side-by-side file, when written
 };
 
 struct WmEvalResult {

@@ -47,8 +47,26 @@ torch::Tensor WorldModel::reconstruct_video(const torch::Tensor& video) {
   torch::NoGradGuard no_grad;
   DOJO_CHECK(video.dim() == 5 && (video.size(1) - 1) % 4 == 0,
              "reconstruct_video: expected [B, 1 + 4k, H, W, 3] frames");
-  const auto z = tokenizer_->encode_latents(train::video_to_model(video));  // [B, 16, 1 + k, h, w]
-  return train::model_to_video(tokenizer_->decode_latents(z));             // [B, 1 + 4k, H, W, 3]
+  const auto z =
+      tokenizer_->encode_latents(train::video_to_model(video.to(device_)));     // [B, 16, 1 + k, h, w]
+  return train::model_to_video(tokenizer_->decode_latents(z)).to(torch::kCPU);  // [B, 1 + 4k, H, W, 3]
+}
+
+torch::Tensor WorldModel::reconstruct_chunks(const torch::Tensor& video, ConcatMode concat) {
+  DOJO_CHECK(video.dim() == 5 && (video.size(1) - 1) % kChunkActions == 0 && video.size(1) > 1,
+             "reconstruct_chunks: expected [B, 1 + 12 K, H, W, 3] frames");
+  const int64_t chunks = (video.size(1) - 1) / kChunkActions;
+  std::vector<torch::Tensor> parts;
+  for (int64_t k = 0; k < chunks; ++k) {
+    const auto chunk =
+        reconstruct_video(video.narrow(1, k * kChunkActions, 1 + kChunkActions));  // [B, 13, ...]
+    if (k == 0)
+      parts.push_back(chunk);
+    else
+      parts.push_back(concat == ConcatMode::kAligned ? chunk.narrow(1, 1, kChunkActions)
+                                                     : chunk.narrow(1, 0, kChunkActions));
+  }
+  return torch::cat(parts, 1);  // [B, 1 + 12 K, H, W, 3]
 }
 
 torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::Tensor& actions,

@@ -56,9 +56,12 @@ class WorldModel {
   // The tokenizer round trip of single frames: [B, H, W, 3] -> [B, H, W, 3] uint8.
   torch::Tensor reconstruct_frames(const torch::Tensor& frames);
   // The tokenizer round trip of whole videos, encoded and decoded causally in one pass:
-  // [B, 1 + 4k, H, W, 3] -> the same shape, uint8. The best a rollout decoded by this tokenizer
-  // can score against ground truth.
+  // [B, 1 + 4k, H, W, 3] -> the same shape, uint8.
   torch::Tensor reconstruct_video(const torch::Tensor& video);
+  // The tokenizer round trip of a ground-truth rollout, cut and joined exactly as rollout() cuts
+  // and joins its chunks (each 1 + 12 frames encoded and decoded on its own): what a rollout
+  // would show if the DiT predicted every latent perfectly. [B, 1 + 12 K, H, W, 3] uint8.
+  torch::Tensor reconstruct_chunks(const torch::Tensor& video, ConcatMode concat = ConcatMode::kAligned);
 
   models::ActionDit& net() { return net_; }
   models::WanVae& tokenizer() { return tokenizer_; }

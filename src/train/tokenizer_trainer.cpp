@@ -33,8 +33,9 @@ double tokenizer_lr(const TokenizerTrainOptions& o, int64_t step, double budget_
     return o.lr * static_cast<double>(step + 1) / static_cast<double>(o.warmup_steps);
   if (!o.cosine) return o.lr;
   const int64_t decay_steps = std::max<int64_t>(1, o.steps - o.warmup_steps);
-  const double progress = std::min(
-      1.0, std::max(static_cast<double>(step - o.warmup_steps) / static_cast<double>(decay_steps), budget_fraction));
+  const double progress =
+      std::min(1.0, std::max(static_cast<double>(step - o.warmup_steps) / static_cast<double>(decay_steps),
+                             budget_fraction));
   const double floor = o.min_lr_fraction * o.lr;
   return floor + (o.lr - floor) * 0.5 * (1.0 + std::cos(std::acos(-1.0) * progress));
 }

@@ -68,6 +68,7 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   EXPECT_GT(j["splits"][0].at("psnr").get<double>(), 0.0);
   EXPECT_TRUE(std::isfinite(j["splits"][0].at("lpips").get<double>()));  // random heads: any sign
   EXPECT_TRUE(j["splits"][0]["copy_first_frame"].contains("lpips"));
+  EXPECT_GT(j["splits"][0]["tokenizer_round_trip"].at("psnr").get<double>(), 0.0);
   EXPECT_TRUE(std::filesystem::exists(tmp / "eval" / "metrics.md"));
   EXPECT_FALSE(std::filesystem::is_empty(tmp / "eval" / "videos"));
 

@@ -3,11 +3,11 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include "core/error.h"
 #include "test_util.h"
 
 namespace dojo::infer {
 namespace {
-
 
 WorldModel random_model() {
   torch::manual_seed(0);
@@ -47,6 +47,26 @@ TEST(WorldModel, RolloutChainsChunksDeterministically) {
   const auto round_trip = model.reconstruct_frames(a.select(1, 12).contiguous());
   EXPECT_LE((r.select(1, 13).to(torch::kInt) - round_trip.to(torch::kInt)).abs().max().item<int>(), 1);
   EXPECT_TRUE(r.narrow(1, 14, 11).equal(a.narrow(1, 13, 11)));
+}
+
+// The evaluation's ceiling: ground truth cut and joined like a rollout. Each chunk is a round
+// trip of its own 13 frames (frame 12 of one chunk is frame 0 of the next, encoded alone), not a
+// slice of one long round trip.
+TEST(WorldModel, ChunkedRoundTripMatchesTheRolloutLayout) {
+  test::OneThread one;
+  auto model = random_model();
+  const auto video = torch::randint(0, 255, {1, 25, 16, 16, 3}, torch::kByte);
+  const auto aligned = model.reconstruct_chunks(video, ConcatMode::kAligned);
+  ASSERT_EQ(aligned.sizes(), video.sizes());
+  const auto c0 = model.reconstruct_video(video.narrow(1, 0, 13));
+  const auto c1 = model.reconstruct_video(video.narrow(1, 12, 13));
+  EXPECT_TRUE(aligned.narrow(1, 0, 13).equal(c0));
+  EXPECT_TRUE(aligned.narrow(1, 13, 12).equal(c1.narrow(1, 1, 12)));
+  const auto released = model.reconstruct_chunks(video, ConcatMode::kReleased);
+  EXPECT_TRUE(released.narrow(1, 13, 12).equal(c1.narrow(1, 0, 12)));
+  // Different from one causal pass over all 25 frames: the chunks restart the tokenizer's caches.
+  EXPECT_FALSE(aligned.equal(model.reconstruct_video(video)));
+  EXPECT_THROW(model.reconstruct_chunks(video.narrow(1, 0, 13 + 4)), Error);
 }
 
 TEST(WorldModel, ActionsChangeThePrediction) {

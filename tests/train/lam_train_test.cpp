@@ -118,7 +118,7 @@ TEST(LamTrain, BrightnessAugmentationStaysInRange) {
 TEST(LamProbe, CommandAndMeasuredDeltasAlignOnTheSamePair) {
   torch::manual_seed(3);
   const int64_t T = 12;
-  const auto cmd = torch::randn({T, 4}).cumsum(0);                        // [T, 4]
+  const auto cmd = torch::randn({T, 4}).cumsum(0);                               // [T, 4]
   const auto pose = torch::cat({torch::zeros({1, 4}), cmd.slice(0, 0, T - 1)});  // pose[t + 1] = cmd[t]
   const auto c = probe_deltas(cmd, /*commanded=*/true);
   const auto m = probe_deltas(pose, /*commanded=*/false);

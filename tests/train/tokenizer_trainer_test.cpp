@@ -44,7 +44,6 @@ torch::Tensor moving_squares(int64_t batch, int64_t frames, int64_t size, uint64
 constexpr int64_t kSteps = 160;
 constexpr double kMinGainDb = 4.0;
 
-
 #ifdef DOJO_WITH_SIM
 // A small DojoSim dataset (robot bin task, 32x32): two episodes to train on and a third, never
 // seen in training, whose fixed clips measure reconstruction. Random moving squares were a poor
