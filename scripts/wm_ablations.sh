@@ -65,18 +65,18 @@ posttrain no-temporal "$OUT/no-temporal/pretrain/checkpoint" --temporal-weight 0
 python3 - "$OUT" <<'PY' 2>/dev/null || true
 import json, sys, os
 out = sys.argv[1]
-rows = ["| variant | val PSNR | val SSIM | OOD-objects PSNR | counterfactual PSNR | copy-frame PSNR (val / OOD / cf) |",
-        "|---|---|---|---|---|---|"]
+rows = ["| variant | val PSNR | val SSIM | OOD-objects PSNR | counterfactual PSNR | copy-frame PSNR (val / OOD / cf) | tokenizer ceiling (val) |",
+        "|---|---|---|---|---|---|---|"]
 for v in ["scratch", "none", "latent", "ground-truth", "absolute", "whole-clip", "no-temporal"]:
     try:
         m = {k: json.load(open(os.path.join(out, v, "eval_" + k, "metrics.json")))["splits"][0]
              for k in ("val", "ood", "cf")}
     except OSError:
         continue
-    rows.append("| %s | %.2f | %.3f | %.2f | %.2f | %.2f / %.2f / %.2f |" % (
+    rows.append("| %s | %.2f | %.3f | %.2f | %.2f | %.2f / %.2f / %.2f | %.2f |" % (
         v, m["val"]["psnr"], m["val"]["ssim"], m["ood"]["psnr"], m["cf"]["psnr"],
         m["val"]["copy_first_frame"]["psnr"], m["ood"]["copy_first_frame"]["psnr"],
-        m["cf"]["copy_first_frame"]["psnr"]))
+        m["cf"]["copy_first_frame"]["psnr"], m["val"]["tokenizer_round_trip"]["psnr"]))
 open(os.path.join(out, "results.md"), "w").write("\n".join(rows) + "\n")
 print("\n".join(rows))
 PY

@@ -175,7 +175,9 @@ TEST(Parquet, RoundTripsEveryCodecPageVersionAndEncoding) {
             EXPECT_FLOAT_EQ(state.values[state.offsets[i] + 2], 1e-3f * i);
           }
           ASSERT_EQ(tasks.offsets[i + 1] - tasks.offsets[i], i % 3);
-          if (i % 3) EXPECT_EQ(tasks.values[tasks.offsets[i]], "t" + std::to_string(i));
+          if (i % 3) {
+            EXPECT_EQ(tasks.values[tasks.offsets[i]], "t" + std::to_string(i));
+          }
         }
       }
 }

@@ -46,9 +46,10 @@ TEST(Attention, AutoAgreesWithMath) {
     const auto b = attention_math(q, k, v, std::nullopt, causal);
     EXPECT_TRUE(torch::allclose(a, b, 1e-4, 1e-5)) << "causal=" << causal;
   }
-  if (!fused_attention_available())
+  if (!fused_attention_available()) {
     EXPECT_THROW(attention(q, k, v, std::nullopt, false, std::nullopt, AttentionBackend::kFused),
                  std::exception);
+  }
 }
 
 TEST(Attention, FusedAgreesWithMath_CUDA) {
