@@ -14,39 +14,18 @@
 #include "infer/world_model.h"
 #include "test_util.h"
 #include "train/wm_train.h"
+#include "wm_test_fixtures.h"
 
 namespace dojo::train {
 namespace {
 
 using test::TempDir;
 
+using test_fixtures::action_driven_latents;
+using test_fixtures::gen;
+
 // The tiny DiT of wm_train_test, with the action path live from the start.
-models::DitConfig tiny_dit() {
-  auto c = models::DitConfig::small();
-  c.model_channels = 64;
-  c.num_blocks = 2;
-  c.num_heads = 2;
-  c.adaln_lora_dim = 16;
-  c.action_hidden_dim = 64;
-  c.crossattn_emb_channels = 16;
-  c.crossattn_proj_dim = 16;
-  c.zero_init_action_fc2 = false;
-  return c;
-}
-
-torch::Generator gen(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
-
-// Latents whose frames move with the actions (as in wm_train_test).
-void action_driven_latents(int64_t n, torch::Tensor& x0, torch::Tensor& actions, uint64_t seed) {
-  auto g = gen(seed);
-  x0 = torch::randn({n, 16, 4, 4, 4}, g) * 0.5;
-  actions = torch::zeros({n, 12, 384});
-  actions.select(2, 169).copy_(torch::rand({n, 12}, g) * 2 - 1);
-  for (int64_t t = 1; t < 4; ++t) {
-    const auto shift = actions.select(2, 169).narrow(1, 0, 4 * t).sum(1);  // [n]
-    x0.select(2, t).copy_(x0.select(2, 0) + shift.view({n, 1, 1, 1}));
-  }
-}
+models::DitConfig tiny_dit() { return test_fixtures::tiny_dit(/*live_actions=*/true); }
 
 double relative_l2(const torch::Tensor& got, const torch::Tensor& want) {
   return ((got.to(torch::kFloat32) - want).norm() / want.norm()).item<double>();
@@ -114,7 +93,9 @@ TEST(WmAmp, Bf16TrainingLearnsLikeFloat32AndSavesFloat32Checkpoints) {
   // Master weights and their gradients stay float32.
   for (const auto& p : trainer->net()->parameters()) {
     EXPECT_EQ(p.scalar_type(), torch::kFloat32);
-    if (p.grad().defined()) EXPECT_EQ(p.grad().scalar_type(), torch::kFloat32);
+    if (p.grad().defined()) {
+      EXPECT_EQ(p.grad().scalar_type(), torch::kFloat32);
+    }
   }
 
   // The checkpoint holds float32 tensors and loads into a fresh float32 model.

@@ -16,40 +16,16 @@
 #include "test_util.h"
 #include "train/lam_train.h"
 #include "train/tokenizer_trainer.h"
+#include "wm_test_fixtures.h"
 
 namespace dojo::train {
 namespace {
 
 using test::TempDir;
 
-// A DiT small enough for unit tests; the structure (and every code path) is the real one.
-models::DitConfig tiny_dit() {
-  auto c = models::DitConfig::small();
-  c.model_channels = 64;
-  c.num_blocks = 2;
-  c.num_heads = 2;
-  c.adaln_lora_dim = 16;
-  c.action_hidden_dim = 64;
-  c.crossattn_emb_channels = 16;
-  c.crossattn_proj_dim = 16;
-  return c;
-}
-
-
-torch::Generator gen(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
-
-// Latent "videos" whose frames move by the actions: frame t = frame 0 shifted by the sum of the
-// first (t * 4) action values of slot 169 (one channel offset per latent frame).
-void action_driven_latents(int64_t n, torch::Tensor& x0, torch::Tensor& actions, uint64_t seed) {
-  auto g = gen(seed);
-  x0 = torch::randn({n, 16, 4, 4, 4}, g) * 0.5;
-  actions = torch::zeros({n, 12, 384});
-  actions.select(2, 169).copy_(torch::rand({n, 12}, g) * 2 - 1);
-  for (int64_t t = 1; t < 4; ++t) {
-    const auto shift = actions.select(2, 169).narrow(1, 0, 4 * t).sum(1);  // [n]
-    x0.select(2, t).copy_(x0.select(2, 0) + shift.view({n, 1, 1, 1}));
-  }
-}
+using test_fixtures::action_driven_latents;
+using test_fixtures::gen;
+using test_fixtures::tiny_dit;
 
 TEST(WmTrain, ParsesModesAndStagesWithClearErrors) {
   EXPECT_EQ(parse_action_mode("latent"), ActionMode::kLatent);
