@@ -147,7 +147,7 @@ int run_demo(const DemoOptions& o) {
     models::WanVaeConfig cfg;
     cfg.dim = 16;
     models::WanVae vae(cfg);
-    auto mixture = std::make_shared<data::ClipMixture>();
+    models::init_frame_by_frame(vae);  // image phase first; a resumed run loads over this
     data::ClipConfig clip;
     // 9 frames = 3 latent frames: the first chunk and one steady-state chunk that decodes from
     // the causal caches of the one before. Trained on 5 frames only, latent frames >= 2 of the
@@ -156,21 +156,9 @@ int run_demo(const DemoOptions& o) {
     clip.num_frames = 9;
     clip.strides = {1, 2};
     clip.height = clip.width = 64;
-    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "human"), clip, "all"),
-                 1.0);
-    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(out / "robot"), clip, "train"),
-                 1.0);
-    std::unique_ptr<data::PrefetchLoader> loader;
-    auto next = [&](int64_t step) {
-      if (!loader)
-        loader = std::make_unique<data::PrefetchLoader>(mixture, data::LoaderOptions{4, 1, 4, o.seed}, step);
-      return train::video_to_model(loader->next().video);
-    };
-    // The measured recipe (docs/tokenizer.md): L1, lr 2e-3 with warm-up and cosine decay,
-    // posterior mean, KL 1e-6.
-    // Batches of 4 clips: at equal time, batch 4 reached 17.2 dB held-out where batch 2 reached
-    // 16.6 and batch 1 12.5 (the gradients of one or two clips are too noisy across scenes).
-    // Only ~150 steps fit, so the warm-up is short; the cosine follows the time budget.
+    const auto batches =
+        train::tokenizer_batches({{out / "human", "all"}, {out / "robot", "train"}}, clip,
+                                 /*clip_batch=*/4, /*image_batch=*/16, /*workers=*/1, o.seed);
     train::TokenizerTrainOptions t = train::recommended_tokenizer_options();
     t.warmup_steps = 20;
     t.steps = 1000000;
@@ -178,10 +166,11 @@ int run_demo(const DemoOptions& o) {
     t.checkpoint_dir = out / "tokenizer" / "checkpoint";
     t.loss_curve = out / "tokenizer" / "loss.csv";
     t.stats_batches = 8;
+    t.next_image_batch = batches.images;
     t.time_budget_s = tok_s;
     fs::create_directories(out / "tokenizer");
     torch::manual_seed(o.seed);
-    const auto r = train::train_tokenizer(vae, next, t);
+    const auto r = train::train_tokenizer(vae, batches.clips, t);
     report["tokenizer"] = {
         {"steps", r.steps_done}, {"recon_first", r.first_loss}, {"recon_last", r.last_loss}};
   }

@@ -30,8 +30,8 @@ struct TrainArgs {
   int64_t steps = 2000, save_every = 200, warmup = 0;
   // 9 frames (3 latent frames) so the steady-state causal chunk is trained, not only the first
   // two latent frames; world-model clips decode 4 latent frames.
-  int batch = 4, frames = 9, size = 64, dim = 16, workers = 2, crop = 0;
-  double lr = 0, kl = 0, minutes = 0;
+  int batch = 4, image_batch = 16, frames = 9, size = 64, dim = 16, workers = 2, crop = 0;
+  double lr = 0, kl = 0, minutes = 0, image_fraction = 0;
   bool cosine = true, sample = false;
   uint64_t seed = 0;
 
@@ -39,6 +39,7 @@ struct TrainArgs {
     const auto r = train::recommended_tokenizer_options();
     lr = r.lr, kl = r.kl_weight, warmup = r.warmup_steps, cosine = r.cosine;
     sample = r.sample_posterior, loss = r.l1 ? "l1" : "mse";
+    image_fraction = r.image_fraction;
   }
 };
 
@@ -58,20 +59,14 @@ int run_train(const TrainArgs& a) {
   models::WanVaeConfig cfg;
   cfg.dim = a.dim;
   models::WanVae vae(cfg);
-  auto mixture = std::make_shared<data::ClipMixture>();
+  models::init_frame_by_frame(vae);  // a resumed run loads its weights over this
   data::ClipConfig clip;
   clip.num_frames = a.frames;
   clip.strides = {1, 2};
   clip.height = clip.width = a.size;
-  for (const auto& d : a.data)
-    mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(d), clip, a.split), 1.0);
-  std::unique_ptr<data::PrefetchLoader> loader;
-  auto next = [&](int64_t step) {
-    if (!loader)  // started at the first requested step, so a resumed run continues the stream
-      loader = std::make_unique<data::PrefetchLoader>(
-          mixture, data::LoaderOptions{a.batch, a.workers, 4, a.seed}, step);
-    return train::video_to_model(loader->next().video);
-  };
+  std::vector<train::TokenizerDataset> datasets;
+  for (const auto& d : a.data) datasets.push_back({d, a.split});
+  const auto batches = train::tokenizer_batches(datasets, clip, a.batch, a.image_batch, a.workers, a.seed);
   auto o = train::recommended_tokenizer_options();
   o.steps = a.steps;
   o.lr = a.lr;
@@ -82,11 +77,13 @@ int run_train(const TrainArgs& a) {
   o.l1 = a.loss == "l1";
   o.save_every = a.save_every;
   o.crop = a.crop;
+  o.image_fraction = a.image_fraction;
+  o.next_image_batch = batches.images;
   o.time_budget_s = a.minutes * 60;
   o.checkpoint_dir = a.out;
   o.stats_batches = 8;
   torch::manual_seed(a.seed);
-  const auto r = train::train_tokenizer(vae, next, o);
+  const auto r = train::train_tokenizer(vae, batches.clips, o);
   std::printf("trained %lld steps in %.1f s, recon mse %.5f -> %.5f, checkpoint %s\n",
               static_cast<long long>(r.steps_done), r.seconds, r.first_loss, r.last_loss, a.out.c_str());
   return 0;
@@ -231,6 +228,14 @@ void register_tokenizer(CLI::App& app) {
   train_cmd->add_option("--steps", ta->steps, "Optimisation steps")->capture_default_str();
   train_cmd->add_option("--batch", ta->batch, "Clips per batch")->capture_default_str();
   train_cmd->add_option("--frames", ta->frames, "Frames per clip (1 + 4k)")->capture_default_str();
+  train_cmd
+      ->add_option("--image-fraction", ta->image_fraction,
+                   "Part of the run (steps or --minutes) trained on single frames before clips")
+      ->check(CLI::Range(0.0, 1.0))
+      ->capture_default_str();
+  train_cmd->add_option("--image-batch", ta->image_batch, "Frames per batch in the image phase")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   train_cmd->add_option("--size", ta->size, "Clip height and width (multiple of 8)")->capture_default_str();
   train_cmd->add_option("--dim", ta->dim, "Base width (released: 96)")->capture_default_str();
   train_cmd

@@ -75,7 +75,10 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
     clip.video = io::resize_center_crop(raw, config_.height, config_.width);  // [T, H, W, 3] u8
   }
   const int64_t rows = config_.num_frames - 1;
-  if (info.embodiment == Embodiment::kRobot) {
+  if (rows == 0) {  // a single frame (image training): no action lies between frames
+    clip.actions = human_action_placeholder(0);  // [0, 384]
+    clip.has_actions = info.embodiment == Embodiment::kRobot;
+  } else if (info.embodiment == Embodiment::kRobot) {
     DOJO_CHECK(arrays.actions.defined() && arrays.actions.size(0) == frames,
                where + ": robot episode has no action row per frame");
     const auto absolute = arrays.actions.index_select(0, steps);              // [T + 1, A]

@@ -91,8 +91,8 @@ class CausalConv3dImpl : public torch::nn::Module {
 };
 TORCH_MODULE(CausalConv3d);
 
-// true: CausalConv3d runs torch::conv3d (the plain reference); false (default): per-tap conv2d.
-// Tests check both agree.
+// true: CausalConv3d always pads and runs the full kernel (the plain reference); false (default):
+// a lone frame with no cache skips the all-zero past taps. Tests check both agree.
 bool& conv3d_reference_path();
 
 // x / ||x||_2 (over channels) * sqrt(C) * gamma.
@@ -198,6 +198,13 @@ class WanVaeImpl : public torch::nn::Module {
   WanVaeConfig config_;
 };
 TORCH_MODULE(WanVae);
+
+// Initialisation for training from scratch that makes a fresh model act frame by frame: the past
+// taps of every causal 3x3x3 conv are zero, temporal downsampling keeps the later frame of each
+// pair and temporal upsampling repeats each frame. Single-frame (image) training then carries over
+// to video unchanged, and video training starts from "reconstruct each kept frame" instead of
+// from random temporal mixing. Spatial weights keep their default initialisation.
+void init_frame_by_frame(WanVae& vae);
 
 // Incremental encoder: push pixel frames in any grouping; latents come out as soon as their
 // chunk (frame 0, then every 4 frames) is complete. Memory is bounded by the caches.

@@ -11,6 +11,8 @@
 #include "core/log.h"
 #include "core/progress.h"
 #include "core/state_dict.h"
+#include "data/clip_loader.h"
+#include "data/episode_store.h"
 #include "train/train_util.h"
 
 namespace dojo::train {
@@ -25,6 +27,7 @@ TokenizerTrainOptions recommended_tokenizer_options() {
   o.sample_posterior = false;
   o.l1 = true;
   o.kl_weight = 1e-6;
+  o.image_fraction = 0.6;
   return o;
 }
 
@@ -145,11 +148,21 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
   TimeBudget budget(o.time_budget_s);
   if (progress) progress->set_time_budget(o.time_budget_s);
   std::optional<LossCurve> curve;
-  if (!o.loss_curve.empty()) curve.emplace(o.loss_curve, "step,recon,kl,seconds", start);
+  if (!o.loss_curve.empty()) curve.emplace(o.loss_curve, "step,recon,kl,seconds,images", start);
+  auto image_batch = [&](int64_t step) {
+    if (o.next_image_batch) return o.next_image_batch(step);
+    const auto clips = next_batch(step);  // [B, 3, T, H, W]
+    return clips.transpose(1, 2).reshape(
+        {-1, clips.size(1), 1, clips.size(3), clips.size(4)});  // [B*T, 3, 1, H, W]
+  };
   for (int64_t step = start; step < o.steps; ++step) {
-    const auto video = random_spatial_crop(next_batch(step), o.crop, static_cast<uint64_t>(step));
-    const double lr =
-        tokenizer_lr(o, step, o.time_budget_s > 0 ? std::min(1.0, budget.elapsed() / o.time_budget_s) : 0.0);
+    const double budget_fraction =
+        o.time_budget_s > 0 ? std::min(1.0, budget.elapsed() / o.time_budget_s) : 0.0;
+    const bool images = std::max(static_cast<double>(step) / static_cast<double>(o.steps), budget_fraction) <
+                        o.image_fraction;
+    const auto video = random_spatial_crop(images ? image_batch(step) : next_batch(step), o.crop,
+                                           static_cast<uint64_t>(step));
+    const double lr = tokenizer_lr(o, step, budget_fraction);
     for (auto& group : opt.param_groups()) static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
     auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior, o.l1);
     opt.zero_grad();
@@ -161,13 +174,14 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
     result.last_loss = recon;
     if (progress) {
       char note[96];
-      std::snprintf(note, sizeof note, "mse %.5f kl %.3f lr %.2g", recon, loss.kl.item<double>(), lr);
+      std::snprintf(note, sizeof note, "%s mse %.5f kl %.3f lr %.2g", images ? "images" : "clips", recon,
+                    loss.kl.item<double>(), lr);
       progress->advance(1, note);
     }
     if (curve) {
       char row[128];
-      std::snprintf(row, sizeof row, "%lld,%.6g,%.6g,%.2f", static_cast<long long>(step + 1), recon,
-                    loss.kl.item<double>(), budget.elapsed());
+      std::snprintf(row, sizeof row, "%lld,%.6g,%.6g,%.2f,%d", static_cast<long long>(step + 1), recon,
+                    loss.kl.item<double>(), budget.elapsed(), images ? 1 : 0);
       curve->add(row);
     }
     const bool out_of_time = budget.expired();
@@ -190,6 +204,33 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
   result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   vae->eval();
   return result;
+}
+
+TokenizerBatches tokenizer_batches(const std::vector<TokenizerDataset>& datasets,
+                                   const data::ClipConfig& clip, int clip_batch, int image_batch, int workers,
+                                   uint64_t seed) {
+  auto mixture = [&](int frames) {
+    auto m = std::make_shared<data::ClipMixture>();
+    data::ClipConfig c = clip;
+    c.num_frames = frames;
+    for (const auto& d : datasets)
+      m->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(d.dir), c, d.split), 1.0);
+    return m;
+  };
+  // One lazily started loader per stream; shared_ptr so the std::function copies share it.
+  auto stream = [workers](std::shared_ptr<data::ClipMixture> m, int batch, uint64_t stream_seed) {
+    auto loader = std::make_shared<std::unique_ptr<data::PrefetchLoader>>();
+    return [=](int64_t step) {
+      if (!*loader)
+        *loader = std::make_unique<data::PrefetchLoader>(
+            m, data::LoaderOptions{batch, workers, 4, stream_seed}, step);
+      return video_to_model((*loader)->next().video);  // [B, 3, T, H, W]
+    };
+  };
+  TokenizerBatches b;
+  b.clips = stream(mixture(clip.num_frames), clip_batch, seed);
+  b.images = stream(mixture(1), image_batch, seed ^ 0x9e3779b97f4a7c15ULL);
+  return b;
 }
 
 double psnr(const torch::Tensor& a, const torch::Tensor& b) {

@@ -15,6 +15,7 @@
 #include <optional>
 #include <string>
 
+#include "data/clip_sampler.h"
 #include "models/wan_vae.h"
 
 namespace dojo::train {
@@ -42,8 +43,16 @@ struct TokenizerTrainOptions {
   // the same for all its frames; 0 = whole frames. The network is convolutional, so a crop costs
   // (crop / size)^2 of a full frame: more optimiser steps for the same compute.
   int64_t crop = 0;
+  // Fraction of the run (of the steps, or of the time budget when that ends first) trained on
+  // single frames before clips. Images are ~3x cheaper per frame (no temporal taps) and a batch
+  // of them spans many more scenes, so colours and shapes are learnt in a fraction of the time;
+  // with a model from models::init_frame_by_frame that learning carries over to the clip phase
+  // as is (docs/tokenizer.md). 0: clips only.
+  double image_fraction = 0;
+  // Image batches [N, 3, 1, H, W] for that phase; unset: every frame of next_batch's clips.
+  std::function<torch::Tensor(int64_t)> next_image_batch;
   double time_budget_s = 0;          // stop early (fit stats, checkpoint) after this long; 0: none
-  std::filesystem::path loss_curve;  // CSV "step,recon,kl,seconds" when set
+  std::filesystem::path loss_curve;  // CSV "step,recon,kl,seconds,images" when set
 };
 
 // The recipe measured best for small DojoSim tokenizers on CPU (docs/benchmarks.md, "Small
@@ -79,6 +88,21 @@ struct TokenizerTrainResult {
 TokenizerTrainResult train_tokenizer(models::WanVae& vae,
                                      const std::function<torch::Tensor(int64_t)>& next_batch,
                                      const TokenizerTrainOptions& options);
+
+// Batch streams over DojoSim-format datasets for train_tokenizer: clips ([B, 3, T, H, W]) and
+// single frames ([N, 3, 1, H, W]) drawn from the same episodes, in [-1, 1]. Each stream starts at
+// the first step asked of it, so a resumed run continues where it stopped; the image loader is
+// only started when the image phase asks for a batch.
+struct TokenizerDataset {
+  std::filesystem::path dir;
+  std::string split = "train";
+};
+struct TokenizerBatches {
+  std::function<torch::Tensor(int64_t)> clips, images;
+};
+TokenizerBatches tokenizer_batches(const std::vector<TokenizerDataset>& datasets,
+                                   const data::ClipConfig& clip, int clip_batch, int image_batch, int workers,
+                                   uint64_t seed);
 
 // Reconstruction metrics over videos in [-1, 1] (computed on [0, 1]).
 double psnr(const torch::Tensor& a, const torch::Tensor& b);  // dB over the whole tensor

@@ -100,6 +100,20 @@ TEST(ClipLoader, AbsoluteActionsAblationKeepsNormalisedValues) {
   }
 }
 
+TEST(ClipLoader, SingleFrameClipsForImageTraining) {
+  test::TempDir tmp;
+  make_dataset(tmp / "robot", Embodiment::kRobot, 1, 40);
+  auto config = small_config();
+  config.num_frames = 1;
+  ClipDataset dataset(EpisodeStore::open(tmp / "robot"), config);
+  const auto clip = dataset.read(0, make_window(6, 1, 1));  // frame 7
+  ASSERT_EQ(clip.video.sizes(), (std::vector<int64_t>{1, 16, 16, 3}));
+  EXPECT_NEAR(clip.video.to(torch::kFloat32).mean().item<float>(), 8 * 7 + 16, 2.0);
+  EXPECT_EQ(clip.actions.sizes(), (std::vector<int64_t>{0, 384}));
+  std::mt19937_64 rng(1);
+  EXPECT_EQ(dataset.sample(rng).video.size(0), 1);
+}
+
 TEST(ClipLoader, HumanClipCarriesLatentMask) {
   test::TempDir tmp;
   make_dataset(tmp / "human", Embodiment::kHuman, 1, 20);

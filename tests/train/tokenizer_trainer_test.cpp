@@ -2,6 +2,8 @@
 
 #include <torch/torch.h>
 
+#include <fstream>
+
 #include "core/checkpoint.h"
 #include "data/episode_store.h"
 #include "test_util.h"
@@ -73,6 +75,7 @@ TEST(TokenizerTrainer, LearnsToReconstructHeldOutClips) {
 
   torch::manual_seed(0);
   models::WanVae vae(models::WanVaeConfig::tiny());
+  models::init_frame_by_frame(vae);  // the recipe: image phase, then clips
   vae->eval();
   const double before = psnr(reconstruct(vae, held_out), held_out);
 
@@ -170,6 +173,47 @@ TEST(TokenizerTrainer, ResumesFromCheckpoint) {
   EXPECT_EQ(loaded->config().to_json(), again->config().to_json());
   const auto x = moving_squares(1, 5, 16, 7);
   EXPECT_TRUE(torch::allclose(reconstruct(loaded, x), reconstruct(again, x)));
+}
+
+TEST(TokenizerTrainer, ImagePhaseComesFirst) {
+  test::OneThread one_thread;
+  test::TempDir dir;
+  torch::manual_seed(2);
+  models::WanVae vae(models::WanVaeConfig::tiny());
+  models::init_frame_by_frame(vae);
+  TokenizerTrainOptions o;
+  o.steps = 4;
+  o.progress = false;
+  o.image_fraction = 0.5;
+  o.loss_curve = dir / "loss.csv";
+  std::vector<std::string> calls;
+  auto clips = [&](int64_t step) {
+    calls.push_back("clips" + std::to_string(step));
+    return moving_squares(2, 5, 16, step);
+  };
+  o.next_image_batch = [&](int64_t step) {
+    calls.push_back("images" + std::to_string(step));
+    return moving_squares(6, 1, 16, step);  // [6, 3, 1, 16, 16]
+  };
+  train_tokenizer(vae, clips, o);
+  EXPECT_EQ(calls, (std::vector<std::string>{"images0", "images1", "clips2", "clips3"}));
+  std::ifstream in(o.loss_curve);
+  std::string header, row;
+  std::getline(in, header);
+  EXPECT_EQ(header, "step,recon,kl,seconds,images");
+  std::vector<char> phase;
+  while (std::getline(in, row)) phase.push_back(row.back());
+  EXPECT_EQ(phase, (std::vector<char>{'1', '1', '0', '0'}));
+
+  // Without an image stream, the image phase trains on every frame of the clip batches.
+  o.next_image_batch = nullptr;
+  o.loss_curve.clear();
+  o.image_fraction = 1.0;
+  o.steps = 1;
+  models::WanVae other(models::WanVaeConfig::tiny());
+  calls.clear();
+  EXPECT_EQ(train_tokenizer(other, clips, o).steps_done, 1);
+  EXPECT_EQ(calls, std::vector<std::string>{"clips0"});
 }
 
 TEST(TokenizerTrainer, MetricsBehave) {
