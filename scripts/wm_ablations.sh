@@ -15,6 +15,7 @@
 #   whole-clip     one embedding of all 12 actions for every frame (pretrain + post-train)
 #   no-temporal    temporal-consistency loss off (pretrain + post-train)
 # Results: OUT/results.md (one table), OUT/<variant>/eval/metrics.json. Re-running resumes.
+# VARIANTS="scratch none latent" (environment) runs only those, in the order above.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DEMO=${1:-dojo_demo}
@@ -50,17 +51,28 @@ evaluate() {  # name
   "$DOJO" eval -c "$ck" --tokenizer "$TOK" --data "$DEMO/robot_counterfactual" --split all --out "$OUT/$name/eval_cf" --json > /dev/null
 }
 
-posttrain scratch "" && evaluate scratch
+VARIANTS=${VARIANTS:-scratch none latent ground-truth absolute whole-clip no-temporal}
+want() { [[ " $VARIANTS " == *" $1 "* ]]; }
+
+if want scratch; then posttrain scratch "" && evaluate scratch; fi
 for mode in none latent ground-truth; do
+  want "$mode" || continue
   pretrain "$mode" --actions "$mode"
   posttrain "$mode" "$OUT/$mode/pretrain/checkpoint"
   evaluate "$mode"
 done
-posttrain absolute "$OUT/latent/pretrain/checkpoint" --absolute-actions && evaluate absolute
-pretrain whole-clip --actions latent --whole-clip-actions
-posttrain whole-clip "$OUT/whole-clip/pretrain/checkpoint" --whole-clip-actions && evaluate whole-clip
-pretrain no-temporal --actions latent --temporal-weight 0
-posttrain no-temporal "$OUT/no-temporal/pretrain/checkpoint" --temporal-weight 0 && evaluate no-temporal
+if want absolute; then
+  [[ -e $OUT/latent/pretrain/checkpoint ]] || pretrain latent --actions latent
+  posttrain absolute "$OUT/latent/pretrain/checkpoint" --absolute-actions && evaluate absolute
+fi
+if want whole-clip; then
+  pretrain whole-clip --actions latent --whole-clip-actions
+  posttrain whole-clip "$OUT/whole-clip/pretrain/checkpoint" --whole-clip-actions && evaluate whole-clip
+fi
+if want no-temporal; then
+  pretrain no-temporal --actions latent --temporal-weight 0
+  posttrain no-temporal "$OUT/no-temporal/pretrain/checkpoint" --temporal-weight 0 && evaluate no-temporal
+fi
 
 python3 - "$OUT" <<'PY' 2>/dev/null || true
 import json, sys, os

@@ -1,5 +1,7 @@
 #include "core/runtime.h"
 
+#include <ATen/Parallel.h>
+#include <dlfcn.h>
 #include <torch/torch.h>
 #include <unistd.h>
 
@@ -17,6 +19,11 @@ void set_threads(int threads) {
     threads = hw > 0 ? static_cast<int>(hw) : 1;
   }
   torch::set_num_threads(threads);
+  // ATen sizes a thread's OpenMP team from the process-wide count the first time that thread
+  // runs a parallel op. Settle it for this thread now, so a worker thread that later limits
+  // itself cannot leave the caller with one thread (the demo trained single-threaded that way:
+  // its data-generation workers ran before the main thread's first parallel op).
+  at::internal::lazy_init_num_threads();
   // The inter-op pool may be sized only once per process, before it is used.
   static bool inter_op_set = false;
   if (!inter_op_set) {
@@ -30,6 +37,19 @@ void set_threads(int threads) {
 }
 
 int threads() { return torch::get_num_threads(); }
+
+void use_one_thread_in_this_thread() {
+  at::internal::lazy_init_num_threads();  // first, or this thread's first parallel op undoes the rest
+  // omp_set_num_threads sizes the calling thread's team only. It is looked up in the OpenMP
+  // runtime libtorch already loaded (system libgomp, or the copy a pip wheel bundles) instead
+  // of linking one, which could put two OpenMP runtimes in the process.
+  using SetNumThreads = void (*)(int);
+  static const auto omp_set = reinterpret_cast<SetNumThreads>(dlsym(RTLD_DEFAULT, "omp_set_num_threads"));
+  if (omp_set != nullptr)
+    omp_set(1);
+  else
+    at::set_num_threads(1);  // no OpenMP: the pool is process-wide anyway
+}
 
 bool cuda_available() { return torch::cuda::is_available(); }
 int cuda_device_count() { return cuda_available() ? static_cast<int>(torch::cuda::device_count()) : 0; }

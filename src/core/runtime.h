@@ -15,6 +15,10 @@ namespace dojo {
 // Debian's libtorch defaults to one thread, so every entry point calls this.
 void set_threads(int threads);
 int threads();
+// For worker threads (decoders, renderers) whose torch ops are small: one intra-op thread in the
+// calling thread only. at::set_num_threads(1) there would also change the process-wide count that
+// every thread's first parallel op adopts.
+void use_one_thread_in_this_thread();
 
 bool cuda_available();
 int cuda_device_count();

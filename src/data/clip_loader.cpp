@@ -6,6 +6,7 @@
 
 #include "core/error.h"
 #include "core/log.h"
+#include "core/runtime.h"
 #include "io/video.h"
 
 namespace dojo::data {
@@ -194,7 +195,7 @@ PrefetchLoader::~PrefetchLoader() {
 
 void PrefetchLoader::worker_loop() {
   // Decoding threads must not each spin up a full intra-op pool.
-  at::set_num_threads(1);
+  use_one_thread_in_this_thread();
   while (true) {
     int64_t index;
     {

@@ -111,23 +111,24 @@ WanVaeConfig WanVaeConfig::from_json(const nlohmann::json& j) {
 
 void init_frame_by_frame(WanVae& vae) {
   torch::NoGradGuard no_grad;
-  for (const auto& item : vae->named_modules()) {
-    auto* conv = dynamic_cast<CausalConv3dImpl*>(item.value().get());
-    if (conv == nullptr || conv->kernel[0] == 1) continue;
-    const int64_t taps = conv->kernel[0], in = conv->weight.size(1), out = conv->weight.size(0);
-    const bool time_conv =
-        item.key().size() >= 9 && item.key().compare(item.key().size() - 9, 9, "time_conv") == 0;
-    if (!time_conv) {
-      conv->weight.narrow(2, 0, taps - 1).zero_();  // [out, in, past taps, kh, kw]
-      continue;
+  for (const auto& module : vae->modules()) {
+    if (auto* resample = dynamic_cast<ResampleImpl*>(module.get()); resample && resample->time_conv) {
+      // time_conv kernels are [out, in, 3, 1, 1]: identity on the newest tap. Upsampling has
+      // out = 2 * in (the two output frames), so both halves copy the input frame.
+      auto& weight = resample->time_conv->weight;
+      const int64_t in = weight.size(1), newest = weight.size(2) - 1;
+      weight.zero_();
+      resample->time_conv->bias.zero_();
+      for (int64_t o = 0; o < weight.size(0); o += in)
+        weight.narrow(0, o, in).select(2, newest).select(2, 0).select(2, 0).copy_(
+            torch::eye(in));  // [in, in]
     }
-    // time_conv kernels are [out, in, 3, 1, 1]: identity on the newest tap. Upsampling has
-    // out = 2 * in (the two output frames), so both halves copy the input frame.
-    conv->weight.zero_();
-    conv->bias.zero_();
-    const auto eye = torch::eye(in);  // [in, in]
-    for (int64_t o = 0; o < out; o += in)
-      conv->weight.narrow(0, o, in).select(2, taps - 1).select(2, 0).select(2, 0).copy_(eye);  // [in, in]
+  }
+  for (const auto& module : vae->modules()) {
+    auto* conv = dynamic_cast<CausalConv3dImpl*>(module.get());
+    // Spatio-temporal convs (not the time_convs above, which have 1x1 spatial kernels).
+    if (conv && conv->kernel[0] > 1 && conv->kernel[1] > 1)
+      conv->weight.narrow(2, 0, conv->kernel[0] - 1).zero_();  // [out, in, past taps, kh, kw]
   }
 }
 

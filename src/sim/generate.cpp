@@ -15,6 +15,7 @@
 #include "core/json_file.h"
 #include "core/log.h"
 #include "core/progress.h"
+#include "core/runtime.h"
 #include "core/safetensors.h"
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
@@ -247,7 +248,7 @@ GenerateSummary generate_dataset(const fs::path& out, const GenerateOptions& opt
   const auto start = std::chrono::steady_clock::now();
   auto work = [&] {
     // One renderer (OSMesa context) per thread; torch ops here are tiny, keep them single-threaded.
-    at::set_num_threads(1);
+    use_one_thread_in_this_thread();
     try {
       Renderer renderer;
       while (true) {

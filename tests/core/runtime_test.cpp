@@ -1,6 +1,7 @@
 #include "core/runtime.h"
 
 #include <nlohmann/json.hpp>
+#include <thread>
 
 #include "core/error.h"
 #include "test_util.h"
@@ -13,6 +14,30 @@ TEST(Runtime, SetThreadsIsHonoured) {
   EXPECT_EQ(threads(), 1);
   set_threads(2);
   EXPECT_EQ(threads(), 2);
+  set_threads(before);
+}
+
+TEST(Runtime, WorkerThreadLimitStaysInTheWorker) {
+  // The demo once trained on one core: its data workers limited themselves with
+  // at::set_num_threads(1) before the main thread's first parallel op, which then adopted 1.
+  // Replayed on a fresh thread standing in for main.
+  const int before = threads();
+  int main_threads = 0, worker_threads = 0, later_thread = 0;
+  std::thread main_like([&] {
+    set_threads(3);
+    std::thread worker([&] {
+      use_one_thread_in_this_thread();
+      worker_threads = threads();
+    });
+    worker.join();
+    main_threads = threads();
+    std::thread later([&] { later_thread = threads(); });  // adopts the process-wide count
+    later.join();
+  });
+  main_like.join();
+  EXPECT_EQ(worker_threads, 1);
+  EXPECT_EQ(main_threads, 3);
+  EXPECT_EQ(later_thread, 3);
   set_threads(before);
 }
 

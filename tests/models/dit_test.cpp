@@ -99,7 +99,6 @@ DitInputs random_inputs(const DitConfig& c, int64_t B, int64_t T, int64_t H, int
   return in;
 }
 
-
 }  // namespace
 
 // --- RoPE and timestep embedding (dit_rope_temb) ----------------------------------------------
@@ -215,7 +214,9 @@ TEST(DitConfig, JsonRoundTripAndErrors) {
 
 TEST(DitConfig, FromWeightsReadsTheArchitecture) {
   auto g = open_fixture("dit_tiny_weights.safetensors");
-  if (g) EXPECT_EQ(DitConfig::from_weights(*g).to_json(), DitConfig::golden_tiny().to_json());
+  if (g) {
+    EXPECT_EQ(DitConfig::from_weights(*g).to_json(), DitConfig::golden_tiny().to_json());
+  }
 
   // A saved small model (no projection, custom action width) round-trips and loads strictly.
   auto c = DitConfig::small();

@@ -101,8 +101,12 @@ TEST(Generate, EvaluationSplits) {
     generate_dataset(tmp / split, o);
     const auto store = data::EpisodeStore::open(tmp / split);
     const auto meta = store.load_arrays(0).meta;
-    if (split == "ood-objects") EXPECT_TRUE(meta["ood_objects"].get<bool>());
-    if (split == "novel-background") EXPECT_TRUE(meta["novel_background"].get<bool>());
+    if (split == "ood-objects") {
+      EXPECT_TRUE(meta["ood_objects"].get<bool>());
+    }
+    if (split == "novel-background") {
+      EXPECT_TRUE(meta["novel_background"].get<bool>());
+    }
     EXPECT_EQ(store.info().episodes[0].split, split);
   }
   auto bad = small("human", 1);
