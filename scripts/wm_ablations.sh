@@ -15,13 +15,17 @@
 #   whole-clip     one embedding of all 12 actions for every frame (pretrain + post-train)
 #   no-temporal    temporal-consistency loss off (pretrain + post-train)
 # Results: OUT/results.md (one table), OUT/<variant>/eval/metrics.json. Re-running resumes.
-# VARIANTS="scratch none latent" (environment) runs only those, in the order above.
+# VARIANTS="scratch none latent" (environment) runs only those, in the order above; THREADS sets
+# the intra-op thread count (default 1).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DEMO=${1:-dojo_demo}
 MINUTES=${2:-8}
 OUT=${3:-$DEMO/ablations}
 DOJO=${DOJO:-build/dojo}
+# One OpenMP thread: OpenBLAS threads do the matmuls, and a second OpenMP thread made the DiT
+# 2.7x slower on 2 cores (docs/benchmarks.md, session 4).
+THREADS=${THREADS:-1}
 TOK=$DEMO/tokenizer/checkpoint
 LAM=$DEMO/lam/checkpoint
 for need in "$TOK" "$LAM" "$DEMO/human" "$DEMO/robot"; do
@@ -33,22 +37,22 @@ COMMON=(--tokenizer "$TOK" --minutes "$MINUTES" --steps 1000000 --lr 3e-4 --grad
 
 pretrain() {  # name, extra args...
   local name=$1; shift
-  "$DOJO" wm train --stage pretrain --data "$DEMO/human" --split all --lam "$LAM" "${COMMON[@]}" \
+  "$DOJO" --threads "$THREADS" wm train --stage pretrain --data "$DEMO/human" --split all --lam "$LAM" "${COMMON[@]}" \
     --out "$OUT/$name/pretrain" "$@"
 }
 posttrain() {  # name, init, extra args...
   local name=$1 init=$2; shift 2
   if [[ -n $init ]]; then
-    "$DOJO" wm train --stage posttrain --init "$init" --data "$DEMO/robot" "${COMMON[@]}" --out "$OUT/$name/posttrain" "$@"
+    "$DOJO" --threads "$THREADS" wm train --stage posttrain --init "$init" --data "$DEMO/robot" "${COMMON[@]}" --out "$OUT/$name/posttrain" "$@"
   else
-    "$DOJO" wm train --stage scratch --data "$DEMO/robot" "${COMMON[@]}" --out "$OUT/$name/posttrain" "$@"
+    "$DOJO" --threads "$THREADS" wm train --stage scratch --data "$DEMO/robot" "${COMMON[@]}" --out "$OUT/$name/posttrain" "$@"
   fi
 }
 evaluate() {  # name
   local name=$1 ck=$OUT/$1/posttrain/checkpoint
-  "$DOJO" eval -c "$ck" --tokenizer "$TOK" --data "$DEMO/robot" --split val --out "$OUT/$name/eval_val" --json > /dev/null
-  "$DOJO" eval -c "$ck" --tokenizer "$TOK" --data "$DEMO/robot_ood_objects" --split all --out "$OUT/$name/eval_ood" --json > /dev/null
-  "$DOJO" eval -c "$ck" --tokenizer "$TOK" --data "$DEMO/robot_counterfactual" --split all --out "$OUT/$name/eval_cf" --json > /dev/null
+  "$DOJO" --threads "$THREADS" eval -c "$ck" --tokenizer "$TOK" --data "$DEMO/robot" --split val --out "$OUT/$name/eval_val" --json > /dev/null
+  "$DOJO" --threads "$THREADS" eval -c "$ck" --tokenizer "$TOK" --data "$DEMO/robot_ood_objects" --split all --out "$OUT/$name/eval_ood" --json > /dev/null
+  "$DOJO" --threads "$THREADS" eval -c "$ck" --tokenizer "$TOK" --data "$DEMO/robot_counterfactual" --split all --out "$OUT/$name/eval_cf" --json > /dev/null
 }
 
 VARIANTS=${VARIANTS:-scratch none latent ground-truth absolute whole-clip no-temporal}
