@@ -8,6 +8,8 @@
 #include <functional>
 #include <string>
 
+#include "core/runtime.h"
+
 namespace dojo::test {
 
 // A fresh directory under the system temp dir, removed when the object dies.
@@ -46,15 +48,9 @@ CommandResult run_dojo(const std::string& args);
 
 // Holds libtorch at one intra-op thread for a test's scope: on a shared 2-core machine a second
 // OpenMP thread competing with other processes makes small ops many times slower, not faster.
-class OneThread {
+class OneThread : public ScopedThreads {
  public:
-  OneThread() : saved_(torch::get_num_threads()) { torch::set_num_threads(1); }
-  ~OneThread() { torch::set_num_threads(saved_); }
-  OneThread(const OneThread&) = delete;
-  OneThread& operator=(const OneThread&) = delete;
-
- private:
-  int saved_;
+  OneThread() : ScopedThreads(1) {}
 };
 
 }  // namespace dojo::test

@@ -62,21 +62,6 @@ constexpr int64_t kMaxClips = 192;  // per dataset in the latent cache
 // (docs/benchmarks.md).
 constexpr double kLamWeight = 0.10, kTokenizerWeight = 0.40, kPretrainWeight = 0.22, kPosttrainWeight = 0.28;
 
-// Intra-op threads for a stage, restored afterwards. The LAM and DiT stages are matmul-bound:
-// OpenBLAS runs its own threads inside each matmul, and a second OpenMP thread only spins
-// against them between ops (measured on 2 cores: DiT 28.7 clips/s with one OpenMP thread, 11.1
-// with two; LAM 9.8 vs 6.3 steps/s). The tokenizer's oneDNN convolutions use the OpenMP threads
-// (2x faster with two).
-class StageThreads {
- public:
-  explicit StageThreads(int n) : saved_(threads()) { set_threads(std::min(n, saved_)); }
-  ~StageThreads() { set_threads(saved_); }
-  StageThreads(const StageThreads&) = delete;
-  StageThreads& operator=(const StageThreads&) = delete;
-
- private:
-  int saved_;
-};
 constexpr double kEvalReserve = 0.10;  // of --minutes
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
@@ -152,7 +137,8 @@ int run_demo(const DemoOptions& o) {
   lam.seed = o.seed;
   lam.time_budget_s = lam_s;
   const auto lam_stats = [&] {
-    StageThreads matmul_bound(1);  // the LAM trains on the CPU
+    // The LAM trains on the CPU. The tokenizer's oneDNN convolutions, next, use every thread.
+    ScopedThreads matmul_bound(matmul_bound_threads());
     return train::run_lam_training(lam);
   }();
   report["lam"] = {{"mse", lam_stats.mse}, {"psnr", lam_stats.psnr}};
@@ -175,9 +161,9 @@ int run_demo(const DemoOptions& o) {
     clip.num_frames = 9;
     clip.strides = {1, 2};
     clip.height = clip.width = 64;
-    const auto batches =
-        train::tokenizer_batches({{out / "human", "all"}, {out / "robot", "train"}}, clip,
-                                 /*clip_batch=*/4, /*image_batch=*/16, /*workers=*/1, o.seed);
+    const auto batches = train::tokenizer_batches({{out / "human", "all"}, {out / "robot", "train"}}, clip,
+                                                  /*clip_batch=*/4, /*image_batch=*/8, /*workers=*/1, o.seed);
+    // Batches of 8 frames: as good as 16 at equal time on this data (more, noisier steps).
     train::TokenizerTrainOptions t = train::recommended_tokenizer_options();
     t.warmup_steps = 20;
     t.steps = 1000000;
@@ -225,7 +211,7 @@ int run_demo(const DemoOptions& o) {
     job.seed = o.seed;
     job.device = device;
     job.precision = precision;
-    StageThreads matmul_bound(device.is_cuda() ? threads() : 1);
+    ScopedThreads matmul_bound(device.is_cuda() ? threads() : matmul_bound_threads());
     return train::run_wm_training(job);
   };
   const double pre_s = stage_budget(kPretrainWeight, kPretrainWeight + kPosttrainWeight);

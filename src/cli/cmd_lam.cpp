@@ -10,6 +10,7 @@
 #include "cli/commands.h"
 #include "core/checkpoint.h"
 #include "core/error.h"
+#include "core/runtime.h"
 #include "core/state_dict.h"
 #include "data/episode_store.h"
 #include "io/video.h"
@@ -67,7 +68,10 @@ void add_train(CLI::App& lam) {
                                       : models::LamConfig::released();
       DOJO_CHECK(job->steps > 0 && job->batch_size > 0 && job->save_every > 0,
                  "lam train: --steps, --batch and --save-every must be positive");
-      const auto s = train::run_lam_training(*job);
+      const auto s = [&] {
+        ScopedThreads matmul_bound(matmul_bound_command_threads("lam train", /*on_cuda=*/false));
+        return train::run_lam_training(*job);
+      }();
       std::printf("lam train: step %lld loss %.6g mse %.6g kl %.6g psnr %.2f dB; checkpoint %s\n",
                   static_cast<long long>(job->steps), s.loss, s.mse, s.kl, s.psnr,
                   (job->out / "checkpoint").string().c_str());

@@ -31,7 +31,7 @@ struct TrainArgs {
   // 9 frames (3 latent frames) so the steady-state causal chunk is trained, not only the first
   // two latent frames; world-model clips decode 4 latent frames.
   int batch = 4, image_batch = 16, frames = 9, size = 64, dim = 16, workers = 2, crop = 0;
-  double lr = 0, kl = 0, minutes = 0, image_fraction = 0;
+  double lr = 0, kl = 0, minutes = 0, image_fraction = 0, edge_weight = 0;
   bool cosine = true, sample = false;
   uint64_t seed = 0;
 
@@ -40,6 +40,7 @@ struct TrainArgs {
     lr = r.lr, kl = r.kl_weight, warmup = r.warmup_steps, cosine = r.cosine;
     sample = r.sample_posterior, loss = r.l1 ? "l1" : "mse";
     image_fraction = r.image_fraction;
+    edge_weight = r.edge_weight;
   }
 };
 
@@ -75,6 +76,7 @@ int run_train(const TrainArgs& a) {
   o.cosine = a.cosine;
   o.sample_posterior = a.sample;
   o.l1 = a.loss == "l1";
+  o.edge_weight = a.edge_weight;
   o.save_every = a.save_every;
   o.crop = a.crop;
   o.image_fraction = a.image_fraction;
@@ -251,6 +253,11 @@ void register_tokenizer(CLI::App& app) {
   train_cmd->add_flag("--cosine,!--no-cosine", ta->cosine, "Cosine lr decay to 5% after warm-up")
       ->capture_default_str();
   train_cmd->add_option("--loss", ta->loss, "Reconstruction loss: mse | l1")->capture_default_str();
+  train_cmd
+      ->add_option("--edge-weight", ta->edge_weight,
+                   "Weight of the edge term (L1 of pixel-gradient differences) added to the loss")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   train_cmd
       ->add_flag("--sample-posterior,!--decode-mean", ta->sample,
                  "Train on a posterior sample (default: decode the posterior mean)")

@@ -23,6 +23,10 @@ struct GlobalOptions {
 
 const GlobalOptions& global_options();
 
+// Intra-op threads for a matmul-bound command on `device` (transformer training): the user's
+// --threads when given, else matmul_bound_threads() on CPU (core/runtime.h says why), logged.
+int matmul_bound_command_threads(const std::string& command, bool on_cuda);
+
 // Parses a --size value "HxW" (positive integers) into {H, W}; throws dojo::UsageError.
 std::pair<int64_t, int64_t> parse_size(const std::string& text);
 

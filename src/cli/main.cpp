@@ -15,6 +15,15 @@ std::function<int()> g_action;
 }  // namespace
 
 const GlobalOptions& global_options() { return g_options; }
+
+int matmul_bound_command_threads(const std::string& command, bool on_cuda) {
+  if (g_options.threads > 0 || on_cuda) return threads();
+  const int n = matmul_bound_threads();
+  if (n < threads())
+    LOG_INFO(command, ": ", n, " intra-op thread(s); the BLAS library's own threads use every core inside ",
+             "each matmul (--threads N to override)");
+  return n;
+}
 void set_action(std::function<int()> action) { g_action = std::move(action); }
 
 std::pair<int64_t, int64_t> parse_size(const std::string& text) {

@@ -51,6 +51,14 @@ void use_one_thread_in_this_thread() {
     at::set_num_threads(1);  // no OpenMP: the pool is process-wide anyway
 }
 
+ScopedThreads::ScopedThreads(int n) : saved_(threads()) { set_threads(std::max(1, std::min(n, saved_))); }
+ScopedThreads::~ScopedThreads() { set_threads(saved_); }
+
+int matmul_bound_threads() {
+  static const bool blas_has_own_pool = blas_library().find("pthread") != std::string::npos;
+  return blas_has_own_pool ? 1 : threads();
+}
+
 bool cuda_available() { return torch::cuda::is_available(); }
 int cuda_device_count() { return cuda_available() ? static_cast<int>(torch::cuda::device_count()) : 0; }
 

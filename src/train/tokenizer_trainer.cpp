@@ -27,7 +27,8 @@ TokenizerTrainOptions recommended_tokenizer_options() {
   o.sample_posterior = false;
   o.l1 = true;
   o.kl_weight = 1e-6;
-  o.image_fraction = 0.6;
+  o.image_fraction = 0.85;
+  o.edge_weight = 1.0;
   return o;
 }
 
@@ -57,8 +58,15 @@ torch::Tensor random_spatial_crop(const torch::Tensor& video, int64_t size, uint
   return torch::stack(clips).contiguous();  // [B, C, T, ch, cw]
 }
 
+torch::Tensor edge_l1(const torch::Tensor& a, const torch::Tensor& b) {
+  const auto d = a - b;  // [B, C, T, H, W]
+  const auto along_h = (d.narrow(3, 1, d.size(3) - 1) - d.narrow(3, 0, d.size(3) - 1)).abs().mean();
+  const auto along_w = (d.narrow(4, 1, d.size(4) - 1) - d.narrow(4, 0, d.size(4) - 1)).abs().mean();
+  return along_h + along_w;
+}
+
 TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, double kl_weight, bool sample_posterior,
-                             bool l1) {
+                             bool l1, double edge_weight) {
   auto enc = vae->encode(video, /*chunked=*/false);     // mu, log_var: [B, z, T', h, w]
   const auto log_var = enc.log_var.clamp(-30.0, 20.0);  // the release's clamp
   auto z = enc.mu;
@@ -68,6 +76,7 @@ TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, double kl_
   loss.mse = torch::mse_loss(recon, video);
   // L1 penalises small errors more than MSE does, which sharpens edges late in training.
   loss.recon = l1 ? torch::l1_loss(recon, video) : loss.mse;
+  if (edge_weight > 0) loss.recon = loss.recon + edge_weight * edge_l1(recon, video);
   // KL(N(mu, sigma) || N(0, 1)), mean over latent elements.
   loss.kl = 0.5 * (enc.mu.pow(2) + log_var.exp() - 1.0 - log_var).mean();
   loss.total = loss.recon + kl_weight * loss.kl;
@@ -164,7 +173,7 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
                                            static_cast<uint64_t>(step));
     const double lr = tokenizer_lr(o, step, budget_fraction);
     for (auto& group : opt.param_groups()) static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
-    auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior, o.l1);
+    auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior, o.l1, o.edge_weight);
     opt.zero_grad();
     loss.total.backward();
     if (o.grad_clip > 0) torch::nn::utils::clip_grad_norm_(params, o.grad_clip);

@@ -28,8 +28,12 @@ struct TokenizerTrainOptions {
   double grad_clip = 1.0;        // max global grad norm (0: off)
   bool sample_posterior = true;  // decode mu + sigma * eps (false: decode mu)
   bool l1 = false;               // L1 reconstruction loss instead of MSE
-  int64_t warmup_steps = 0;      // linear lr warm-up from lr / warmup_steps
-  bool cosine = false;           // cosine decay from lr to min_lr_fraction * lr after warm-up
+  // Weight of edge_l1 (differences of horizontal and vertical pixel gradients) added to the
+  // reconstruction loss. Thin structures (the arm, small objects) are a small part of the pixels,
+  // so a pixel loss alone learns the background first; their outlines dominate this term.
+  double edge_weight = 0;
+  int64_t warmup_steps = 0;  // linear lr warm-up from lr / warmup_steps
+  bool cosine = false;       // cosine decay from lr to min_lr_fraction * lr after warm-up
   double min_lr_fraction = 0.05;
   int64_t log_every = 50;
   int64_t save_every = 0;                // 0: only at the end (when checkpoint_dir is set)
@@ -47,7 +51,8 @@ struct TokenizerTrainOptions {
   // single frames before clips. Images are ~3x cheaper per frame (no temporal taps) and a batch
   // of them spans many more scenes, so colours and shapes are learnt in a fraction of the time;
   // with a model from models::init_frame_by_frame that learning carries over to the clip phase
-  // as is (docs/tokenizer.md). 0: clips only.
+  // as is. The recommended 0.85 leaves a short clip phase at the low end of the cosine, which
+  // learns the temporal taps without undoing the image phase (docs/tokenizer.md). 0: clips only.
   double image_fraction = 0;
   // Image batches [N, 3, 1, H, W] for that phase; unset: every frame of next_batch's clips.
   std::function<torch::Tensor(int64_t)> next_image_batch;
@@ -76,7 +81,12 @@ struct TokenizerLoss {
 
 // video: [B, 3, T, H, W] in [-1, 1], T = 1 + 4k.
 TokenizerLoss tokenizer_loss(models::WanVae& vae, const torch::Tensor& video, double kl_weight,
-                             bool sample_posterior, bool l1 = false);
+                             bool sample_posterior, bool l1 = false, double edge_weight = 0);
+
+// Mean absolute difference of the spatial gradients (neighbour differences along H and along
+// W) of two videos [B, C, T, H, W]: zero when they differ by a constant, large at misplaced or
+// blurred edges.
+torch::Tensor edge_l1(const torch::Tensor& a, const torch::Tensor& b);
 
 struct TokenizerTrainResult {
   int64_t steps_done = 0;                // total optimisation steps (including resumed ones)

@@ -41,6 +41,25 @@ TEST(Runtime, WorkerThreadLimitStaysInTheWorker) {
   set_threads(before);
 }
 
+TEST(Runtime, ScopedThreadsLowersAndRestores) {
+  const int before = threads();
+  set_threads(3);
+  {
+    ScopedThreads one(1);
+    EXPECT_EQ(threads(), 1);
+    {
+      ScopedThreads more(8);  // never raises the count
+      EXPECT_EQ(threads(), 1);
+    }
+    EXPECT_EQ(threads(), 1);
+  }
+  EXPECT_EQ(threads(), 3);
+  // One thread exactly when the BLAS library brings its own pool.
+  const bool own_pool = blas_library().find("pthread") != std::string::npos;
+  EXPECT_EQ(matmul_bound_threads(), own_pool ? 1 : 3);
+  set_threads(before);
+}
+
 TEST(Runtime, ParseDevice) {
   EXPECT_TRUE(parse_device("cpu").is_cpu());
   EXPECT_THROW(parse_device("tpu"), UsageError);

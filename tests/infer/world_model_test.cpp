@@ -5,22 +5,15 @@
 
 #include "core/error.h"
 #include "test_util.h"
+#include "train/wm_test_fixtures.h"
 
 namespace dojo::infer {
 namespace {
 
 WorldModel random_model() {
   torch::manual_seed(0);
-  auto c = models::DitConfig::small();
-  c.model_channels = 32;
-  c.num_blocks = 1;
-  c.num_heads = 1;
-  c.adaln_lora_dim = 8;
-  c.action_hidden_dim = 32;
-  c.crossattn_emb_channels = 8;
-  c.crossattn_proj_dim = 8;
-  c.zero_init_action_fc2 = false;  // let the actions matter from the start
-  return WorldModel(models::ActionDit(c), models::WanVae(models::WanVaeConfig::tiny()));
+  return WorldModel(models::ActionDit(train::test_fixtures::tiny_dit(/*live_actions=*/true, /*width=*/32)),
+                    models::WanVae(models::WanVaeConfig::tiny()));
 }
 
 TEST(WorldModel, RolloutChainsChunksDeterministically) {

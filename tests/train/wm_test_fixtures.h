@@ -12,16 +12,16 @@
 namespace dojo::train::test_fixtures {
 
 // live_actions: fc2 of the action MLPs drawn instead of zero-initialised, so the actions matter
-// from the first step.
-inline models::DitConfig tiny_dit(bool live_actions = false) {
+// from the first step. width: model channels, a multiple of 32 (one block and one head per 32).
+inline models::DitConfig tiny_dit(bool live_actions = false, int64_t width = 64) {
   auto c = models::DitConfig::small();
-  c.model_channels = 64;
-  c.num_blocks = 2;
-  c.num_heads = 2;
-  c.adaln_lora_dim = 16;
-  c.action_hidden_dim = 64;
-  c.crossattn_emb_channels = 16;
-  c.crossattn_proj_dim = 16;
+  c.model_channels = width;
+  c.num_blocks = width / 32;
+  c.num_heads = width / 32;
+  c.adaln_lora_dim = width / 4;
+  c.action_hidden_dim = width;
+  c.crossattn_emb_channels = width / 4;
+  c.crossattn_proj_dim = width / 4;
   if (live_actions) c.zero_init_action_fc2 = false;
   return c;
 }
