@@ -108,8 +108,9 @@ struct RolloutArgs {
 };
 
 int run_rollout(const RolloutArgs& a) {
-  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, parse_device(a.device),
-                                       parse_precision(a.precision));
+  const auto device = parse_device(a.device);
+  ScopedThreads matmul_bound(matmul_bound_command_threads("wm rollout", device.is_cuda()));
+  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, device, parse_precision(a.precision));
   const auto store = data::EpisodeStore::open(a.data);
   const auto indices = store.split_indices(a.split);
   DOJO_CHECK(!indices.empty(), a.data + ": no episodes in split '" + a.split + "'");
@@ -168,8 +169,11 @@ struct EvalArgs {
 };
 
 int run_eval(const EvalArgs& a) {
-  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, parse_device(a.device),
-                                       parse_precision(a.precision));
+  const auto device = parse_device(a.device);
+  // Rollouts are DiT sampling: 31.0 generated frames/s with one OpenMP thread, 12.6 with two
+  // (2 cores, OpenBLAS pthreads; docs/benchmarks.md).
+  ScopedThreads matmul_bound(matmul_bound_command_threads("eval", device.is_cuda()));
+  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, device, parse_precision(a.precision));
   eval::WmEvalOptions o;
   o.chunks = a.chunks;
   o.max_episodes = a.episodes;
