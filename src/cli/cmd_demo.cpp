@@ -138,7 +138,7 @@ int run_demo(const DemoOptions& o) {
   lam.time_budget_s = lam_s;
   const auto lam_stats = [&] {
     // The LAM trains on the CPU. The tokenizer's oneDNN convolutions, next, use every thread.
-    ScopedThreads matmul_bound(matmul_bound_threads());
+    ScopedThreads matmul_bound(matmul_bound_command_threads("demo: LAM", /*on_cuda=*/false));
     return train::run_lam_training(lam);
   }();
   report["lam"] = {{"mse", lam_stats.mse}, {"psnr", lam_stats.psnr}};
@@ -211,7 +211,7 @@ int run_demo(const DemoOptions& o) {
     job.seed = o.seed;
     job.device = device;
     job.precision = precision;
-    ScopedThreads matmul_bound(device.is_cuda() ? threads() : matmul_bound_threads());
+    ScopedThreads matmul_bound(matmul_bound_command_threads("demo: world model", device.is_cuda()));
     return train::run_wm_training(job);
   };
   const double pre_s = stage_budget(kPretrainWeight, kPretrainWeight + kPosttrainWeight);
@@ -252,7 +252,7 @@ int run_demo(const DemoOptions& o) {
   std::vector<eval::WmEvalResult> results;
   {
     // DiT sampling is matmul-bound: 31.0 generated frames/s with one OpenMP thread, 12.6 with two.
-    ScopedThreads matmul_bound(device.is_cuda() ? threads() : matmul_bound_threads());
+    ScopedThreads matmul_bound(matmul_bound_command_threads("demo: rollouts", device.is_cuda()));
     results.push_back(eval::evaluate_world_model(model, out / "robot", "val", eo));
     results.push_back(eval::evaluate_world_model(model, out / "robot_ood_objects", "all", eo));
     results.back().split = "ood-objects";
