@@ -11,8 +11,10 @@ mkdir -p "$OUT/corpus" "$OUT/crashes"
 CXX="${CXX_FUZZ:-clang++}"
 FLAGS=(-std=c++17 -O1 -g -fno-omit-frame-pointer -Isrc)
 SAN=(-fsanitize=fuzzer,address,undefined -fno-sanitize-recover=undefined)
-"$CXX" "${FLAGS[@]}" "${SAN[@]}" fuzz/parquet_fuzz.cpp src/io/parquet.cpp -lsnappy -lzstd -o "$OUT/parquet_fuzz"
-"$CXX" "${FLAGS[@]}" -fsanitize=address fuzz/parquet_seeds.cpp src/io/parquet.cpp src/io/parquet_writer.cpp \
+# The reader is parquet.cpp (ParquetFile) + parquet_thrift.cpp (footer metadata) + parquet_decode.cpp (pages).
+READER=(src/io/parquet.cpp src/io/parquet_thrift.cpp src/io/parquet_decode.cpp)
+"$CXX" "${FLAGS[@]}" "${SAN[@]}" fuzz/parquet_fuzz.cpp "${READER[@]}" -lsnappy -lzstd -o "$OUT/parquet_fuzz"
+"$CXX" "${FLAGS[@]}" -fsanitize=address fuzz/parquet_seeds.cpp "${READER[@]}" src/io/parquet_writer.cpp \
   src/core/atomic_file.cpp -lsnappy -lzstd -o "$OUT/parquet_seeds"
 "$OUT/parquet_seeds" "$OUT/corpus"
 cp fuzz/regressions/* "$OUT/corpus/" 2>/dev/null || true
