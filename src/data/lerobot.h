@@ -105,6 +105,21 @@ class LeRobotDataset : public EpisodeSource {
   struct DataFile;
 
  private:
+  // The steps of open(), in order (lerobot_open.cpp).
+
+  // meta/info.json: format, fps, raw action/state widths and video features; true for v3.0.
+  bool read_info_json();
+  // The robot (chosen or detected) and its modality (meta/modality.json or the built-in layout).
+  void choose_robot(const OpenOptions& options);
+  // The camera to read (explicit, else the robot's, else the first video feature) and its size.
+  void choose_camera(const OpenOptions& options);
+  // Tasks and episodes from the version's tables, sorted by episode index.
+  void read_episode_table(bool v3);
+  // info_.episodes, with the splits of info.json.
+  void build_episode_entries();
+  // Embodiment, action names and width, and the statistics sliced into the robot's slot order.
+  void set_embodiment_and_stats(const std::map<std::string, ArrayStats>& column_stats);
+
   std::shared_ptr<const DataFile> load_data(const std::filesystem::path& path) const;
   std::vector<int64_t> episode_rows(size_t index, const DataFile& data) const;
 

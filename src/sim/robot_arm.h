@@ -1,7 +1,7 @@
 // Geometry and kinematics of DojoSim's robot: a 5-DoF arm (base yaw, shoulder pitch, elbow pitch,
 // wrist pitch, wrist roll) built from capsules, with a two-finger parallel gripper on slide joints.
-// The MJCF generator (scene.cpp) and the scripted policies (skills.cpp) both read these constants,
-// so the analytic inverse kinematics below matches the simulated arm exactly.
+// The MJCF generator (scene_mjcf.cpp) and the scripted policies (robot_policies.cpp) both read
+// these constants, so the analytic inverse kinematics below matches the simulated arm exactly.
 //
 // Conventions. Joint angles are radians. With all joints at 0 the arm points straight up; the
 // pitch joints tilt the chain toward the arm's forward direction, which at base_yaw = 0 is world
