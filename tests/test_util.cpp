@@ -28,7 +28,7 @@ TempDir::~TempDir() {
   std::filesystem::remove_all(path_, ec);
 }
 
-std::filesystem::path shared_dir() { return DOJO_SHARED_DIR; }
+std::filesystem::path golden_dir() { return std::filesystem::path(DOJO_SOURCE_DIR) / "tests" / "golden"; }
 
 std::filesystem::path sample_video(const std::string& name) {
   const std::filesystem::path path = "/usr/share/doc/opencv-doc/examples/data/" + name;

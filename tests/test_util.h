@@ -24,8 +24,9 @@ class TempDir {
   std::filesystem::path path_;
 };
 
-// ../shared next to the checkout (golden fixtures, reference key lists).
-std::filesystem::path shared_dir();
+// tests/golden: the parity fixtures made with the published implementations, and the released
+// parameter key lists in keys/ (tests/golden/README.md).
+std::filesystem::path golden_dir();
 // A real camera clip shipped by Debian's opencv-doc, or "" when not installed.
 std::filesystem::path sample_video(const std::string& name = "vtest.avi");
 

@@ -4,6 +4,7 @@
 
 #include "bench/bench.h"
 #include "cli/commands.h"
+#include "cli/options.h"
 
 namespace dojo::cli {
 
@@ -17,11 +18,11 @@ void register_bench(CLI::App& app) {
   auto list = std::make_shared<bool>(false);
   cmd->add_option("--repeats,-r", options->repeats, "Timed repeats per row")->capture_default_str();
   cmd->add_option("--warmup", options->warmup, "Untimed warm-up runs per row")->capture_default_str();
-  cmd->add_option("--device", options->device, "cpu, cuda, cuda:N or auto")->capture_default_str();
+  add_device_option(cmd, options->device);
   cmd->add_option("--only", options->only, "Run only these rows (names from --list)");
   cmd->add_option("--video", options->video_path,
                   "Video file for the decode row (default: a generated clip)");
-  cmd->add_flag("--json", *json, "Print JSON instead of markdown");
+  add_json_option(cmd, *json);
   cmd->add_flag("--list", *list, "List the row names and exit");
   cmd->callback([=] {
     set_action([=] {

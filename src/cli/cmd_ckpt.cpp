@@ -6,6 +6,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
+#include "cli/options.h"
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/safetensors.h"
@@ -135,7 +136,7 @@ void register_ckpt(CLI::App& app) {
   auto path = std::make_shared<std::string>();
   auto json = std::make_shared<bool>(false);
   info->add_option("path", *path, "Checkpoint directory or .safetensors file")->required();
-  info->add_flag("--json", *json, "Print as JSON");
+  add_json_option(info, *json);
   info->callback([path, json] {
     set_action([path, json] {
       const auto result = info_json(*path);

@@ -3,6 +3,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
+#include "cli/options.h"
 #include "core/error.h"
 #include "core/progress.h"
 #include "data/episode_source.h"
@@ -31,7 +32,7 @@ void register_data(CLI::App& app) {
   auto json = std::make_shared<bool>(false);
   auto info_open = std::make_shared<data::OpenOptions>();
   info_cmd->add_option("DIR", *dir, "Dataset directory")->required();
-  info_cmd->add_flag("--json", *json, "Print JSON");
+  add_json_option(info_cmd, *json);
   add_open_options(info_cmd, info_open);
   info_cmd->callback([=] {
     set_action([=] {
@@ -103,7 +104,7 @@ void register_data(CLI::App& app) {
   auto stats_write = std::make_shared<bool>(false);
   auto stats_open = std::make_shared<data::OpenOptions>();
   stats_cmd->add_option("DIR", *stats_dir, "Dataset directory")->required();
-  stats_cmd->add_flag("--json", *stats_json, "Print JSON");
+  add_json_option(stats_cmd, *stats_json);
   stats_cmd->add_flag(
       "--write", *stats_write,
       "Store them: meta/stats.json for LeRobot (other keys kept), info.json for the episode format");
@@ -141,7 +142,7 @@ void register_data(CLI::App& app) {
   auto preview_count = std::make_shared<int>(4);
   auto preview_scale = std::make_shared<int>(2);
   preview_cmd->add_option("DIR", *preview_dir, "Dataset directory")->required();
-  preview_cmd->add_option("--out,-o", *preview_out, "Output .mp4 path")->required();
+  add_out_option(preview_cmd, *preview_out, "mp4 file")->required();
   preview_cmd->add_option("--episodes,-n", *preview_count, "How many episodes (the first N)")
       ->capture_default_str();
   preview_cmd->add_option("--scale", *preview_scale, "Integer upscale of small frames (nearest neighbour)")

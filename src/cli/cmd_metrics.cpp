@@ -1,5 +1,6 @@
-// `dojo metrics`: PSNR / SSIM (piq conventions) and optionally LPIPS-VGG between a predicted and a
-// ground-truth video, per frame then averaged (docs/evaluation.md).
+// `dojo metrics video`: PSNR / SSIM (piq conventions) and optionally LPIPS-VGG between a predicted
+// and a ground-truth video, per frame then averaged; `dojo metrics policies`: how well world-model
+// success rates rank policies against real ones (Pearson r, MMRV, Spearman; docs/evaluation.md).
 #include <torch/torch.h>
 #include <CLI/CLI.hpp>
 #include <cmath>
@@ -10,6 +11,7 @@
 #include <vector>
 
 #include "cli/commands.h"
+#include "cli/options.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "eval/lpips.h"
@@ -18,9 +20,11 @@
 
 namespace dojo::cli {
 
-void register_metrics(CLI::App& app) {
-  auto* cmd = app.add_subcommand(
-      "metrics", "PSNR, SSIM (and LPIPS with --lpips-weights) of a predicted video against ground truth");
+namespace {
+
+void add_video(CLI::App& metrics) {
+  auto* cmd = metrics.add_subcommand(
+      "video", "PSNR, SSIM (and LPIPS with --lpips-weights) of a predicted video against ground truth");
   struct Options {
     std::string pred, gt;
     std::vector<std::string> lpips_weights;
@@ -34,7 +38,7 @@ void register_metrics(CLI::App& app) {
                   "LPIPS-VGG weights as safetensors (one file or trunk + heads; see docs/evaluation.md)");
   cmd->add_option("--frames", o->frames, "Compare the first N frames (-1 = as many as both have)")
       ->capture_default_str();
-  cmd->add_flag("--json", o->json, "Print as JSON");
+  add_json_option(cmd, o->json);
   cmd->callback([o] {
     set_action([o] {
       std::optional<eval::Lpips> lpips;
@@ -70,6 +74,45 @@ void register_metrics(CLI::App& app) {
       return 0;
     });
   });
+}
+
+void add_policies(CLI::App& metrics) {
+  auto* cmd = metrics.add_subcommand(
+      "policies",
+      "Pearson r, MMRV, Spearman rho and the mean absolute gap between per-policy success rates in the "
+      "world model and in the real world, from FILE.json: {\"policies\": [{\"name\": ..., \"world_model\": "
+      "0.8, \"real\": 0.7}, ...]}");
+  auto file = std::make_shared<std::string>();
+  auto json = std::make_shared<bool>(false);
+  cmd->add_option("FILE", *file, "JSON file of per-policy success rates")->required();
+  add_json_option(cmd, *json);
+  cmd->callback([file, json] {
+    set_action([file, json] {
+      const auto rates = eval::read_policy_rates(*file);
+      const auto a = eval::policy_agreement(rates);
+      if (*json) {
+        auto j = a.to_json();
+        j["policies"] = static_cast<int64_t>(rates.names.size());
+        std::printf("%s\n", j.dump(2).c_str());
+      } else {
+        std::printf("%-13s %zu\n", "policies", rates.names.size());
+        std::printf("%-13s %.4f\n", "pearson r", a.pearson);
+        std::printf("%-13s %.4f\n", "mmrv", a.mmrv);
+        std::printf("%-13s %.4f\n", "spearman rho", a.spearman);
+        std::printf("%-13s %.4f\n", "mean |gap|", a.mean_abs_gap);
+      }
+      return 0;
+    });
+  });
+}
+
+}  // namespace
+
+void register_metrics(CLI::App& app) {
+  auto* metrics = app.add_subcommand("metrics", "Metrics of videos and of policy rankings");
+  metrics->require_subcommand(1);
+  add_video(*metrics);
+  add_policies(*metrics);
 }
 
 }  // namespace dojo::cli

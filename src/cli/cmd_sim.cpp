@@ -6,6 +6,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
+#include "cli/options.h"
 #include "core/error.h"
 #include "io/video.h"
 #include "sim/episode.h"
@@ -32,7 +33,7 @@ void add_generate(CLI::App& sim) {
   auto out = std::make_shared<std::string>();
   auto size = std::make_shared<std::string>("64x64");
   auto json = std::make_shared<bool>(false);
-  cmd->add_option("--out,-o", *out, "Output dataset directory")->required();
+  add_out_option(cmd, *out, "dataset directory")->required();
   cmd->add_option("--embodiment", o->embodiment, "human (action-free video) or robot (joint actions)")
       ->check(CLI::IsMember({"human", "robot"}))
       ->capture_default_str();
@@ -45,15 +46,14 @@ void add_generate(CLI::App& sim) {
                   "Frames per episode at 10 Hz (0 = split default: 64, long-horizon 600)")
       ->capture_default_str();
   cmd->add_option("--size", *size, "Frame size HEIGHTxWIDTH")->capture_default_str();
-  cmd->add_option("--seed", o->seed, "Random seed: same seed, same bytes")->capture_default_str();
-  cmd->add_option("--workers,-j", o->workers, "Parallel episode workers (0 = all cores)")
-      ->capture_default_str();
+  add_seed_option(cmd, o->seed);
+  add_workers_option(cmd, o->workers);
   cmd->add_option("--val-fraction", o->val_fraction, "Robot train split: share of episodes marked 'val'")
       ->capture_default_str();
   cmd->add_option("--skills", o->skills,
                   "Human: restrict to these skills (push, poke, pat, sweep, pick_place, ...)");
   cmd->add_option("--quality", o->quality, "Robot bin policy: expert, good, medium, poor (default: a mix)");
-  cmd->add_flag("--json", *json, "Print the summary as JSON");
+  add_json_option(cmd, *json);
   cmd->callback([=] {
     set_action([=] {
       const auto [h, w] = parse_size(*size);
@@ -95,9 +95,9 @@ void add_render(CLI::App& sim) {
   cmd->add_option("--embodiment", *embodiment, "human or robot")
       ->check(CLI::IsMember({"human", "robot"}))
       ->capture_default_str();
-  cmd->add_option("--out,-o", *out, "Output .mp4 path")->required();
+  add_out_option(cmd, *out, "mp4 file")->required();
   cmd->add_option("--size", *size, "Frame size HEIGHTxWIDTH")->capture_default_str();
-  cmd->add_option("--seed", *seed, "Scene and controller seed")->capture_default_str();
+  add_seed_option(cmd, *seed);
   cmd->add_option("--steps", *steps, "Control steps (frames) at 10 Hz")->capture_default_str();
   cmd->add_option("--behavior", *behavior, "Robot: bin_pick, pat, reach_miss, push, random_motion")
       ->capture_default_str();

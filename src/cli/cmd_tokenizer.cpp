@@ -8,16 +8,18 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
+#include "cli/options.h"
 #include "core/atomic_file.h"
-#include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/progress.h"
 #include "core/safetensors.h"
 #include "data/clip_loader.h"
+#include "data/episode_source.h"
 #include "data/episode_store.h"
+#include "eval/tokenizer_eval.h"
 #include "io/video.h"
 #include "models/wan_vae.h"
-#include "train/tokenizer_trainer.h"
+#include "train/tokenizer_train.h"
 
 namespace dojo::cli {
 
@@ -45,9 +47,8 @@ struct TrainArgs {
 };
 
 struct EvalArgs {
-  std::string ckpt, data, split = "val", video, out;
-  int clips = 16, frames = 13, size = 0;
-  uint64_t seed = 0;
+  std::string ckpt, data, video, out;
+  eval::TokenizerEvalOptions options;
   bool json = false;
 };
 
@@ -92,53 +93,30 @@ int run_train(const TrainArgs& a) {
 }
 
 int run_eval(const EvalArgs& a) {
-  auto vae = train::load_tokenizer(a.ckpt);
-  auto store = data::EpisodeStore::open(a.data);
-  data::ClipConfig clip;
-  clip.num_frames = a.frames;
-  clip.strides = {1};
-  clip.height = a.size > 0 ? a.size : store.info().height;
-  clip.width = a.size > 0 ? a.size : store.info().width;
-  data::ClipDataset dataset(store, clip, a.split);
-  DOJO_CHECK(!dataset.episodes().empty(), a.data + ": no episodes in split '" + a.split + "'");
-  double psnr_sum = 0, ssim_sum = 0;
-  std::vector<at::Tensor> originals, recons;
-  Progress progress("tokenizer eval", a.clips, "clip");
-  for (int i = 0; i < a.clips; ++i) {
-    auto rng = data::stream_rng(a.seed, static_cast<uint64_t>(i));
-    const auto clip_u8 = dataset.sample(rng).video.unsqueeze(0);  // [1, T, H, W, 3]
-    const auto x = train::video_to_model(clip_u8);
-    const auto y = train::reconstruct(vae, x);
-    psnr_sum += train::psnr(y, x);
-    ssim_sum += train::ssim(y, x);
-    if (originals.size() < 4) {
-      originals.push_back(clip_u8[0]);
-      recons.push_back(train::model_to_video(y)[0]);
-    }
-    progress.advance();
-  }
-  progress.finish();
-  nlohmann::json j = {{"psnr", psnr_sum / a.clips}, {"ssim", ssim_sum / a.clips}, {"clips", a.clips},
-                      {"frames", a.frames},         {"split", a.split},           {"checkpoint", a.ckpt}};
+  auto vae = models::load_tokenizer(a.ckpt);
+  const auto r = eval::evaluate_tokenizer(vae, a.data, a.options);
+  nlohmann::json j = r.to_json();
+  j["split"] = a.options.split;
+  j["checkpoint"] = a.ckpt;
   if (!a.video.empty()) {
     // Top row: originals side by side; bottom: reconstructions.
-    std::vector<at::Tensor> rows = {torch::cat(originals, 2), torch::cat(recons, 2)};
+    std::vector<at::Tensor> rows = {torch::cat(r.originals, 2), torch::cat(r.reconstructions, 2)};
     io::write_comparison_video(a.video, {torch::cat(rows, 1)}, {"original (top) / reconstruction (bottom)"},
-                               store.info().fps);
+                               data::open_dataset(a.data)->info().fps);
     j["video"] = a.video;
   }
   if (!a.out.empty()) write_file_atomic(a.out, j.dump(2) + "\n");
   if (a.json)
     std::printf("%s\n", j.dump(2).c_str());
   else
-    std::printf("PSNR %.2f dB  SSIM %.4f  over %d clips of %d frames (%s)\n", psnr_sum / a.clips,
-                ssim_sum / a.clips, a.clips, a.frames, a.split.c_str());
+    std::printf("PSNR %.2f dB  SSIM %.4f  over %d clips of %d frames (%s)\n", r.psnr, r.ssim, r.clips,
+                r.frames, a.options.split.c_str());
   return 0;
 }
 
 int run_encode(const std::string& ckpt, const std::string& dir, const std::string& out,
                const std::string& split) {
-  auto vae = train::load_tokenizer(ckpt);
+  auto vae = models::load_tokenizer(ckpt);
   const auto store = data::EpisodeStore::open(dir);
   const auto indices = store.split_indices(split);
   std::filesystem::create_directories(out);
@@ -159,7 +137,7 @@ int run_encode(const std::string& ckpt, const std::string& dir, const std::strin
     std::vector<torch::Tensor> mus;
     for (int64_t s = 0; s < t; s += 16)
       mus.push_back(
-          enc.push(train::video_to_model(frames.narrow(0, s, std::min<int64_t>(16, t - s)).unsqueeze(0))));
+          enc.push(models::video_to_model(frames.narrow(0, s, std::min<int64_t>(16, t - s)).unsqueeze(0))));
     const auto z = vae->normalize(torch::cat(mus, 2))[0].contiguous();  // [z, T_lat, h, w]
     save_safetensors(std::filesystem::path(out) / (entry.id + ".safetensors"), {{"z", z}},
                      {{"episode", entry.id}, {"pixel_frames", std::to_string(t)}});
@@ -185,7 +163,7 @@ int run_bench(int dim, int height, int width, int frames, const std::string& ckp
   torch::NoGradGuard no_grad;
   models::WanVaeConfig cfg;
   cfg.dim = dim;
-  models::WanVae vae = ckpt.empty() ? models::WanVae(cfg) : train::load_tokenizer(ckpt);
+  models::WanVae vae = ckpt.empty() ? models::WanVae(cfg) : models::load_tokenizer(ckpt);
   vae->eval();
   const auto x = torch::rand({1, 3, frames, height, width}) * 2 - 1;
   using clock = std::chrono::steady_clock;
@@ -224,9 +202,9 @@ void register_tokenizer(CLI::App& app) {
   auto* train_cmd =
       tok->add_subcommand("train", "Train a small VAE on DojoSim datasets (resumes from --out)");
   auto ta = std::make_shared<TrainArgs>();
-  train_cmd->add_option("--data", ta->data, "Dataset directories (repeatable)")->required();
-  train_cmd->add_option("--out,-o", ta->out, "Checkpoint directory")->required();
-  train_cmd->add_option("--split", ta->split, "Split to train on")->capture_default_str();
+  add_data_option(train_cmd, ta->data)->required();
+  add_out_option(train_cmd, ta->out, "checkpoint directory")->required();
+  add_split_option(train_cmd, ta->split);
   train_cmd->add_option("--steps", ta->steps, "Optimisation steps")->capture_default_str();
   train_cmd->add_option("--batch", ta->batch, "Clips per batch")->capture_default_str();
   train_cmd->add_option("--frames", ta->frames, "Frames per clip (1 + 4k)")->capture_default_str();
@@ -264,33 +242,33 @@ void register_tokenizer(CLI::App& app) {
       ->capture_default_str();
   train_cmd->add_option("--save-every", ta->save_every, "Checkpoint interval in steps")
       ->capture_default_str();
-  train_cmd->add_option("--workers", ta->workers, "Loader threads")->capture_default_str();
-  train_cmd->add_option("--seed", ta->seed, "Seed")->capture_default_str();
+  add_workers_option(train_cmd, ta->workers);
+  add_seed_option(train_cmd, ta->seed);
   train_cmd->callback([=] { set_action([=] { return run_train(*ta); }); });
 
   auto* eval_cmd =
       tok->add_subcommand("eval", "Reconstruction PSNR/SSIM on a split, optional side-by-side video");
   auto ea = std::make_shared<EvalArgs>();
-  eval_cmd->add_option("--ckpt", ea->ckpt, "Tokenizer checkpoint directory")->required();
-  eval_cmd->add_option("--data", ea->data, "Dataset directory")->required();
-  eval_cmd->add_option("--split", ea->split, "Split")->capture_default_str();
-  eval_cmd->add_option("--clips", ea->clips, "Clips to evaluate")->capture_default_str();
-  eval_cmd->add_option("--frames", ea->frames, "Frames per clip (1 + 4k)")->capture_default_str();
-  eval_cmd->add_option("--size", ea->size, "Clip size (0: dataset size)")->capture_default_str();
+  add_checkpoint_option(eval_cmd, ea->ckpt, "the tokenizer")->required();
+  add_data_option(eval_cmd, ea->data)->required();
+  add_split_option(eval_cmd, ea->options.split);
+  eval_cmd->add_option("--clips", ea->options.clips, "Clips to evaluate")->capture_default_str();
+  eval_cmd->add_option("--frames", ea->options.frames, "Frames per clip (1 + 4k)")->capture_default_str();
+  eval_cmd->add_option("--size", ea->options.size, "Clip size (0: dataset size)")->capture_default_str();
   eval_cmd->add_option("--video", ea->video, "Write original vs reconstruction .mp4 here");
-  eval_cmd->add_option("--out", ea->out, "Write the JSON result here");
-  eval_cmd->add_option("--seed", ea->seed, "Clip sampling seed")->capture_default_str();
-  eval_cmd->add_flag("--json", ea->json, "Print JSON");
+  add_out_option(eval_cmd, ea->out, "JSON file for the result");
+  add_seed_option(eval_cmd, ea->options.seed);
+  add_json_option(eval_cmd, ea->json);
   eval_cmd->callback([=] { set_action([=] { return run_eval(*ea); }); });
 
   auto* enc_cmd =
       tok->add_subcommand("encode", "Cache normalised latents of every episode (one .safetensors each)");
   auto ckpt = std::make_shared<std::string>(), dir = std::make_shared<std::string>(),
        out = std::make_shared<std::string>(), split = std::make_shared<std::string>("all");
-  enc_cmd->add_option("--ckpt", *ckpt, "Tokenizer checkpoint directory")->required();
-  enc_cmd->add_option("--data", *dir, "Dataset directory")->required();
-  enc_cmd->add_option("--out,-o", *out, "Latent cache directory")->required();
-  enc_cmd->add_option("--split", *split, "Split (all: every episode)")->capture_default_str();
+  add_checkpoint_option(enc_cmd, *ckpt, "the tokenizer")->required();
+  add_data_option(enc_cmd, *dir)->required();
+  add_out_option(enc_cmd, *out, "latent cache directory")->required();
+  add_split_option(enc_cmd, *split);
   enc_cmd->callback([=] { set_action([=] { return run_encode(*ckpt, *dir, *out, *split); }); });
 
   auto* bench_cmd =
@@ -303,7 +281,7 @@ void register_tokenizer(CLI::App& app) {
   bench_cmd->add_option("--height", *bh, "Frame height")->capture_default_str();
   bench_cmd->add_option("--width", *bw, "Frame width")->capture_default_str();
   bench_cmd->add_option("--frames", *bt, "Frames (1 + 4k)")->capture_default_str();
-  bench_cmd->add_option("--ckpt", *bckpt, "Use this checkpoint instead of a random model");
+  add_checkpoint_option(bench_cmd, *bckpt, "a trained tokenizer to measure instead of a random model");
   bench_cmd->callback([=] { set_action([=] { return run_bench(*bdim, *bh, *bw, *bt, *bckpt); }); });
 }
 

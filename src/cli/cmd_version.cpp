@@ -3,6 +3,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
+#include "cli/options.h"
 #include "core/runtime.h"
 
 namespace dojo::cli {
@@ -10,7 +11,7 @@ namespace dojo::cli {
 void register_version(CLI::App& app) {
   auto* cmd = app.add_subcommand("version", "Print version, build and runtime facts");
   auto json = std::make_shared<bool>(false);
-  cmd->add_flag("--json", *json, "Print as JSON");
+  add_json_option(cmd, *json);
   cmd->callback([json] {
     set_action([json] {
       const auto info = version_info();

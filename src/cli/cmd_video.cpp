@@ -6,6 +6,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
+#include "cli/options.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "core/progress.h"
@@ -20,7 +21,7 @@ void register_info(CLI::App& video) {
   auto file = std::make_shared<std::string>();
   auto json = std::make_shared<bool>(false);
   cmd->add_option("FILE", *file, "Video file (mp4, mkv, webm, avi, mov, ...)")->required();
-  cmd->add_flag("--json", *json, "Print as JSON");
+  add_json_option(cmd, *json);
   cmd->callback([file, json] {
     set_action([file, json] {
       const io::VideoInfo info = io::probe_video(*file);
@@ -54,7 +55,7 @@ void register_frames(CLI::App& video) {
   };
   auto o = std::make_shared<Options>();
   cmd->add_option("FILE", o->file, "Video file")->required();
-  cmd->add_option("-o,--out", o->out, "Output directory (created when missing)")->required();
+  add_out_option(cmd, o->out, "directory for the frames (created when missing)")->required();
   cmd->add_option("--start", o->start, "First frame index")
       ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
@@ -63,7 +64,7 @@ void register_frames(CLI::App& video) {
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
   cmd->add_option("--size", o->size, "Center-crop to the HxW aspect, then resize to HxW (e.g. 256x256)");
-  cmd->add_flag("--json", o->json, "Print the written files as JSON");
+  add_json_option(cmd, o->json);
   cmd->callback([o] {
     set_action([o] {
       int64_t out_h = 0, out_w = 0;

@@ -7,14 +7,12 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
+#include "cli/options.h"
 #include "core/atomic_file.h"
 #include "core/autocast.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "core/runtime.h"
-#include "core/safetensors.h"
-#include "data/clip_loader.h"
-#include "data/episode_store.h"
 #include "eval/lpips.h"
 #include "eval/wm_eval.h"
 #include "infer/world_model.h"
@@ -44,13 +42,9 @@ models::DitConfig model_preset(const std::string& name) {
   throw UsageError("--model must be small, 2b or 14b (got '" + name + "')");
 }
 
-// --device and --precision of the world-model commands: same flags, same help everywhere.
 void add_device_options(CLI::App* cmd, std::string& device, std::string& precision) {
-  cmd->add_option("--device", device, "Where the networks run: cpu | cuda | cuda:N | auto")
-      ->capture_default_str();
-  cmd->add_option("--precision", precision,
-                  "fp32 | bf16 | fp16 (CUDA only): the DiT forward under autocast; weights stay fp32")
-      ->capture_default_str();
+  add_device_option(cmd, device);
+  add_precision_option(cmd, precision);
 }
 
 int run_wm_train(const WmTrainArgs& a) {
@@ -111,50 +105,22 @@ int run_rollout(const RolloutArgs& a) {
   const auto device = parse_device(a.device);
   ScopedThreads matmul_bound(matmul_bound_command_threads("wm rollout", device.is_cuda()));
   auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, device, parse_precision(a.precision));
-  const auto store = data::EpisodeStore::open(a.data);
-  const auto indices = store.split_indices(a.split);
-  DOJO_CHECK(!indices.empty(), a.data + ": no episodes in split '" + a.split + "'");
-  size_t ep = indices.front();
-  if (!a.episode.empty()) {
-    bool found = false;
-    for (size_t i = 0; i < store.size(); ++i)
-      if (store.info().episodes[i].id == a.episode) {
-        ep = i;
-        found = true;
-      }
-    DOJO_CHECK(found, a.data + ": no episode '" + a.episode + "'");
-  }
-  data::ClipConfig clip;
-  clip.num_frames = 1 + 12 * a.chunks;
-  clip.strides = {1};
-  clip.height = store.info().height;
-  clip.width = store.info().width;
-  data::ClipDataset ds(store, clip, "all");
-  const auto id = store.info().episodes[ep].id;
-  DOJO_CHECK(data::window_fits(store.info().episodes[ep].frames, 1, clip.num_frames),
-             a.data + ": episode " + id + " is shorter than " + std::to_string(clip.num_frames) + " frames");
-  const auto c = ds.read(ep, data::make_window(0, 1, clip.num_frames));
-  auto actions = c.actions;  // [12 K, 384]
-  bool counterfactual = false;
-  if (!a.actions_file.empty()) {
-    // Counterfactual: the episode's first frame with actions from a file.
-    actions = SafetensorsFile::open(a.actions_file).tensor("actions", true).to(torch::kFloat);
-    DOJO_CHECK(
-        actions.dim() == 2 && actions.size(1) == 384 && actions.size(0) % 12 == 0 && actions.size(0) > 0,
-        a.actions_file + ": tensor 'actions' must be [12 K, 384]");
-    counterfactual = true;
-  }
+  const auto clip = eval::read_episode_clip(a.data, a.split, a.episode, a.chunks);
+  // Counterfactual: the episode's first frame with actions from a file.
+  const bool counterfactual = !a.actions_file.empty();
+  const auto actions =
+      counterfactual ? eval::read_rollout_actions(a.actions_file) : clip.actions;  // [12 K, 384]
   infer::SamplerOptions sampler;
   sampler.steps = a.steps;
   sampler.solver = infer::parse_solver(a.solver);
-  const auto pred = model.rollout(c.video.select(0, 0).unsqueeze(0), actions.unsqueeze(0), a.seed, sampler,
+  const auto pred = model.rollout(clip.video.select(0, 0).unsqueeze(0), actions.unsqueeze(0), a.seed, sampler,
                                   infer::parse_concat_mode(a.concat))[0];
   if (counterfactual)
     io::write_video(a.out, pred, {});
   else
-    io::write_comparison_video(a.out, {c.video, pred}, {"ground truth", "world model"}, store.info().fps);
-  std::printf("rollout of %s (%lld frames) -> %s\n", id.c_str(), static_cast<long long>(pred.size(0)),
-              a.out.c_str());
+    io::write_comparison_video(a.out, {clip.video, pred}, {"ground truth", "world model"}, clip.fps);
+  std::printf("rollout of %s (%lld frames) -> %s\n", clip.episode.c_str(),
+              static_cast<long long>(pred.size(0)), a.out.c_str());
   return 0;
 }
 
@@ -229,8 +195,8 @@ void register_wm(CLI::App& app) {
   train_cmd
       ->add_option("--stage", t->stage, "pretrain (human video) | posttrain (robot, needs --init) | scratch")
       ->capture_default_str();
-  train_cmd->add_option("--data,-d", t->data, "Dataset directory (repeat to mix)")->required();
-  train_cmd->add_option("--split", t->split, "Split to train on")->capture_default_str();
+  add_data_option(train_cmd, t->data)->required();
+  add_split_option(train_cmd, t->split);
   train_cmd->add_option("--tokenizer", t->tokenizer, "Tokenizer checkpoint (dojo tokenizer train)")
       ->required();
   train_cmd->add_option("--lam", t->lam, "LAM checkpoint, for --actions latent");
@@ -238,8 +204,7 @@ void register_wm(CLI::App& app) {
       "--actions", t->actions,
       "dataset | latent | none | ground-truth (default: latent for pretrain, else dataset)");
   train_cmd->add_option("--init", t->init, "Pretrained world-model checkpoint (posttrain)");
-  train_cmd->add_option("--out,-o", t->out, "Output directory (checkpoint/, loss.csv, latent caches)")
-      ->required();
+  add_out_option(train_cmd, t->out, "directory for checkpoint/, loss.csv and the latent caches")->required();
   train_cmd->add_option("--model", t->model, "Network size: small | 2b | 14b")->capture_default_str();
   train_cmd->add_option("--steps", t->steps, "Total optimiser steps")->capture_default_str();
   train_cmd->add_option("--minutes", t->minutes,
@@ -262,36 +227,35 @@ void register_wm(CLI::App& app) {
   train_cmd->add_flag("--whole-clip-actions", t->whole_clip_actions,
                       "Ablation: one embedding of all 12 actions added to every frame (no per-frame chunks)");
   train_cmd->add_option("--save-every", t->save_every, "Checkpoint interval in steps")->capture_default_str();
-  train_cmd->add_option("--seed", t->seed, "Random seed")->capture_default_str();
+  add_seed_option(train_cmd, t->seed);
   add_device_options(train_cmd, t->device, t->precision);
   train_cmd->callback([t] { set_action([t] { return run_wm_train(*t); }); });
 
   auto r = std::make_shared<RolloutArgs>();
   auto* roll = wm->add_subcommand("rollout", "Roll the model out from an episode's first frame and actions");
-  roll->add_option("--checkpoint,-c", r->checkpoint, "World-model checkpoint")->required();
+  add_checkpoint_option(roll, r->checkpoint, "the world model")->required();
   roll->add_option("--tokenizer", r->tokenizer, "Tokenizer checkpoint")->required();
-  roll->add_option("--data,-d", r->data, "Dataset the episode comes from")->required();
-  roll->add_option("--split", r->split, "Split (first episode is used unless --episode)")
-      ->capture_default_str();
-  roll->add_option("--episode", r->episode, "Episode id");
+  add_data_option(roll, r->data)->required();
+  add_split_option(roll, r->split);
+  roll->add_option("--episode", r->episode, "Episode id (default: the first episode of --split)");
   roll->add_option("--actions", r->actions_file,
                    "safetensors file with 'actions' [12 K, 384] (counterfactual)");
   roll->add_option("--chunks", r->chunks, "Chunks of 12 actions")->capture_default_str();
   roll->add_option("--steps", r->steps, "Sampler steps")->capture_default_str();
   roll->add_option("--solver", r->solver, "unipc | euler")->capture_default_str();
   roll->add_option("--concat", r->concat, "aligned | released (chunk joining)")->capture_default_str();
-  roll->add_option("--seed", r->seed, "Noise seed")->capture_default_str();
-  roll->add_option("--out,-o", r->out, "Output mp4")->required();
+  add_seed_option(roll, r->seed);
+  add_out_option(roll, r->out, "mp4 file")->required();
   add_device_options(roll, r->device, r->precision);
   roll->callback([r] { set_action([r] { return run_rollout(*r); }); });
 
   auto e = std::make_shared<EvalArgs>();
   auto* ev =
       app.add_subcommand("eval", "Evaluate a world model: PSNR/SSIM of rollouts vs ground truth per split");
-  ev->add_option("--checkpoint,-c", e->checkpoint, "World-model checkpoint")->required();
+  add_checkpoint_option(ev, e->checkpoint, "the world model")->required();
   ev->add_option("--tokenizer", e->tokenizer, "Tokenizer checkpoint")->required();
-  ev->add_option("--data,-d", e->data, "Dataset directory")->required();
-  ev->add_option("--split,-s", e->splits, "Split(s) to evaluate (repeat)")->capture_default_str();
+  add_data_option(ev, e->data)->required();
+  add_split_option(ev, e->splits);
   ev->add_option("--chunks", e->chunks, "Chunks of 12 actions per video (4 = the paper's 49 frames)")
       ->capture_default_str();
   ev->add_option("--episodes,-n", e->episodes, "Episodes per split (0 = all)")->capture_default_str();
@@ -300,11 +264,11 @@ void register_wm(CLI::App& app) {
   ev->add_option("--concat", e->concat, "aligned | released (chunk joining)")->capture_default_str();
   ev->add_option("--batch,-b", e->batch, "Episodes rolled out together")->capture_default_str();
   ev->add_option("--videos", e->videos, "Side-by-side videos per split (with --out)")->capture_default_str();
-  ev->add_option("--seed", e->seed, "Noise seed")->capture_default_str();
-  ev->add_option("--out,-o", e->out, "Directory for metrics.json, metrics.md and videos/");
+  add_seed_option(ev, e->seed);
+  add_out_option(ev, e->out, "directory for metrics.json, metrics.md and videos/");
   ev->add_option("--lpips-weights", e->lpips_weights,
                  "LPIPS-VGG weights (safetensors; see docs/evaluation.md); adds LPIPS to the metrics");
-  ev->add_flag("--json", e->json, "Print JSON instead of a table");
+  add_json_option(ev, e->json);
   add_device_options(ev, e->device, e->precision);
   ev->callback([e] { set_action([e] { return run_eval(*e); }); });
 }

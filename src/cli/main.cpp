@@ -1,9 +1,13 @@
 // The `dojo` command: parse, apply global options, run one subcommand inside an error boundary.
 #include <torch/torch.h>
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cstdio>
+#include <string>
+#include <vector>
 
 #include "cli/commands.h"
+#include "cli/options.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "core/runtime.h"
@@ -40,6 +44,70 @@ std::pair<int64_t, int64_t> parse_size(const std::string& text) {
   throw UsageError("--size expects HxW with positive integers (e.g. 256x320), got '" + text + "'");
 }
 
+namespace {
+
+size_t edit_distance(const std::string& a, const std::string& b) {
+  std::vector<size_t> row(b.size() + 1);
+  for (size_t j = 0; j <= b.size(); ++j) row[j] = j;
+  for (size_t i = 1; i <= a.size(); ++i) {
+    size_t diagonal = row[0];
+    row[0] = i;
+    for (size_t j = 1; j <= b.size(); ++j) {
+      const size_t above = row[j];
+      row[j] = std::min({row[j] + 1, row[j - 1] + 1, diagonal + (a[i - 1] == b[j - 1] ? 0 : 1)});
+      diagonal = above;
+    }
+  }
+  return row[b.size()];
+}
+
+// The option `name` (e.g. "--threads" or "-d") of `app` or of a parent it falls through to.
+const CLI::Option* find_option(const CLI::App* app, const std::string& name) {
+  for (; app != nullptr; app = app->get_parent())
+    for (const CLI::Option* o : app->get_options())
+      if (o->check_name(name)) return o;
+  return nullptr;
+}
+
+}  // namespace
+
+// CLI11 reports a mistyped command word vaguely ("A subcommand is required", or the parent's help
+// for `dojo nonsense --help`). Walks the command words of argv first: a word where the current
+// command expects a subcommand must name one. Throws dojo::UsageError naming it otherwise.
+void check_command_words(const CLI::App& app, int argc, char** argv) {
+  const CLI::App* current = &app;
+  std::string path = "dojo";
+  for (int i = 1; i < argc; ++i) {
+    const std::string word = argv[i];
+    if (word == "--") return;
+    if (word.size() > 1 && word[0] == '-') {
+      if (word.find('=') != std::string::npos) continue;
+      const auto* option = find_option(current, word);
+      // An option that takes a value consumes the next word.
+      if (option != nullptr && option->get_type_size_max() > 0 && option->get_expected_max() != 0) ++i;
+      continue;
+    }
+    const auto subcommands = current->get_subcommands([](const CLI::App*) { return true; });
+    if (subcommands.empty()) return;  // a positional argument of a leaf command
+    const CLI::App* next = nullptr;
+    for (const CLI::App* sub : subcommands)
+      if (sub->check_name(word)) next = sub;
+    if (next == nullptr) {
+      std::string closest;
+      size_t best = 3;  // suggest only near misses
+      for (const CLI::App* sub : subcommands) {
+        const size_t d = edit_distance(word, sub->get_name());
+        if (d < best) best = d, closest = sub->get_name();
+      }
+      throw UsageError("unknown command '" + path + " " + word + "'" +
+                       (closest.empty() ? "" : " (did you mean '" + path + " " + closest + "'?)") +
+                       "; see `" + path + " --help`");
+    }
+    current = next;
+    path += " " + next->get_name();
+  }
+}
+
 }  // namespace dojo::cli
 
 int main(int argc, char** argv) {
@@ -66,13 +134,19 @@ int main(int argc, char** argv) {
 #endif
   cli::register_data(app);
   cli::register_tokenizer(app);
+#ifdef DOJO_WITH_SIM
   cli::register_demo(app);
+#endif
   cli::register_lam(app);
   cli::register_wm(app);
   cli::register_metrics(app);
 
   try {
+    cli::check_command_words(app, argc, argv);
     app.parse(argc, argv);
+  } catch (const UsageError& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 2;
   } catch (const CLI::ParseError& e) {
     // --help and --version are "errors" that exit 0; real usage errors exit 2.
     const int code = app.exit(e);

@@ -152,6 +152,11 @@ fs::path resolve_checkpoint_dir(const fs::path& dir_in) {
   throw Error(dir_in.string() + ": no such checkpoint directory");
 }
 
+bool checkpoint_exists(const fs::path& dir_in) {
+  const fs::path dir = normalise(dir_in);
+  return path_exists(dir) || path_exists(sibling(dir, kOldSuffix));
+}
+
 Checkpoint Checkpoint::open(const fs::path& dir_in) {
   Checkpoint ckpt;
   ckpt.dir_ = resolve_checkpoint_dir(dir_in);

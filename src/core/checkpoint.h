@@ -49,6 +49,8 @@ void save_checkpoint(const std::filesystem::path& dir, const CheckpointData& dat
 // The directory to read for checkpoint DIR: DIR, or DIR.dojo-old after a save was interrupted
 // between its two renames. Throws dojo::Error when neither exists.
 std::filesystem::path resolve_checkpoint_dir(const std::filesystem::path& dir);
+// Whether resolve_checkpoint_dir(dir) would find a checkpoint: what a trainer asks to resume.
+bool checkpoint_exists(const std::filesystem::path& dir);
 
 // A checkpoint opened for reading; the safetensors files are memory-mapped.
 class Checkpoint {

@@ -179,8 +179,11 @@ PrefetchLoader::PrefetchLoader(std::shared_ptr<const ClipMixture> mixture, Loade
       next_to_make_(first_batch),
       next_to_return_(first_batch) {
   DOJO_CHECK(options_.batch_size > 0, "batch size must be positive");
-  DOJO_CHECK(options_.workers > 0, "loader needs at least one worker");
-  for (int i = 0; i < options_.workers; ++i) workers_.emplace_back([this] { worker_loop(); });
+  DOJO_CHECK(options_.workers >= 0, "loader workers must be >= 0 (0 = one per core)");
+  const int workers = options_.workers > 0
+                          ? options_.workers
+                          : std::max(1, static_cast<int>(std::thread::hardware_concurrency()));
+  for (int i = 0; i < workers; ++i) workers_.emplace_back([this] { worker_loop(); });
 }
 
 PrefetchLoader::~PrefetchLoader() {

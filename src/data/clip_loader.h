@@ -96,7 +96,7 @@ Batch collate(const std::vector<Clip>& clips);
 
 struct LoaderOptions {
   int batch_size = 4;
-  int workers = 2;
+  int workers = 2;           // 0: one per core
   int prefetch_batches = 4;  // batches buffered ahead of the consumer
   uint64_t seed = 0;
 };

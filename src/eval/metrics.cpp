@@ -4,7 +4,10 @@
 #include <cmath>
 #include <string>
 
+#include <nlohmann/json.hpp>
+
 #include "core/error.h"
+#include "core/json_file.h"
 #include "eval/lpips.h"
 
 namespace dojo::eval {
@@ -200,6 +203,73 @@ double mean_maximum_rank_violation(const std::vector<double>& sim, const std::ve
       if ((sim[i] > sim[j]) != (real[i] > real[j]))
         worst[i] = std::max(worst[i], std::abs(real[i] - real[j]));
   return numpy_mean(worst);
+}
+
+namespace {
+
+// Ranks 1..n with ties sharing the mean of the ranks they span.
+std::vector<double> average_ranks(const std::vector<double>& v) {
+  std::vector<size_t> order(v.size());
+  for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return v[a] < v[b]; });
+  std::vector<double> ranks(v.size());
+  for (size_t i = 0; i < order.size();) {
+    size_t j = i;
+    while (j + 1 < order.size() && v[order[j + 1]] == v[order[i]]) ++j;
+    const double mean_rank = 0.5 * static_cast<double>(i + j) + 1.0;
+    for (size_t k = i; k <= j; ++k) ranks[order[k]] = mean_rank;
+    i = j + 1;
+  }
+  return ranks;
+}
+
+}  // namespace
+
+double spearman_correlation(const std::vector<double>& sim, const std::vector<double>& real) {
+  check_rates(sim, real, "spearman_correlation");
+  return pearson_correlation(average_ranks(sim), average_ranks(real));
+}
+
+nlohmann::json PolicyAgreement::to_json() const {
+  return {{"pearson_r", pearson}, {"mmrv", mmrv}, {"spearman_rho", spearman}, {"mean_abs_gap", mean_abs_gap}};
+}
+
+PolicyAgreement policy_agreement(const PolicyRates& rates) {
+  PolicyAgreement a;
+  a.pearson = pearson_correlation(rates.world_model, rates.real);
+  a.mmrv = mean_maximum_rank_violation(rates.world_model, rates.real);
+  a.spearman = spearman_correlation(rates.world_model, rates.real);
+  std::vector<double> gaps;
+  for (size_t i = 0; i < rates.real.size(); ++i)
+    gaps.push_back(std::abs(rates.world_model[i] - rates.real[i]));
+  a.mean_abs_gap = numpy_mean(gaps);
+  return a;
+}
+
+PolicyRates read_policy_rates(const std::filesystem::path& path) {
+  const auto j = read_json_file(path);
+  const std::string where = path.string();
+  DOJO_CHECK(j.is_object() && j.contains("policies") && j["policies"].is_array(),
+             where + ": expected an object with an array 'policies'");
+  PolicyRates r;
+  for (size_t i = 0; i < j["policies"].size(); ++i) {
+    const auto& p = j["policies"][i];
+    const std::string field = where + ": policies[" + std::to_string(i) + "]";
+    DOJO_CHECK(p.is_object(), field + " must be an object");
+    auto rate = [&](const char* key) {
+      DOJO_CHECK(p.contains(key) && p[key].is_number(), field + "." + key + " must be a number");
+      const double v = p[key].get<double>();
+      DOJO_CHECK(v >= 0 && v <= 1,
+                 field + "." + key + " must be a success rate in [0, 1] (got " + std::to_string(v) + ")");
+      return v;
+    };
+    r.names.push_back(p.contains("name") && p["name"].is_string() ? p["name"].get<std::string>()
+                                                                  : "policy " + std::to_string(i));
+    r.world_model.push_back(rate("world_model"));
+    r.real.push_back(rate("real"));
+  }
+  DOJO_CHECK(r.real.size() >= 2, where + ": policies needs at least two entries to rank");
+  return r;
 }
 
 }  // namespace dojo::eval

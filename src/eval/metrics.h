@@ -9,8 +9,12 @@
 #include <torch/types.h>
 
 #include <cstdint>
+#include <filesystem>
 #include <limits>
+#include <string>
 #include <vector>
+
+#include <nlohmann/json_fwd.hpp>
 
 namespace dojo::eval {
 
@@ -51,5 +55,25 @@ double pearson_correlation(const std::vector<double>& sim, const std::vector<dou
 // mean_i max_j 1[(s_i > s_j) ≠ (r_i > r_j)]·|r_i − r_j| (0 when no violation). Argument order
 // matters: pass (world model, real world).
 double mean_maximum_rank_violation(const std::vector<double>& sim, const std::vector<double>& real);
+
+// Spearman's rank correlation: pearson_correlation of the average ranks (ties share their mean
+// rank), so it inherits the reference's exact-equality special case.
+double spearman_correlation(const std::vector<double>& sim, const std::vector<double>& real);
+
+// Per-policy success rates in the world model and in the real world (or the simulator standing
+// in for it), and how well the first ranks the second.
+struct PolicyRates {
+  std::vector<std::string> names;
+  std::vector<double> world_model, real;
+};
+struct PolicyAgreement {
+  double pearson = 0, mmrv = 0, spearman = 0;
+  double mean_abs_gap = 0;  // mean |world model - real| (world-model success tends to run high)
+  nlohmann::json to_json() const;
+};
+PolicyAgreement policy_agreement(const PolicyRates& rates);
+// Reads {"policies": [{"name": "...", "world_model": 0.8, "real": 0.7}, ...]} (rates in [0, 1], at
+// least two policies). Throws dojo::Error naming the file and the field.
+PolicyRates read_policy_rates(const std::filesystem::path& path);
 
 }  // namespace dojo::eval

@@ -1,11 +1,13 @@
 #include "eval/wm_eval.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 
 #include "core/error.h"
 #include "core/log.h"
 #include "core/progress.h"
+#include "core/safetensors.h"
 #include "data/clip_loader.h"
 #include "data/episode_source.h"
 #include "data/episode_store.h"
@@ -44,6 +46,44 @@ nlohmann::json WmEvalResult::to_json() const {
     out["copy_first_frame"]["lpips"] = copy_lpips;
   }
   return out;
+}
+
+EpisodeClip read_episode_clip(const fs::path& dataset, const std::string& split, const std::string& episode,
+                              int chunks) {
+  DOJO_CHECK(chunks > 0, "rollout: --chunks must be positive");
+  const auto source = data::open_dataset(dataset);
+  const auto& info = source->info();
+  const auto indices = source->split_indices(split);
+  DOJO_CHECK(!indices.empty(), dataset.string() + ": no episodes in split '" + split + "'");
+  size_t ep = indices.front();
+  if (!episode.empty()) {
+    const auto it = std::find_if(info.episodes.begin(), info.episodes.end(),
+                                 [&](const data::EpisodeEntry& e) { return e.id == episode; });
+    DOJO_CHECK(it != info.episodes.end(), dataset.string() + ": no episode '" + episode + "'");
+    ep = static_cast<size_t>(it - info.episodes.begin());
+  }
+  data::ClipConfig clip;
+  clip.num_frames = 1 + 12 * chunks;
+  clip.strides = {1};
+  clip.height = info.height;
+  clip.width = info.width;
+  EpisodeClip out;
+  out.episode = info.episodes[ep].id;
+  out.fps = info.fps;
+  DOJO_CHECK(data::window_fits(info.episodes[ep].frames, 1, clip.num_frames),
+             dataset.string() + ": episode " + out.episode + " is shorter than " +
+                 std::to_string(clip.num_frames) + " frames");
+  const auto c = data::ClipDataset(source, clip, "all").read(ep, data::make_window(0, 1, clip.num_frames));
+  out.video = c.video;
+  out.actions = c.actions;
+  return out;
+}
+
+torch::Tensor read_rollout_actions(const fs::path& file) {
+  const auto actions = SafetensorsFile::open(file).tensor("actions", true).to(torch::kFloat);
+  DOJO_CHECK(actions.dim() == 2 && actions.size(1) == 384 && actions.size(0) % 12 == 0 && actions.size(0) > 0,
+             file.string() + ": tensor 'actions' must be [12 K, 384], got " + shape_string(actions.sizes()));
+  return actions;
 }
 
 WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& dataset, const std::string& split,

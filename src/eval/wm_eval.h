@@ -53,6 +53,20 @@ struct WmEvalResult {
   nlohmann::json to_json() const;
 };
 
+// The first 1 + 12 K frames of one episode with its actions, as a rollout replays them.
+struct EpisodeClip {
+  std::string episode;
+  torch::Tensor video;    // [1 + 12 K, H, W, 3] uint8
+  torch::Tensor actions;  // [12 K, 384]
+  double fps = 10;
+};
+// `episode` names the episode by id; empty: the first episode of `split`. Throws dojo::Error
+// naming the dataset when there is no such episode or it is too short.
+EpisodeClip read_episode_clip(const std::filesystem::path& dataset, const std::string& split,
+                              const std::string& episode, int chunks);
+// Actions from a safetensors file holding "actions" [12 K, 384] (counterfactual rollouts).
+torch::Tensor read_rollout_actions(const std::filesystem::path& file);
+
 WmEvalResult evaluate_world_model(infer::WorldModel& model, const std::filesystem::path& dataset,
                                   const std::string& split, const WmEvalOptions& options);
 

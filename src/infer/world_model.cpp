@@ -3,8 +3,6 @@
 #include <ATen/CPUGeneratorImpl.h>
 
 #include "core/error.h"
-#include "train/tokenizer_trainer.h"
-#include "train/wm_train.h"
 
 namespace dojo::infer {
 
@@ -33,23 +31,16 @@ WorldModel::WorldModel(models::ActionDit net, models::WanVae tokenizer, torch::D
 WorldModel WorldModel::load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer,
                             torch::Device device, Precision precision) {
   check_precision_supported(precision, device.type());  // before reading any weights
-  return WorldModel(train::load_world_model(checkpoint), train::load_tokenizer(tokenizer), device, precision);
+  return WorldModel(models::load_world_model(checkpoint), models::load_tokenizer(tokenizer), device,
+                    precision);
 }
 
 torch::Tensor WorldModel::reconstruct_frames(const torch::Tensor& frames) {
-  torch::NoGradGuard no_grad;
-  const auto video = train::video_to_model(frames.to(device_).unsqueeze(1));  // [B, 3, 1, H, W]
-  const auto z = tokenizer_->encode_latents(video);                           // [B, 16, 1, h, w]
-  return train::model_to_video(tokenizer_->decode_latents(z)).select(1, 0).to(torch::kCPU);  // [B, H, W, 3]
+  return reconstruct_video(frames.unsqueeze(1)).select(1, 0);  // [B, H, W, 3]
 }
 
 torch::Tensor WorldModel::reconstruct_video(const torch::Tensor& video) {
-  torch::NoGradGuard no_grad;
-  DOJO_CHECK(video.dim() == 5 && (video.size(1) - 1) % 4 == 0,
-             "reconstruct_video: expected [B, 1 + 4k, H, W, 3] frames");
-  const auto z =
-      tokenizer_->encode_latents(train::video_to_model(video.to(device_)));     // [B, 16, 1 + k, h, w]
-  return train::model_to_video(tokenizer_->decode_latents(z)).to(torch::kCPU);  // [B, 1 + 4k, H, W, 3]
+  return models::reconstruct_frames(tokenizer_, video.to(device_)).to(torch::kCPU);  // [B, 1 + 4k, H, W, 3]
 }
 
 torch::Tensor WorldModel::reconstruct_chunks(const torch::Tensor& video, ConcatMode concat) {
@@ -80,7 +71,7 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
   // The causal tokenizer encodes frame 0 on its own, so the conditioning latent of a
   // [cond, 12 blank frames] clip is the latent of cond alone.
   const auto z_cond = tokenizer_->encode_latents(
-      train::video_to_model(cond.to(device_).unsqueeze(1)));  // [B, 16, 1, h, w] float32
+      models::video_to_model(cond.to(device_).unsqueeze(1)));  // [B, 16, 1, h, w] float32
   const auto opts = z_cond.options();
   const int64_t latent_frames = 1 + kChunkActions / 4;
   auto gt = torch::zeros({batch, z_cond.size(1), latent_frames, z_cond.size(3), z_cond.size(4)}, opts);
@@ -106,7 +97,7 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
   // The sampler starts from pure noise at sigma = 0.999, so the conditioning latent ends ~1e-3
   // off its clean value; put it back exactly, so frame 0 is the tokenizer's round trip of cond.
   x0 = gt * mask + x0 * (1 - mask);
-  return train::model_to_video(tokenizer_->decode_latents(x0)).to(torch::kCPU);  // [B, 13, H, W, 3]
+  return models::model_to_video(tokenizer_->decode_latents(x0)).to(torch::kCPU);  // [B, 13, H, W, 3]
 }
 
 torch::Tensor WorldModel::rollout(const torch::Tensor& first, const torch::Tensor& actions, uint64_t seed,

@@ -16,6 +16,7 @@
 #include <torch/types.h>
 
 #include <cstdint>
+#include <filesystem>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -23,7 +24,8 @@
 
 namespace dojo {
 class SafetensorsFile;
-}
+struct CheckpointData;
+}  // namespace dojo
 
 namespace dojo::models {
 
@@ -344,5 +346,14 @@ double dit_forward_flops(const DitConfig& config, int64_t T, int64_t H, int64_t 
 torch::Tensor denoise_velocity(ActionDitImpl& net, const DitInputs& base, const torch::Tensor& x_t,
                                const torch::Tensor& gt_x0, const torch::Tensor& noise,
                                const torch::Tensor& condition_mask);
+
+// --- checkpoints ---------------------------------------------------------------------------------
+
+// Checkpoint directory (core/checkpoint.h): config.json holds {"model": "action_dit", "config":
+// DitConfig}, model.safetensors the weights as "net.<name>" (the released names), CPU float32.
+CheckpointData world_model_checkpoint(const ActionDitImpl& net);
+// A world-model checkpoint (with or without trainer state) -> the network in eval mode on `device`.
+// Trainers store their EMA weights as the model, so this is the EMA network.
+ActionDit load_world_model(const std::filesystem::path& dir, torch::Device device = torch::kCPU);
 
 }  // namespace dojo::models

@@ -2,7 +2,11 @@
 
 #include <cmath>
 
+#include "core/checkpoint.h"
 #include "core/error.h"
+#include "core/json_file.h"
+#include "core/state_dict.h"
+#include "io/frame_ops.h"
 #include "models/attention.h"
 
 namespace dojo::models {
@@ -49,35 +53,24 @@ nlohmann::json LamConfig::to_json() const {
 }
 
 LamConfig LamConfig::from_json(const nlohmann::json& j) {
-  DOJO_CHECK(j.is_object(), "LAM config: expected a JSON object");
   LamConfig c;
-  auto get_int = [&](const char* key, int64_t& v) {
-    if (!j.contains(key)) return;
-    DOJO_CHECK(j[key].is_number_integer(), std::string("LAM config: field '") + key + "' must be an integer");
-    v = j[key].get<int64_t>();
-  };
-  get_int("in_dim", c.in_dim);
-  get_int("model_dim", c.model_dim);
-  get_int("latent_dim", c.latent_dim);
-  get_int("patch_size", c.patch_size);
-  get_int("enc_blocks", c.enc_blocks);
-  get_int("dec_blocks", c.dec_blocks);
-  get_int("num_heads", c.num_heads);
-  get_int("height", c.height);
-  get_int("width", c.width);
-  if (j.contains("dropout")) {
-    DOJO_CHECK(j["dropout"].is_number(), "LAM config: field 'dropout' must be a number");
-    c.dropout = j["dropout"].get<double>();
-  }
+  const JsonFields f(j, "LAM config");
+  f.get("in_dim", c.in_dim);
+  f.get("model_dim", c.model_dim);
+  f.get("latent_dim", c.latent_dim);
+  f.get("patch_size", c.patch_size);
+  f.get("enc_blocks", c.enc_blocks);
+  f.get("dec_blocks", c.dec_blocks);
+  f.get("num_heads", c.num_heads);
+  f.get("height", c.height);
+  f.get("width", c.width);
+  f.get("dropout", c.dropout);
   c.validate();
   return c;
 }
 
 void LamConfig::validate() const {
-  auto positive = [](const char* name, int64_t v) {
-    DOJO_CHECK(v > 0,
-               std::string("LAM config: field '") + name + "' must be positive, got " + std::to_string(v));
-  };
+  auto positive = [](const char* field, int64_t v) { check_positive("LAM config", field, v); };
   positive("in_dim", in_dim);
   positive("model_dim", model_dim);
   positive("latent_dim", latent_dim);
@@ -333,6 +326,48 @@ LamLoss lam_loss(const LamOutput& out, const torch::Tensor& videos, double beta)
   l.kl = kl_per_sample.mean();
   l.total = l.mse + beta * l.kl;
   return l;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Inputs and checkpoints
+
+torch::Tensor to_unit_float(const torch::Tensor& video) {
+  if (video.scalar_type() == torch::kByte) return video.to(torch::kFloat).div_(255.0);
+  return video.to(torch::kFloat);
+}
+
+torch::Tensor lam_encode_episode(LatentActionModel& model, const torch::Tensor& frames, int64_t batch_pairs) {
+  torch::NoGradGuard no_grad;
+  model->eval();
+  const auto& c = model->config;
+  auto f = frames;
+  if (f.size(1) != c.height || f.size(2) != c.width) f = io::resize_center_crop(f, c.height, c.width);
+  const auto video = to_unit_float(f);  // [T, h, w, 3]
+  const int64_t T = video.size(0);
+  std::vector<torch::Tensor> out;
+  for (int64_t s = 0; s < T - 1; s += batch_pairs) {
+    const int64_t e = std::min(T - 1, s + batch_pairs);
+    auto pairs = torch::stack({video.slice(0, s, e), video.slice(0, s + 1, e + 1)}, 1);  // [n, 2, h, w, 3]
+    out.push_back(model->encode(pairs).z_mu);
+  }
+  return out.empty() ? torch::zeros({0, c.latent_dim}) : torch::cat(out, 0);  // [T - 1, latent]
+}
+
+CheckpointData lam_checkpoint(const LatentActionModelImpl& model) {
+  CheckpointData data;
+  data.config = model.config.to_json();
+  for (const auto& [name, t] : state_dict(model)) data.model.emplace_back("lam." + name, t);
+  return data;
+}
+
+LatentActionModel load_lam(const std::filesystem::path& dir) {
+  const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
+  LatentActionModel model(LamConfig::from_json(ckpt.config()));
+  LoadOptions opts;
+  opts.prefix = "lam.";
+  load_state_dict(*model, ckpt.model(), opts);  // strict: a mismatch throws, naming the tensors
+  model->eval();
+  return model;
 }
 
 }  // namespace dojo::models

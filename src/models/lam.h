@@ -6,8 +6,13 @@
 #pragma once
 #include <torch/torch.h>
 
+#include <filesystem>
 #include <nlohmann/json.hpp>
 #include <string>
+
+namespace dojo {
+struct CheckpointData;
+}
 
 namespace dojo::models {
 
@@ -145,5 +150,23 @@ struct LamLoss {
 // The released loss. Scale: mse is a per-pixel mean (~1e-2) while kl is a per-sample sum over 32
 // dims (nats), so at beta = 1e-6 the KL only matters once it reaches ~1e4 nats; log both.
 LamLoss lam_loss(const LamOutput& out, const torch::Tensor& videos, double beta);
+
+// --- inputs and checkpoints -----------------------------------------------------------------------
+
+// The LAM's input range: uint8 video [...] -> float in [0, 1]; float passes through (as float32).
+torch::Tensor to_unit_float(const torch::Tensor& video);
+
+// Latent actions (z_mu) of every consecutive frame pair of one episode: frames [T, H, W, 3] uint8
+// of any size (centre-cropped and resized to the model's input) -> [T - 1, latent], eval mode,
+// `batch_pairs` pairs per forward pass.
+torch::Tensor lam_encode_episode(LatentActionModel& model, const torch::Tensor& frames,
+                                 int64_t batch_pairs = 16);
+
+// Checkpoint directory (core/checkpoint.h): config.json holds the LamConfig, model.safetensors
+// the weights as "lam.<name>" (the released Lightning checkpoint's names). No trainer state.
+CheckpointData lam_checkpoint(const LatentActionModelImpl& model);
+// A checkpoint written by lam_checkpoint (with or without trainer state), in eval mode. Throws
+// dojo::Error naming the directory or the mismatched tensors.
+LatentActionModel load_lam(const std::filesystem::path& dir);
 
 }  // namespace dojo::models

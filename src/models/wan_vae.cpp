@@ -4,7 +4,9 @@
 #include <cmath>
 #include <string>
 
+#include "core/checkpoint.h"
 #include "core/error.h"
+#include "core/state_dict.h"
 #include "models/attention.h"
 
 namespace dojo::models {
@@ -508,6 +510,49 @@ torch::Tensor WanVaeStreamDecoder::push(const torch::Tensor& mu) {
     outs.push_back(vae_->decoder_forward(x.narrow(2, i, 1), &cache_));
   }
   return torch::cat(outs, 2);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Inputs and checkpoints
+
+torch::Tensor video_to_model(const torch::Tensor& u8) {
+  return u8.permute({0, 4, 1, 2, 3}).to(torch::kFloat32) / 127.5 - 1.0;  // [B, 3, T, H, W]
+}
+
+torch::Tensor model_to_video(const torch::Tensor& x) {
+  return ((x.clamp(-1, 1) + 1) * 127.5).round().to(torch::kUInt8).permute({0, 2, 3, 4, 1}).contiguous();
+}
+
+torch::Tensor reconstruct(WanVae& vae, const torch::Tensor& video) {
+  torch::NoGradGuard no_grad;
+  return vae->decode(vae->encode(video).mu).clamp(-1, 1);
+}
+
+torch::Tensor reconstruct_frames(WanVae& vae, const torch::Tensor& video_u8) {
+  DOJO_CHECK(video_u8.dim() == 5 && video_u8.size(4) == 3 && (video_u8.size(1) - 1) % 4 == 0,
+             "reconstruct_frames: expected uint8 frames [B, 1 + 4k, H, W, 3]");
+  return model_to_video(reconstruct(vae, video_to_model(video_u8)));
+}
+
+CheckpointData tokenizer_checkpoint(const WanVaeImpl& vae) {
+  CheckpointData data;
+  data.config = {{"model", "wan21_vae"}, {"config", vae.config().to_json()}};
+  data.model = state_dict(vae);
+  return data;
+}
+
+void save_tokenizer(const std::filesystem::path& dir, const WanVaeImpl& vae) {
+  save_checkpoint(dir, tokenizer_checkpoint(vae));
+}
+
+WanVae load_tokenizer(const std::filesystem::path& dir) {
+  const auto ck = Checkpoint::open(resolve_checkpoint_dir(dir));
+  const auto& cfg = ck.config();
+  DOJO_CHECK(cfg.contains("config"), (ck.dir() / "config.json").string() + ": missing field 'config'");
+  WanVae vae(WanVaeConfig::from_json(cfg.at("config")));
+  load_state_dict(*vae, ck.model());  // strict: a mismatch throws, naming the tensors
+  vae->eval();
+  return vae;
 }
 
 }  // namespace dojo::models

@@ -15,9 +15,14 @@
 #include <torch/torch.h>
 
 #include <cstdint>
+#include <filesystem>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <vector>
+
+namespace dojo {
+struct CheckpointData;
+}
 
 namespace dojo::models {
 
@@ -236,5 +241,25 @@ class WanVaeStreamDecoder {
   WanVae vae_;
   WanVaeCache cache_;
 };
+
+// --- inputs and checkpoints -----------------------------------------------------------------------
+
+// The tokenizer's input layout: uint8 clips [B, T, H, W, 3] -> [B, 3, T, H, W] float32 in [-1, 1],
+// and back (clamped, rounded).
+torch::Tensor video_to_model(const torch::Tensor& u8);
+torch::Tensor model_to_video(const torch::Tensor& x);
+
+// The round trip of video through the chunked inference path, decoding the posterior mean:
+// [B, 3, T, H, W] in [-1, 1] (T = 1 + 4k) -> the same, clamped to [-1, 1]. No gradient.
+torch::Tensor reconstruct(WanVae& vae, const torch::Tensor& video);
+// The same for uint8 frames [B, 1 + 4k, H, W, 3] -> uint8 of the same shape, on the input's device.
+torch::Tensor reconstruct_frames(WanVae& vae, const torch::Tensor& video_u8);
+
+// Checkpoint directory (core/checkpoint.h): config.json holds {"model": "wan21_vae", "config":
+// WanVaeConfig}, model.safetensors the released WanVAE_ state-dict names. No trainer state.
+CheckpointData tokenizer_checkpoint(const WanVaeImpl& vae);
+void save_tokenizer(const std::filesystem::path& dir, const WanVaeImpl& vae);
+// A checkpoint as written by save_tokenizer (with or without trainer state), in eval mode.
+WanVae load_tokenizer(const std::filesystem::path& dir);
 
 }  // namespace dojo::models

@@ -7,7 +7,6 @@
 #include <filesystem>
 #include <memory>
 #include <nlohmann/json.hpp>
-#include <random>
 #include <string>
 #include <utility>
 #include <vector>
@@ -58,8 +57,6 @@ class LamTrainer {
   int64_t steps_ = 0;
 };
 
-// uint8 [..] -> float in [0, 1]; float passes through.
-torch::Tensor to_unit_float(const torch::Tensor& video);
 // Adds one U(-amount, amount) offset per sample and clamps to [0, 1].
 torch::Tensor augment_brightness(const torch::Tensor& videos, double amount, torch::Generator gen = {});
 
@@ -78,47 +75,5 @@ struct LamTrainJob {
 // Trains (resuming from out/checkpoint when present). Frame pairs are drawn with a uniformly
 // random skip in {1, 2, 3, 4}. Returns the stats of the last step.
 LamStepStats run_lam_training(const LamTrainJob& job);
-
-}  // namespace dojo::train
-
-namespace dojo::train {
-
-// A checkpoint written by LamTrainer::save (or `dojo lam train`), in eval mode.
-models::LatentActionModel load_lam(const std::filesystem::path& dir);
-
-// Latent actions (z_mu) of every consecutive frame pair of one episode: frames [T, H, W, 3]
-// uint8 (any size; centre-cropped and resized to the model's input) -> [T - 1, latent].
-torch::Tensor lam_encode_episode(models::LatentActionModel& model, const torch::Tensor& frames,
-                                 int64_t batch_pairs = 16);
-
-struct LamLabelSummary {
-  int64_t episodes = 0, pairs = 0;
-  double seconds = 0;
-};
-// Writes out_dir/<episode id>.safetensors holding "z_mu" [T - 1, latent] and "z_logvar" for
-// every episode of the dataset (out_dir defaults to DATASET/lam_latents), each file atomically;
-// episodes whose file already exists are kept (re-running resumes).
-LamLabelSummary label_lam_dataset(models::LatentActionModel& model, const std::filesystem::path& dataset,
-                                  std::filesystem::path out_dir = {}, int64_t batch_pairs = 16);
-
-struct ProbeResult {
-  double r2_train = 0, r2_heldout = 0;  // mean over target dims of 1 - SSE / SST
-  std::vector<double> r2_heldout_per_dim;
-  int64_t n_train = 0, n_heldout = 0;
-  int64_t target_dims = 0;
-};
-
-// What moved between frames t and t+1, for pairing with the latent action of that frame pair.
-// `commanded` rows (actions, and human hand commands) are issued after frame t is observed and
-// executed during step t (the LeRobot convention), so the pair's motion is cmd[t] - cmd[t-1] and
-// the first pair has no target. Measured rows (poses observed with frame t) give pose[t+1] - pose[t].
-struct ProbePairs {
-  int64_t first_pair = 0;  // latent-action rows [first_pair, first_pair + deltas.size(0)) match
-  torch::Tensor deltas;    // [n, K]
-};
-ProbePairs probe_deltas(const torch::Tensor& rows, bool commanded);
-// Ridge regression (with intercept) from x [N, D] to y [N, K], fitted on the train rows.
-ProbeResult ridge_probe(const torch::Tensor& x_train, const torch::Tensor& y_train,
-                        const torch::Tensor& x_test, const torch::Tensor& y_test, double lambda = 1e-3);
 
 }  // namespace dojo::train

@@ -4,6 +4,7 @@
 #include <map>
 
 #include "core/atomic_file.h"
+#include "core/error.h"
 
 namespace dojo::train {
 namespace {
@@ -44,6 +45,27 @@ void load_adamw_state(torch::optim::AdamW& optimizer, const torch::nn::Module& m
     st->step(by_name.at(base + ".step").item<int64_t>());
     state[param_key(p)] = std::move(st);
   }
+}
+
+NamedTensors named_adamw_state(NamedTensors tensors, const torch::nn::Module& module,
+                               const std::string& prefix) {
+  const auto params = module.named_parameters();
+  for (auto& [name, t] : tensors) {
+    if (name.rfind("adam.", 0) != 0) continue;
+    const auto dot = name.find('.', 5);
+    if (dot == std::string::npos) continue;
+    size_t index = 0;
+    try {
+      index = std::stoul(name.substr(5, dot - 5));
+    } catch (const std::exception&) {
+      continue;
+    }
+    DOJO_CHECK(index < params.size(), "optimizer state '" + name + "' names parameter " +
+                                          std::to_string(index) + " but the model has " +
+                                          std::to_string(params.size()));
+    name = prefix + params[index].key() + name.substr(dot);
+  }
+  return tensors;
 }
 
 LossCurve::LossCurve(std::filesystem::path path, const std::string& header, int64_t resume_step)

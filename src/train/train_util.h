@@ -22,6 +22,12 @@ NamedTensors adamw_state(const torch::optim::AdamW& optimizer, const torch::nn::
 void load_adamw_state(torch::optim::AdamW& optimizer, const torch::nn::Module& module,
                       const NamedTensors& tensors, const std::string& prefix = "adamw.");
 
+// Moments saved by parameter index ("adam.<i>.{exp_avg,exp_avg_sq,step}", i counting
+// module.parameters(): the tokenizer trainer's format before the shared one) renamed to the names
+// adamw_state writes; every other tensor passes through unchanged.
+NamedTensors named_adamw_state(NamedTensors tensors, const torch::nn::Module& module,
+                               const std::string& prefix = "adamw.");
+
 // A CSV loss curve: header row plus one row per step, rewritten atomically. Opening an existing
 // file keeps rows up to `resume_step` (rows written after the last checkpoint are dropped, so a
 // resumed run does not leave duplicate steps).

@@ -3,6 +3,7 @@
 #include <ATen/CPUGeneratorImpl.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <deque>
 #include <optional>
@@ -12,42 +13,13 @@
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
-#include "core/progress.h"
-#include "core/safetensors.h"
 #include "core/state_dict.h"
-#include "data/actions.h"
-#include "data/clip_loader.h"
-#include "data/episode_source.h"
-#include "data/episode_store.h"
-#include "train/lam_train.h"
-#include "train/tokenizer_trainer.h"
+#include "train/train_loop.h"
 #include "train/train_util.h"
 
 namespace fs = std::filesystem;
 
 namespace dojo::train {
-
-ActionMode parse_action_mode(const std::string& text) {
-  if (text == "dataset") return ActionMode::kDataset;
-  if (text == "latent") return ActionMode::kLatent;
-  if (text == "none") return ActionMode::kNone;
-  if (text == "ground-truth") return ActionMode::kGroundTruth;
-  throw Error("unknown action mode '" + text + "' (expected dataset, latent, none or ground-truth)");
-}
-
-std::string to_string(ActionMode mode) {
-  switch (mode) {
-    case ActionMode::kDataset:
-      return "dataset";
-    case ActionMode::kLatent:
-      return "latent";
-    case ActionMode::kNone:
-      return "none";
-    case ActionMode::kGroundTruth:
-      return "ground-truth";
-  }
-  return "?";
-}
 
 WmStage parse_wm_stage(const std::string& text) {
   if (text == "pretrain") return WmStage::kPretrain;
@@ -66,167 +38,6 @@ std::string to_string(WmStage stage) {
       return "scratch";
   }
   return "?";
-}
-
-namespace {
-
-// Identifies a checkpoint's weights without hashing them: a retrained model changes size or time.
-nlohmann::json weights_fingerprint(const fs::path& dir) {
-  if (dir.empty()) return nullptr;
-  const auto file = resolve_checkpoint_dir(dir) / "model.safetensors";
-  DOJO_CHECK(fs::exists(file), file.string() + ": missing (not a checkpoint directory)");
-  return {{"path", fs::absolute(dir).lexically_normal().string()},
-          {"bytes", static_cast<int64_t>(fs::file_size(file))},
-          {"mtime", static_cast<int64_t>(fs::last_write_time(file).time_since_epoch().count())}};
-}
-
-// Ground-truth motion rows in the clip-action convention: row j (transition j -> j+1) is the
-// motion at frame j+1 relative to the first frame of its 4-row chunk.
-torch::Tensor chunk_relative_motion(const torch::Tensor& motion /*[T, M]*/, int chunk) {
-  const int64_t rows = motion.size(0) - 1;
-  auto out = torch::empty({rows, motion.size(1)});
-  for (int64_t j = 0; j < rows; ++j) out[j] = motion[j + 1] - motion[(j / chunk) * chunk];
-  return out;  // [T - 1, M]
-}
-
-}  // namespace
-
-nlohmann::json LatentCacheSpec::to_json() const {
-  return {{"dataset", fs::absolute(dataset).lexically_normal().string()},
-          {"split", split},
-          {"tokenizer", weights_fingerprint(tokenizer)},
-          {"lam", mode == ActionMode::kLatent ? weights_fingerprint(lam) : nlohmann::json(nullptr)},
-          {"mode", train::to_string(mode)},
-          {"strides", strides},
-          {"hop", hop},
-          {"size", size},
-          {"max_clips", max_clips},
-          {"relative_actions", relative_actions}};
-}
-
-LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::path& cache_file) {
-  const auto spec_json = spec.to_json();
-  if (fs::exists(cache_file)) {
-    auto file = SafetensorsFile::open(cache_file);
-    const auto& meta = file.metadata();
-    auto it = meta.find("spec");
-    if (it != meta.end() && nlohmann::json::parse(it->second) == spec_json) {
-      LatentClips clips{file.tensor("latents", true), file.tensor("actions", true), spec_json};
-      LOG_INFO("latent cache: ", clips.size(), " clips from ", cache_file.string());
-      return clips;
-    }
-    LOG_INFO("latent cache: ", cache_file.string(), " was made from other data or models; rebuilding");
-  }
-  DOJO_CHECK(!(spec.mode == ActionMode::kLatent && spec.lam.empty()),
-             "latent actions need a LAM checkpoint (--lam) for " + spec.dataset.string());
-
-  auto vae = load_tokenizer(spec.tokenizer);
-  vae->eval();
-  std::optional<models::LatentActionModel> lam;
-  if (spec.mode == ActionMode::kLatent) {
-    lam = load_lam(spec.lam);
-    DOJO_CHECK((*lam)->config.latent_dim == data::slots::kLatent.width(),
-               spec.lam.string() + ": LAM latent size " + std::to_string((*lam)->config.latent_dim) +
-                   " does not fill the " + std::to_string(data::slots::kLatent.width()) +
-                   "-wide latent slot");
-  }
-  // Any format the readers know (our episodes, LeRobot, EgoDex, video folders).
-  const auto source = data::open_dataset(spec.dataset);
-  const auto& info = source->info();
-  data::ClipConfig clip;
-  clip.strides = spec.strides;
-  clip.relative_actions = spec.relative_actions;
-  clip.height = spec.size > 0 ? spec.size : info.height;
-  clip.width = spec.size > 0 ? spec.size : info.width;
-  DOJO_CHECK(clip.height > 0 && clip.width > 0 && clip.height % 8 == 0 && clip.width % 8 == 0,
-             spec.dataset.string() + ": frame size " + std::to_string(clip.height) + "x" +
-                 std::to_string(clip.width) + " is not a multiple of 8; give a --size");
-  data::ClipDataset dataset(source, clip, spec.split);
-  DOJO_CHECK(!dataset.episodes().empty(),
-             spec.dataset.string() + ": no episodes in split '" + spec.split + "'");
-
-  std::vector<std::pair<size_t, data::ClipWindow>> windows;
-  for (size_t ep : dataset.episodes())
-    for (int stride : spec.strides)
-      for (auto& w : data::all_windows(info.episodes[ep].frames, stride, clip.num_frames, spec.hop))
-        windows.emplace_back(ep, std::move(w));
-  if (spec.max_clips > 0 && static_cast<int64_t>(windows.size()) > spec.max_clips) {
-    // Evenly spaced, so every episode and stride stays represented.
-    std::vector<std::pair<size_t, data::ClipWindow>> kept;
-    for (int64_t i = 0; i < spec.max_clips; ++i)
-      kept.push_back(windows[static_cast<size_t>(i * static_cast<int64_t>(windows.size()) / spec.max_clips)]);
-    windows.swap(kept);
-  }
-  DOJO_CHECK(!windows.empty(), spec.dataset.string() + ": episodes are shorter than one clip");
-
-  torch::NoGradGuard no_grad;
-  std::vector<torch::Tensor> latents, actions;
-  std::vector<torch::Tensor> pending_video;
-  auto flush = [&] {
-    if (pending_video.empty()) return;
-    const auto video = video_to_model(torch::stack(pending_video));  // [b, 3, 13, H, W]
-    latents.push_back(vae->encode_latents(video));                   // [b, 16, 4, h, w]
-    pending_video.clear();
-  };
-  Progress progress("latent cache " + spec.dataset.filename().string(), static_cast<int64_t>(windows.size()),
-                    "clip");
-  for (const auto& [ep, window] : windows) {
-    auto c = dataset.read(ep, window);
-    auto a = c.actions.clone();  // [12, 384]
-    auto slot = a.slice(1, data::slots::kLatent.begin, data::slots::kLatent.end);
-    switch (spec.mode) {
-      case ActionMode::kDataset:
-        break;
-      case ActionMode::kLatent:
-        slot.mul_(lam_encode_episode(*lam, c.video));
-        break;  // mask * z
-      case ActionMode::kNone:
-        a.zero_();
-        break;
-      case ActionMode::kGroundTruth: {
-        DOJO_CHECK(c.hidden_motion.defined(), spec.dataset.string() + ": episode " + info.episodes[ep].id +
-                                                  " has no hidden_motion for ground-truth actions");
-        const auto m = chunk_relative_motion(c.hidden_motion, clip.action_chunk);
-        a.zero_();
-        a.slice(1, data::slots::kLatent.begin, data::slots::kLatent.begin + m.size(1)).copy_(m);
-        break;
-      }
-    }
-    actions.push_back(a);
-    pending_video.push_back(c.video);
-    if (pending_video.size() == 8) flush();
-    progress.advance();
-  }
-  flush();
-  progress.finish();
-  LatentClips clips{torch::cat(latents, 0).contiguous(), torch::stack(actions).contiguous(), spec_json};
-  if (spec.mode == ActionMode::kGroundTruth) {
-    // Motion deltas come in metres and radians; scale each dimension to a peak of 1 like the
-    // min-max normalised robot actions.
-    auto peak = clips.actions.abs().amax({0, 1}).clamp_min(1e-6);  // [384]
-    clips.actions.div_(peak);
-  }
-  fs::create_directories(cache_file.parent_path().empty() ? fs::path(".") : cache_file.parent_path());
-  save_safetensors(cache_file, {{"latents", clips.latents}, {"actions", clips.actions}},
-                   {{"spec", spec_json.dump()}});
-  LOG_INFO("latent cache: encoded ", clips.size(), " clips into ", cache_file.string());
-  return clips;
-}
-
-LatentClips concat_latent_clips(const std::vector<LatentClips>& sets) {
-  DOJO_CHECK(!sets.empty(), "no training data");
-  std::vector<torch::Tensor> l, a;
-  nlohmann::json meta = nlohmann::json::array();
-  for (const auto& s : sets) {
-    DOJO_CHECK(s.latents.sizes().slice(1) == sets[0].latents.sizes().slice(1),
-               "latent caches disagree in shape: " + s.meta.value("dataset", std::string("?")) + " vs " +
-                   sets[0].meta.value("dataset", std::string("?")) +
-                   " (same frame size and tokenizer needed)");
-    l.push_back(s.latents);
-    a.push_back(s.actions);
-    meta.push_back(s.meta);
-  }
-  return {torch::cat(l, 0), torch::cat(a, 0), meta};
 }
 
 nlohmann::json WmTrainOptions::to_json() const {
@@ -365,9 +176,7 @@ void WmTrainer::save(const fs::path& dir, const nlohmann::json& extra) const {
   // Weights and moments are float32 on every precision; only their device varies. (.to(kCPU)
   // of a CPU tensor is the tensor itself, so CPU checkpoints stay bit-exact.)
   auto cpu = [](const torch::Tensor& t) { return t.detach().to(torch::kCPU); };
-  CheckpointData data;
-  data.config = {{"model", "action_dit"}, {"config", net_->config.to_json()}};
-  for (const auto& [name, t] : state_dict(*ema_)) data.model.emplace_back("net." + name, cpu(t));
+  CheckpointData data = models::world_model_checkpoint(*ema_);  // inference loads the EMA weights
   TrainerState ts;
   ts.step = steps_;
   ts.extra = extra;
@@ -394,20 +203,6 @@ void WmTrainer::resume(const fs::path& dir) {
   restore_rng_state(tensors);
 }
 
-models::ActionDit load_world_model(const fs::path& dir, torch::Device device) {
-  auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
-  const auto& cfg = ckpt.config();
-  DOJO_CHECK(cfg.value("model", std::string()) == "action_dit" && cfg.contains("config"),
-             (ckpt.dir() / "config.json").string() + ": not a world-model checkpoint (model != action_dit)");
-  models::ActionDit net(models::DitConfig::from_json(cfg["config"]));
-  LoadOptions opts;
-  opts.prefix = "net.";
-  load_state_dict(*net, ckpt.model(), opts);
-  net->to(device);
-  net->eval();
-  return net;
-}
-
 WmTrainResult run_wm_training(const WmTrainJob& job) {
   DOJO_CHECK(!job.data.empty(), "wm train: no dataset given");
   DOJO_CHECK(job.batch_size > 0, "wm train: batch size must be positive");
@@ -423,7 +218,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   const auto clips = concat_latent_clips(sets);
   const int64_t n = clips.size();
 
-  const bool resuming = fs::exists(ckpt_dir) || fs::exists(ckpt_dir.string() + ".dojo-old");
+  const bool resuming = checkpoint_exists(ckpt_dir);
   torch::manual_seed(job.seed);
   std::optional<models::ActionDit> net;
   if (resuming) {
@@ -431,7 +226,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
     net.emplace(models::DitConfig::from_json(ckpt.config().at("config")));
   } else if (job.stage == WmStage::kPosttrain) {
     DOJO_CHECK(!job.init.empty(), "wm train --stage posttrain needs --init (a pretrained checkpoint)");
-    net.emplace(load_world_model(job.init));
+    net.emplace(models::load_world_model(job.init));
     // A new action space: the first layer of both action MLPs starts afresh; everything else
     // (including fc2, which pretraining taught to speak adaLN) is fine-tuned.
     (*net)->reinit_action_input_layer();
@@ -455,67 +250,57 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   result.clips = n;
   result.heldout_loss_start = trainer.eval_loss(probe_x0, probe_actions, probe_seed);
 
-  LossCurve curve(job.out / "loss.csv", "step,loss,mse,temporal,grad_norm,lr,clips_per_s,fixed_batch_loss",
-                  trainer.steps_done());
-  Progress progress("wm " + to_string(job.stage), job.steps - trainer.steps_done(), "step");
+  LoopOptions loop;
+  loop.name = "wm " + to_string(job.stage);
+  loop.steps = job.steps;
   // The budget clock started before caching: what is left of it bounds the steps.
-  if (job.time_budget_s > 0) progress.set_time_budget(std::max(1.0, job.time_budget_s - budget.elapsed()));
+  if (job.time_budget_s > 0) loop.time_budget_s = std::max(1e-3, job.time_budget_s - budget.elapsed());
+  loop.save_every = job.save_every;
+  loop.loss_curve = job.out / "loss.csv";
+  loop.columns = {"loss", "mse", "temporal", "grad_norm", "lr", "clips_per_s", "fixed_batch_loss"};
+  const int64_t start_step = trainer.steps_done();
   std::deque<double> recent;
-  double timed_seconds = 0;
-  int64_t timed_steps = 0, run_steps = 0;
-  const auto run_start = std::chrono::steady_clock::now();
-  auto save = [&] {
-    trainer.save(ckpt_dir, {{"stage", to_string(job.stage)}, {"clips", n}});
-    curve.write();
+  auto recent_mean = [&] {
+    double sum = 0;
+    for (double v : recent) sum += v;
+    return recent.empty() ? 0.0 : sum / static_cast<double>(recent.size());
   };
-  while (trainer.steps_done() < job.steps) {
-    const int64_t step = trainer.steps_done();
-    // Batch and noise of step k depend on (seed, k) only, so a resumed run sees the same stream.
-    auto gen = make_cpu_generator(job.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(step) + 1);
-    const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
-    const auto t0 = std::chrono::steady_clock::now();
-    const auto s = trainer.step(clips.latents.index_select(0, idx), clips.actions.index_select(0, idx), gen);
-    const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    if (++run_steps > 2) {  // the first steps warm up allocators
-      timed_seconds += secs;
-      ++timed_steps;
-    }
-    recent.push_back(s.loss);
-    if (recent.size() > 20) recent.pop_front();
-    if (run_steps == std::min<int64_t>(20, job.steps - step)) {
-      double sum = 0;
-      for (double v : recent) sum += v;
-      result.first_loss = sum / static_cast<double>(recent.size());
-    }
-    const bool save_now =
-        trainer.steps_done() % job.save_every == 0 || trainer.steps_done() == job.steps || budget.expired();
-    double probe_loss = std::nan("");
-    if (save_now) probe_loss = trainer.eval_loss(probe_x0, probe_actions, probe_seed);
-    std::ostringstream row;
-    row << trainer.steps_done() << ',' << s.loss << ',' << s.mse << ',' << s.temporal << ',' << s.grad_norm
-        << ',' << s.lr << ',' << job.batch_size / secs << ',';
-    if (!std::isnan(probe_loss)) row << probe_loss;
-    curve.add(row.str());
-    std::ostringstream note;
-    note << "loss " << s.loss;
-    progress.advance(1, note.str());
-    if (save_now) save();
-    if (budget.expired()) {
-      LOG_INFO("wm train: time budget of ", job.time_budget_s, " s reached at step ", trainer.steps_done());
-      break;
-    }
-  }
-  progress.finish();
-  if (run_steps == 0) save();  // nothing to do, but leave the checkpoint in place
-  double sum = 0;
-  for (double v : recent) sum += v;
-  result.last_loss = recent.empty() ? 0 : sum / static_cast<double>(recent.size());
+  const auto run = run_training_loop(
+      loop, start_step,
+      [&](const LoopStep& info) {
+        // Batch and noise of step k depend on (seed, k) only, so a resumed run sees the same stream.
+        auto gen =
+            make_cpu_generator(job.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(info.index) + 1);
+        const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
+        const auto t0 = std::chrono::steady_clock::now();
+        const auto s =
+            trainer.step(clips.latents.index_select(0, idx), clips.actions.index_select(0, idx), gen);
+        const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        recent.push_back(s.loss);
+        if (recent.size() > 20) recent.pop_front();
+        // The mean of this run's first 20 losses (or of all of them in a shorter run).
+        if (info.index + 1 - start_step == std::min<int64_t>(20, job.steps - start_step))
+          result.first_loss = recent_mean();
+        const double probe_loss =
+            info.saves ? trainer.eval_loss(probe_x0, probe_actions, probe_seed) : std::nan("");
+        std::ostringstream note;
+        note << "loss " << s.loss;
+        return StepRecord{{s.loss, s.mse, s.temporal, s.grad_norm, s.lr, job.batch_size / secs, probe_loss},
+                          job.batch_size,
+                          note.str()};
+      },
+      [&](int64_t, bool) {
+        trainer.save(ckpt_dir, {{"stage", to_string(job.stage)}, {"clips", n}});
+      });
+  // A job with no steps to run still leaves a checkpoint behind.
+  if (run.end_step == run.start_step && !resuming)
+    trainer.save(ckpt_dir, {{"stage", to_string(job.stage)}, {"clips", n}});
+  result.last_loss = recent_mean();
   if (result.first_loss == 0) result.first_loss = result.last_loss;
   result.steps = trainer.steps_done();
   result.heldout_loss_end = trainer.eval_loss(probe_x0, probe_actions, probe_seed);
-  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - run_start).count();
-  result.clips_per_second =
-      timed_seconds > 0 ? static_cast<double>(timed_steps * job.batch_size) / timed_seconds : 0;
+  result.seconds = run.seconds;
+  result.clips_per_second = run.items_per_second;
   const auto& lat = clips.latents;  // [N, 16, T, h, w]
   result.gflops = result.clips_per_second * 3 *
                   models::dit_forward_flops(trainer.net()->config, lat.size(2), lat.size(3), lat.size(4)) /

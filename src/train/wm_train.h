@@ -1,7 +1,6 @@
 // World-model training: the action-conditioned DiT learns rectified flow on tokenizer latents of
-// 13-frame clips. Clips are encoded once by the frozen tokenizer (and, for human video, labelled
-// once by the frozen LAM) into an in-memory latent cache that is also kept on disk, so training
-// steps never touch video.
+// 13-frame clips, read from the latent cache (train/latent_cache.h), so training steps never
+// touch video.
 //
 // Stages (DreamDojo §6):
 //   pretrain   human video; actions are latent actions (or none / ground-truth motion: ablations)
@@ -22,47 +21,9 @@
 #include "core/autocast.h"
 #include "diffusion/flow_matching.h"
 #include "models/dit.h"
+#include "train/latent_cache.h"
 
 namespace dojo::train {
-
-// What goes into the 384-d action rows of a clip.
-enum class ActionMode {
-  kDataset,      // the dataset's own rows (robot joints in their slot; human: the latent mask)
-  kLatent,       // latent slot [352, 384) := mask * LAM latent action of each frame pair
-  kNone,         // all zero (action-free pretraining)
-  kGroundTruth,  // human hidden motion, chunk-relative, in the latent slot (upper-bound ablation)
-};
-ActionMode parse_action_mode(const std::string& text);  // dataset | latent | none | ground-truth
-std::string to_string(ActionMode mode);
-
-// Which clips to cache and how.
-struct LatentCacheSpec {
-  std::filesystem::path dataset;
-  std::string split = "train";
-  std::filesystem::path tokenizer;  // checkpoint directory
-  std::filesystem::path lam;        // checkpoint directory (ActionMode::kLatent only)
-  ActionMode mode = ActionMode::kDataset;
-  std::vector<int> strides = {1, 2};
-  int64_t hop = 2;               // window starts advance by this many frames
-  int size = 0;                  // frame size fed to the tokenizer (0: the dataset's)
-  int64_t max_clips = 0;         // 0: all windows
-  bool relative_actions = true;  // false: absolute normalised actions (ablation)
-  nlohmann::json to_json() const;
-};
-
-struct LatentClips {
-  torch::Tensor latents;  // [N, 16, T_lat, h, w] normalised tokenizer latents
-  torch::Tensor actions;  // [N, T - 1, 384] rows after the action mode
-  nlohmann::json meta;    // the spec that made it
-  int64_t size() const { return latents.defined() ? latents.size(0) : 0; }
-};
-
-// Loads `cache_file` when it was made from the same spec; otherwise encodes every window of the
-// split and writes the file atomically.
-LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const std::filesystem::path& cache_file);
-
-// Concatenates clip sets (their latent shapes must agree).
-LatentClips concat_latent_clips(const std::vector<LatentClips>& sets);
 
 struct WmTrainOptions {
   double lr = 1.6e-4;  // AdamW as released (betas 0.9/0.999)
@@ -153,8 +114,5 @@ struct WmTrainResult {
 
 // Trains, resuming from out/checkpoint when it exists. Returns what the run measured.
 WmTrainResult run_wm_training(const WmTrainJob& job);
-
-// Saved world-model checkpoint -> EMA network in eval mode (float32, on `device`).
-models::ActionDit load_world_model(const std::filesystem::path& dir, torch::Device device = torch::kCPU);
 
 }  // namespace dojo::train

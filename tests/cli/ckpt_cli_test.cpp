@@ -60,8 +60,8 @@ TEST(CkptCli, InfoTableOfACheckpoint) {
 }
 
 TEST(CkptCli, InfoOfGoldenSafetensorsFile) {
-  const auto lam = test::shared_dir() / "golden" / "lam_tiny_weights.safetensors";
-  if (!std::filesystem::exists(lam)) GTEST_SKIP() << lam << " not present";
+  const auto lam = test::golden_dir() / "lam_tiny_weights.safetensors";
+  ASSERT_TRUE(std::filesystem::exists(lam)) << lam << " is missing";
   const auto result = test::run_dojo("ckpt info " + lam.string() + " --json");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   const auto info = nlohmann::json::parse(result.output);

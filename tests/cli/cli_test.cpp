@@ -1,5 +1,7 @@
 // End-to-end checks of the `dojo` executable: help, version JSON, bad usage.
+#include <map>
 #include <nlohmann/json.hpp>
+#include <sstream>
 
 #include "test_util.h"
 
@@ -23,8 +25,74 @@ TEST(Cli, VersionJson) {
 
 TEST(Cli, UnknownCommandFailsWithUsageError) {
   const auto result = test::run_dojo("frobnicate");
-  EXPECT_NE(result.exit_code, 0);
+  EXPECT_EQ(result.exit_code, 2);
+  EXPECT_NE(result.output.find("unknown command 'dojo frobnicate'"), std::string::npos) << result.output;
   EXPECT_EQ(result.output.find("terminate"), std::string::npos);
+}
+
+// A mistyped subcommand is named as such, with the nearest real one, also with --help, and
+// options with values before it are skipped over.
+TEST(Cli, MistypedSubcommandIsNamed) {
+  auto r = test::run_dojo("wm rolout");
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_NE(r.output.find("unknown command 'dojo wm rolout' (did you mean 'dojo wm rollout'?)"),
+            std::string::npos)
+      << r.output;
+  r = test::run_dojo("nonsense --help");
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_NE(r.output.find("unknown command 'dojo nonsense'"), std::string::npos) << r.output;
+  r = test::run_dojo("--threads 1 lam trian --help");
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_NE(r.output.find("'dojo lam trian' (did you mean 'dojo lam train'?)"), std::string::npos)
+      << r.output;
+  // Real commands still parse: a value after an option is not a command word.
+  r = test::run_dojo("--threads 1 version --json");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  r = test::run_dojo("wm rollout --help");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+}
+
+// The shared options carry one name, alias and help text on every command that takes them
+// (src/cli/options.cpp holds the table these strings come from).
+TEST(Cli, SharedOptionsReadTheSameEverywhere) {
+  const std::map<std::string, std::pair<std::string, std::string>> shared = {
+      {"--data", {"-d,--data", "Dataset directory (episode store, LeRobot, EgoDex or video folder)"}},
+      {"--split", {"-s,--split", "Dataset split (train, val, ..., or all)"}},
+      {"--seed", {"--seed", "Random seed: the same seed gives the same result"}},
+      {"--device", {"--device", "Where the networks run: cpu | cuda | cuda:N | auto"}},
+      {"--precision", {"--precision", "fp32 | bf16 | fp16 (CUDA only)"}},
+      {"--json", {"--json", "Print the result as JSON"}},
+      {"--workers", {"-j,--workers", "Worker threads for data generation and loading (0 = all cores)"}},
+      {"--out", {"-o,--out", "Output:"}},
+      {"--checkpoint", {"-c,--checkpoint,--ckpt", "Checkpoint directory:"}}};
+  const std::vector<std::pair<std::string, std::vector<std::string>>> commands = {
+      {"eval", {"--data", "--split", "--seed", "--device", "--precision", "--json", "--out", "--checkpoint"}},
+      {"wm train", {"--data", "--split", "--seed", "--device", "--precision", "--out"}},
+      {"wm rollout", {"--data", "--split", "--seed", "--device", "--out", "--checkpoint"}},
+      {"tokenizer train", {"--data", "--split", "--seed", "--workers", "--out"}},
+      {"tokenizer eval", {"--data", "--split", "--seed", "--json", "--out", "--checkpoint"}},
+      {"lam train", {"--seed", "--workers", "--out"}},
+      {"lam probe", {"--data", "--json", "--checkpoint"}},
+      {"sim generate", {"--seed", "--workers", "--json", "--out"}},
+      {"data info", {"--json"}},
+      {"bench", {"--device", "--json"}}};
+  for (const auto& [command, options] : commands) {
+    const auto r = test::run_dojo(command + " --help");
+    ASSERT_EQ(r.exit_code, 0) << command;
+    // "  NAMES TYPE  HELP" on one line, or HELP on the next when the names are long.
+    for (const auto& option : options) {
+      const auto& [names, help] = shared.at(option);
+      std::istringstream lines(r.output);
+      std::string line, next;
+      bool found = false;
+      while (std::getline(lines, line))
+        if (line.find("  " + names + " ") != std::string::npos)
+          found = line.find(help) != std::string::npos ||
+                  (std::getline(lines, next) && next.find(help) != std::string::npos);
+      EXPECT_TRUE(found) << "`dojo " << command << " --help` lacks \"" << names << " ... " << help << "\":\n"
+                         << r.output;
+    }
+  }
 }
 
 TEST(Cli, NoCommandFails) {

@@ -4,23 +4,19 @@
 #include "data/episode_store.h"
 #include "test_util.h"
 
-#ifdef DOJO_WITH_SIM
-#include "sim/generate.h"
+#include "synthetic_data.h"
 
 namespace dojo {
 
 TEST(LamCli, TrainLabelProbeEndToEnd) {
   test::TempDir tmp;
   for (const std::string emb : {"human", "robot"}) {
-    sim::GenerateOptions o;
+    test::SyntheticOptions o;
     o.embodiment = emb;
     o.episodes = 5;
     o.frames = 12;
-    o.height = 48;
-    o.width = 64;
-    o.workers = 1;
-    o.val_fraction = 0;
-    sim::generate_dataset(tmp / emb, o);
+    o.size = 48;
+    test::write_synthetic_dataset(tmp / emb, o);
   }
   const auto data = " --data " + (tmp / "human").string() + ":1 --data " + (tmp / "robot").string() + ":1";
   auto r = test::run_dojo("lam train --model tiny --steps 4 --batch 2 --save-every 2 --lr 1e-3 --out " +
@@ -68,4 +64,3 @@ TEST(LamCli, TrainLabelProbeEndToEnd) {
 }
 
 }  // namespace dojo
-#endif

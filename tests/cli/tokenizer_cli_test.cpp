@@ -1,7 +1,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/safetensors.h"
-#include "sim/generate.h"
+#include "synthetic_data.h"
 #include "test_util.h"
 
 namespace dojo {
@@ -9,13 +9,10 @@ namespace {
 
 TEST(TokenizerCli, TrainEvalEncodeOnGeneratedData) {
   test::TempDir tmp;
-  sim::GenerateOptions g;
+  test::SyntheticOptions g;
   g.episodes = 2;
   g.frames = 16;
-  g.width = g.height = 32;
-  g.workers = 1;
-  g.val_fraction = 0;
-  sim::generate_dataset(tmp / "data", g);
+  test::write_synthetic_dataset(tmp / "data", g);
   const auto data = (tmp / "data").string(), ckpt = (tmp / "tok").string();
 
   auto r = test::run_dojo("--threads 1 tokenizer train --data " + data + " --out " + ckpt +

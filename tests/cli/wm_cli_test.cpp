@@ -9,7 +9,7 @@
 #include "core/safetensors.h"
 #include "core/state_dict.h"
 #include "eval/lpips.h"
-#include "sim/generate.h"
+#include "synthetic_data.h"
 #include "test_util.h"
 
 namespace dojo {
@@ -17,13 +17,11 @@ namespace {
 
 TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   test::TempDir tmp;
-  sim::GenerateOptions g;
+  test::SyntheticOptions g;
   g.episodes = 3;
   g.frames = 26;
-  g.width = g.height = 32;
-  g.workers = 1;
-  g.val_fraction = 0.34;  // one held-out episode
-  sim::generate_dataset(tmp / "robot", g);
+  g.val_episodes = 1;  // one held-out episode
+  test::write_synthetic_dataset(tmp / "robot", g);
   const auto data = (tmp / "robot").string(), tok = (tmp / "tok").string();
   auto r = test::run_dojo("--threads 1 tokenizer train --data " + data + " --out " + tok +
                           " --steps 2 --batch 1 --frames 5 --size 32 --dim 8 --workers 1 --split all");
@@ -116,6 +114,7 @@ TEST(WmCli, CudaOnACpuMachineAndBadPrecisionsFailInOneLine) {
   EXPECT_FALSE(std::filesystem::exists(d));
 }
 
+#ifdef DOJO_WITH_SIM
 TEST(WmCli, DemoRunsEndToEndOnATinyBudgetAndWritesTheReport) {
   test::TempDir tmp;
   const auto out = (tmp / "demo").string();
@@ -133,6 +132,7 @@ TEST(WmCli, DemoRunsEndToEndOnATinyBudgetAndWritesTheReport) {
   EXPECT_EQ(demo.at("eval").size(), 3u);
   EXPECT_GT(demo["wm_posttrain"].at("steps").get<int>(), 0);
 }
+#endif  // DOJO_WITH_SIM
 
 }  // namespace
 }  // namespace dojo

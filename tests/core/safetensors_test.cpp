@@ -289,8 +289,8 @@ TEST(Safetensors, BadSavesFailAndLeaveThePreviousFile) {
 }
 
 TEST(Safetensors, GoldenFixturesParseAndRewriteIdentically) {
-  const auto golden = test::shared_dir() / "golden";
-  if (!std::filesystem::is_directory(golden)) GTEST_SKIP() << golden << " not present";
+  const auto golden = test::golden_dir();
+  ASSERT_TRUE(std::filesystem::is_directory(golden)) << golden << " is missing";
   int files = 0;
   test::TempDir dir;
   for (const auto& entry : std::filesystem::directory_iterator(golden)) {

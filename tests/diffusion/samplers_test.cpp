@@ -19,7 +19,7 @@ double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
 }
 
 std::optional<SafetensorsFile> open_fixture() {
-  const auto path = test::shared_dir() / "golden" / "flow_sampler.safetensors";
+  const auto path = test::golden_dir() / "flow_sampler.safetensors";
   if (!std::filesystem::exists(path)) return std::nullopt;
   return SafetensorsFile::open(path);
 }
@@ -55,7 +55,7 @@ TEST(Sampler, ScheduleMatchesPublished35StepList) {
 
 TEST(Sampler, ScheduleMatchesFixture) {
   auto f = open_fixture();
-  if (!f) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(f) << "golden fixture missing from " << test::golden_dir();
   const auto s = flow_sigma_schedule(35, 5.0);
   const auto ts = f->tensor("unipc_timesteps");
   const auto sig = f->tensor("unipc_sigmas");
@@ -70,7 +70,7 @@ TEST(Sampler, ScheduleMatchesFixture) {
 
 TEST(Sampler, UniPCMatchesFixtureTrajectory) {
   auto f = open_fixture();
-  if (!f) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(f) << "golden fixture missing from " << test::golden_dir();
   const auto noise = f->tensor("noise", true);
   const auto k = f->tensor("field_k", true);
   const auto latents = f->tensor("unipc_latents");
@@ -99,7 +99,7 @@ TEST(Sampler, UniPCMatchesFixtureTrajectory) {
 
 TEST(Sampler, EulerMatchesFixtureTrajectory) {
   auto f = open_fixture();
-  if (!f) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(f) << "golden fixture missing from " << test::golden_dir();
   const auto noise = f->tensor("noise", true);
   const auto k = f->tensor("field_k", true);
   const auto latents = f->tensor("euler_latents");
@@ -118,7 +118,7 @@ TEST(Sampler, EulerMatchesFixtureTrajectory) {
 
 TEST(Sampler, BatchedUniPCEqualsPerSampleRuns) {
   auto f = open_fixture();
-  if (!f) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(f) << "golden fixture missing from " << test::golden_dir();
   const auto noise = f->tensor("noise", true);
   const auto k = f->tensor("field_k", true);
   // Batch of 3: the fixture sample, a scaled copy and a fresh draw; the field is per-sample affine.
@@ -156,7 +156,7 @@ TEST(Sampler, SolversRecoverX0OfAStraightFlow) {
 
 TEST(Sampler, StudentScheduleMatchesFixture) {
   auto f = open_fixture();
-  if (!f) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(f) << "golden fixture missing from " << test::golden_dir();
   const auto exact = student_schedule(false);
   const auto bf16 = student_schedule(true);
   ASSERT_EQ(exact.size(), 4u);

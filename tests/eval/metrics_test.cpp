@@ -2,6 +2,8 @@
 
 #include <torch/torch.h>
 
+#include <fstream>
+
 #include <cmath>
 #include <nlohmann/json.hpp>
 #include <optional>
@@ -19,7 +21,7 @@ namespace dojo::eval {
 namespace {
 
 std::optional<SafetensorsFile> open_images() {
-  const auto path = test::shared_dir() / "golden" / "metrics_images.safetensors";
+  const auto path = test::golden_dir() / "metrics_images.safetensors";
   if (!std::filesystem::exists(path)) return std::nullopt;
   return SafetensorsFile::open(path);
 }
@@ -45,7 +47,7 @@ LpipsVgg random_lpips(uint64_t seed) {
 
 TEST(Metrics, PsnrSsimMatchFixture) {
   auto f = open_images();
-  if (!f) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(f) << "golden fixture missing from " << test::golden_dir();
   for (const std::string set : {"s64", "b480x640"}) {
     const auto x = f->tensor(set + "_x_u8");
     const auto y = f->tensor(set + "_y_u8");
@@ -106,8 +108,8 @@ TEST(Metrics, DatasetMeanWeighsVideosEqually) {
 }
 
 TEST(Metrics, PearsonAndMmrvMatchFixture) {
-  const auto path = test::shared_dir() / "golden" / "metrics_values.json";
-  if (!std::filesystem::exists(path)) GTEST_SKIP() << "golden fixture not present";
+  const auto path = test::golden_dir() / "metrics_values.json";
+  ASSERT_TRUE(std::filesystem::exists(path)) << path << " is missing";
   const auto j = nlohmann::json::parse(test::read_file(path));
   const auto& cases = j.at("simpler_rank_metrics");
   ASSERT_GE(cases.size(), 8u);
@@ -271,8 +273,8 @@ TEST(Metrics, CliComparesTwoVideos) {
   io::write_video((dir / "a.mp4").string(), video);
   io::write_video((dir / "b.mp4").string(), noisy);
 
-  const auto same =
-      test::run_dojo("metrics " + (dir / "a.mp4").string() + " " + (dir / "a.mp4").string() + " --json");
+  const auto same = test::run_dojo("metrics video " + (dir / "a.mp4").string() + " " +
+                                   (dir / "a.mp4").string() + " --json");
   ASSERT_EQ(same.exit_code, 0) << same.output;
   const auto j = nlohmann::json::parse(same.output);
   EXPECT_EQ(j.at("frames").get<int>(), 4);
@@ -280,18 +282,51 @@ TEST(Metrics, CliComparesTwoVideos) {
   EXPECT_NEAR(j.at("ssim").get<double>(), 1.0, 1e-6);
   EXPECT_TRUE(j.at("lpips").is_null());
 
-  const auto diff =
-      test::run_dojo("metrics " + (dir / "a.mp4").string() + " " + (dir / "b.mp4").string() + " --json");
+  const auto diff = test::run_dojo("metrics video " + (dir / "a.mp4").string() + " " +
+                                   (dir / "b.mp4").string() + " --json");
   ASSERT_EQ(diff.exit_code, 0) << diff.output;
   const auto d = nlohmann::json::parse(diff.output);
   EXPECT_LT(d.at("psnr").get<double>(), 40.0);
   EXPECT_GT(d.at("psnr").get<double>(), 10.0);
   EXPECT_LT(d.at("ssim").get<double>(), 0.99);
 
-  const auto missing = test::run_dojo("metrics " + (dir / "a.mp4").string() + " " + (dir / "b.mp4").string() +
-                                      " --lpips-weights " + (dir / "none.safetensors").string());
+  const auto missing =
+      test::run_dojo("metrics video " + (dir / "a.mp4").string() + " " + (dir / "b.mp4").string() +
+                     " --lpips-weights " + (dir / "none.safetensors").string());
   EXPECT_EQ(missing.exit_code, 1);
   EXPECT_NE(missing.output.find("none.safetensors"), std::string::npos) << missing.output;
+}
+
+TEST(Metrics, SpearmanUsesAverageRanks) {
+  EXPECT_DOUBLE_EQ(spearman_correlation({0.1, 0.5, 0.9}, {0.2, 0.3, 0.4}), 1.0);
+  EXPECT_NEAR(spearman_correlation({0.1, 0.5, 0.9}, {0.4, 0.3, 0.2}), -1.0, 1e-8);
+  // Ties share their mean rank: ranks (1.5, 1.5, 3) against (1, 2, 3).
+  const double r = spearman_correlation({0.2, 0.2, 0.9}, {0.1, 0.2, 0.3});
+  EXPECT_NEAR(r, pearson_correlation({1.5, 1.5, 3}, {1, 2, 3}), 1e-12);
+  EXPECT_LT(r, 1.0);
+}
+
+TEST(Metrics, CliRanksPoliciesFromJson) {
+  test::TempDir dir;
+  std::ofstream(dir / "rates.json") << R"({"policies": [{"name": "expert", "world_model": 0.9, "real": 0.8},
+                          {"name": "medium", "world_model": 0.6, "real": 0.5},
+                          {"name": "poor", "world_model": 0.1, "real": 0.2}]})";
+  const auto r = test::run_dojo("metrics policies " + (dir / "rates.json").string() + " --json");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto j = nlohmann::json::parse(r.output);
+  const std::vector<double> wm = {0.9, 0.6, 0.1}, real = {0.8, 0.5, 0.2};
+  EXPECT_DOUBLE_EQ(j.at("pearson_r").get<double>(), pearson_correlation(wm, real));
+  EXPECT_DOUBLE_EQ(j.at("mmrv").get<double>(), 0.0);  // the ranking is right
+  EXPECT_DOUBLE_EQ(j.at("spearman_rho").get<double>(), 1.0);
+  EXPECT_NEAR(j.at("mean_abs_gap").get<double>(), 0.1, 1e-12);
+  EXPECT_EQ(j.at("policies").get<int>(), 3);
+
+  std::ofstream(dir / "bad.json") << R"({"policies": [{"name": "a", "world_model": 1.5, "real": 0.1},
+                                                     {"name": "b", "world_model": 0.5, "real": 0.1}]})";
+  const auto bad = test::run_dojo("metrics policies " + (dir / "bad.json").string());
+  EXPECT_EQ(bad.exit_code, 1);
+  EXPECT_NE(bad.output.find("policies[0].world_model"), std::string::npos) << bad.output;
+  EXPECT_NE(bad.output.find("bad.json"), std::string::npos) << bad.output;
 }
 
 }  // namespace dojo::eval

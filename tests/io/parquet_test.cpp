@@ -7,6 +7,7 @@
 
 #include "core/error.h"
 #include "io/parquet_writer.h"
+#include "parquet_replay.h"
 #include "test_util.h"
 
 namespace dojo::io {
@@ -238,19 +239,40 @@ TEST(Parquet, LimitsStopHugeAllocations) {
 }
 
 // Inputs the fuzzer once crashed on (fuzz/regressions/), replayed forever.
-TEST(Parquet, FuzzRegressions) {
-  const std::filesystem::path dir = std::filesystem::path(DOJO_SOURCE_DIR) / "fuzz" / "regressions";
-  int replayed = 0;
-  for (const auto& e : std::filesystem::directory_iterator(dir)) {
-    if (e.path().filename() == ".keep") continue;
-    const std::string bytes = test::read_file(e.path());
+// Every committed fuzz input, replayed as the fuzzer runs it: the seed corpus (valid files from
+// our writer and hyparquet) must decode completely; the inputs the fuzzer kept for coverage and
+// every crasher it found (fixed since) must decode or fail with dojo::Error, nothing worse.
+namespace {
+std::vector<std::filesystem::path> corpus_files(const std::string& name) {
+  std::vector<std::filesystem::path> files;
+  const auto dir = std::filesystem::path(DOJO_SOURCE_DIR) / "fuzz" / "corpus" / name;
+  if (std::filesystem::is_directory(dir))
+    for (const auto& e : std::filesystem::directory_iterator(dir)) files.push_back(e.path());
+  return files;
+}
+}  // namespace
+
+TEST(Parquet, FuzzSeedCorpusDecodes) {
+  const auto seeds = corpus_files("seeds");
+  ASSERT_GE(seeds.size(), 13u) << "fuzz/corpus/seeds holds the 12 writer combinations and hyparquet's file";
+  for (const auto& f : seeds) EXPECT_TRUE(fuzz::replay_parquet_input(test::read_file(f))) << f;
+}
+
+TEST(Parquet, FuzzInputsFailCleanly) {
+  auto inputs = corpus_files("inputs");
+  const auto crashers = corpus_files("crashers");
+  inputs.insert(inputs.end(), crashers.begin(), crashers.end());
+  ASSERT_FALSE(inputs.empty()) << "fuzz/corpus/inputs is empty";
+  int decoded = 0;
+  for (const auto& f : inputs) {
     try {
-      ParquetFile::from_buffer(bytes, e.path().filename().string()).decode_all();
-    } catch (const Error&) {
+      decoded += fuzz::replay_parquet_input(test::read_file(f)) ? 1 : 0;
+    } catch (const std::exception& e) {
+      ADD_FAILURE() << f << ": " << e.what();
     }
-    ++replayed;
   }
-  SUCCEED() << replayed << " inputs replayed";
+  // Mostly malformed: at least some inputs must exercise the error paths.
+  EXPECT_LT(decoded, static_cast<int>(inputs.size()));
 }
 
 }  // namespace dojo::io

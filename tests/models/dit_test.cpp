@@ -23,7 +23,7 @@ double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
 }
 
 std::optional<SafetensorsFile> open_fixture(const std::string& name) {
-  const auto path = test::shared_dir() / "golden" / name;
+  const auto path = test::golden_dir() / name;
   if (!std::filesystem::exists(path)) return std::nullopt;
   return SafetensorsFile::open(path);
 }
@@ -31,7 +31,7 @@ std::optional<SafetensorsFile> open_fixture(const std::string& name) {
 // name, shape, dtype rows of a keys/*.tsv file.
 std::vector<DitTensorSpec> read_key_list(const std::string& name) {
   std::vector<DitTensorSpec> out;
-  std::ifstream in(test::shared_dir() / "reference" / "keys" / name);
+  std::ifstream in(test::golden_dir() / "keys" / name);
   std::string line;
   while (std::getline(in, line)) {
     std::istringstream row(line);
@@ -105,7 +105,7 @@ DitInputs random_inputs(const DitConfig& c, int64_t B, int64_t T, int64_t H, int
 
 TEST(DitRope, TablesMatchGolden) {
   auto g = open_fixture("dit_rope_temb.safetensors");
-  if (!g) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   EXPECT_LE(max_abs(rope_dim_range(42, false), g->tensor("rope128_dim_spatial_range")), 0.0);
   EXPECT_LE(max_abs(rope_dim_range(44, false), g->tensor("rope128_dim_temporal_range")), 0.0);
   const auto axes = rope_axis_dims(128);
@@ -167,7 +167,7 @@ TEST(DitRope, ApplyRopeIsRotateHalf) {
 
 TEST(DitTimestep, SinusoidMatchesGolden) {
   auto g = open_fixture("dit_rope_temb.safetensors");
-  if (!g) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   const auto raw = g->tensor("temb_timesteps_raw");
   const auto scaled = raw * 0.001;
   EXPECT_EQ(max_abs(scaled, g->tensor("temb_timesteps_scaled")), 0.0);
@@ -185,7 +185,7 @@ TEST(DitTimestep, SinusoidMatchesGolden) {
 
 TEST(DitConfig, GoldenTinyMatchesFixtureKwargs) {
   auto g = open_fixture("dit_tiny_weights.safetensors");
-  if (!g) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   const auto kwargs = nlohmann::json::parse(g->metadata().at("config"));
   EXPECT_EQ(DitConfig::from_reference_kwargs(kwargs).to_json(), DitConfig::golden_tiny().to_json());
 }
@@ -249,7 +249,7 @@ TEST(DitConfig, FromWeightsReadsTheArchitecture) {
 
 TEST(DitKeys, Released2BKeyListShapesAndCount) {
   const auto ref = read_key_list("dit_2B_action384_keys.tsv");
-  if (ref.empty()) GTEST_SKIP() << "key list not present";
+  ASSERT_FALSE(ref.empty()) << "key list missing from " << test::golden_dir() / "keys";
   ASSERT_EQ(ref.size(), 584u);
   const auto ours = dit_parameter_shapes(DitConfig::released_2b());
   expect_specs_equal(ours, ref, "net.");
@@ -271,7 +271,7 @@ TEST(DitKeys, Released2BKeyListShapesAndCount) {
 
 TEST(DitKeys, Released14BShapeArithmetic) {
   const auto ref = read_key_list("dit_14B_action384_keys.tsv");
-  if (ref.empty()) GTEST_SKIP() << "key list not present";
+  ASSERT_FALSE(ref.empty()) << "key list missing from " << test::golden_dir() / "keys";
   ASSERT_EQ(ref.size(), 744u);
   expect_specs_equal(dit_parameter_shapes(DitConfig::released_14b()), ref, "net.");
   EXPECT_EQ(dit_parameter_count(DitConfig::released_14b()), 14850453679 - 175);
@@ -336,7 +336,7 @@ DitInputs tiny_inputs(const TinyGolden& g, const std::string& case_name) {
 TEST(DitGolden, TinyForwardAndIntermediates) {
   test::OneThread one_thread;
   auto g = open_tiny();
-  if (!g) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   auto net = tiny_model(*g);
   torch::NoGradGuard no_grad;
   for (const std::string name : {"tshared", "tframe"}) {
@@ -379,7 +379,7 @@ TEST(DitGolden, TinyActionsMatter) {
   // The fixture's weights make the action path significant: dropping the actions must move the
   // output by far more than the tolerance (guards against a silently ignored action input).
   auto g = open_tiny();
-  if (!g) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   auto net = tiny_model(*g);
   torch::NoGradGuard no_grad;
   auto in = tiny_inputs(*g, "tshared");
@@ -389,7 +389,7 @@ TEST(DitGolden, TinyActionsMatter) {
 
 TEST(DitGolden, TinyDenoiseVelocity) {
   auto g = open_tiny();
-  if (!g) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   auto net = tiny_model(*g);
   torch::NoGradGuard no_grad;
   const auto base = tiny_inputs(*g, "tshared");

@@ -23,7 +23,7 @@ struct Golden {
 };
 
 std::optional<Golden> open_golden() {
-  const auto dir = test::shared_dir() / "golden";
+  const auto dir = test::golden_dir();
   if (!std::filesystem::exists(dir / "lam_tiny_weights.safetensors")) return std::nullopt;
   return Golden{SafetensorsFile::open(dir / "lam_tiny_weights.safetensors"),
                 SafetensorsFile::open(dir / "lam_tiny_io.safetensors")};
@@ -44,7 +44,7 @@ LatentActionModel golden_model(const Golden& g) {
 
 TEST(Lam, TinyConfigMatchesFixtureConfig) {
   auto g = open_golden();
-  if (!g) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   const auto j = nlohmann::json::parse(g->weights.metadata().at("config"));
   const auto c = LamConfig::from_json(j);
   const auto t = LamConfig::tiny();
@@ -70,7 +70,7 @@ TEST(Lam, ConfigJsonRoundTripAndErrors) {
 
 TEST(Lam, GoldenParityBatch1And3) {
   auto g = open_golden();
-  if (!g) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   auto model = golden_model(*g);
   torch::NoGradGuard no_grad;
   for (const std::string b : {"b1_", "b3_"}) {
@@ -84,7 +84,7 @@ TEST(Lam, GoldenParityBatch1And3) {
 
 TEST(Lam, GoldenWorldModelLatentActionsPerSample) {
   auto g = open_golden();
-  if (!g) GTEST_SKIP() << "golden fixture not present";
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   auto model = golden_model(*g);
   torch::NoGradGuard no_grad;
   const auto video = g->io.tensor("wm_lam_video");  // [3, 4, H, W, 3]: 2 pairs per sample
@@ -158,8 +158,8 @@ TEST(Lam, RotaryMatchesInterleavedFormula) {
 }
 
 TEST(Lam, ReleasedSizeKeysAndShapesMatchReference) {
-  const auto path = test::shared_dir() / "reference" / "keys" / "lam_keys.tsv";
-  if (!std::filesystem::exists(path)) GTEST_SKIP() << path << " not present";
+  const auto path = test::golden_dir() / "keys" / "lam_keys.tsv";
+  ASSERT_TRUE(std::filesystem::exists(path)) << path << " is missing";
   std::vector<std::pair<std::string, std::string>> expected;
   std::ifstream in(path);
   std::string line;

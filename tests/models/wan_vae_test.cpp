@@ -12,7 +12,7 @@
 namespace dojo::models {
 namespace {
 
-std::filesystem::path golden(const std::string& name) { return test::shared_dir() / "golden" / name; }
+std::filesystem::path golden(const std::string& name) { return test::golden_dir() / name; }
 
 double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
   EXPECT_EQ(a.sizes(), b.sizes());
@@ -30,13 +30,11 @@ WanVae load_fixture_model() {
   return vae;
 }
 
-#define SKIP_WITHOUT_GOLDEN()                                            \
-  if (!std::filesystem::exists(golden("wan21_vae_tiny_io.safetensors"))) \
-  GTEST_SKIP() << "no golden "                                           \
-                  "fixtures"
+#define REQUIRE_GOLDEN() \
+  ASSERT_TRUE(std::filesystem::exists(golden("wan21_vae_tiny_io.safetensors"))) << "golden fixture missing"
 
 TEST(WanVae, GoldenParity) {
-  SKIP_WITHOUT_GOLDEN();
+  REQUIRE_GOLDEN();
   torch::NoGradGuard no_grad;
   auto vae = load_fixture_model();
   const auto io = SafetensorsFile::open(golden("wan21_vae_tiny_io.safetensors"));
@@ -64,7 +62,7 @@ TEST(WanVae, GoldenParity) {
 }
 
 TEST(WanVae, WholeClipEqualsChunkedOnFixture) {
-  SKIP_WITHOUT_GOLDEN();
+  REQUIRE_GOLDEN();
   torch::NoGradGuard no_grad;
   auto vae = load_fixture_model();
   const auto io = SafetensorsFile::open(golden("wan21_vae_tiny_io.safetensors"));
@@ -160,8 +158,8 @@ TEST(WanVae, FrameByFrameInitActsPerFrame) {
 }
 
 TEST(WanVae, FullSizeKeyListMatchesRelease) {
-  const auto tsv = test::shared_dir() / "reference" / "keys" / "wan21_vae_keys.tsv";
-  if (!std::filesystem::exists(tsv)) GTEST_SKIP() << "no reference key list";
+  const auto tsv = test::golden_dir() / "keys" / "wan21_vae_keys.tsv";
+  ASSERT_TRUE(std::filesystem::exists(tsv)) << tsv << " is missing";
   std::ifstream in(tsv);
   std::vector<std::pair<std::string, std::string>> expected;
   std::string line;

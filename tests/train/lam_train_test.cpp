@@ -113,22 +113,4 @@ TEST(LamTrain, BrightnessAugmentationStaysInRange) {
   EXPECT_LE(dm.abs().max().item<float>(), 0.1f + 1e-6);
 }
 
-// A commanded trajectory and the pose it produces one step later must give the same per-pair
-// motion: pose[t + 1] = cmd[t] (perfect tracking), so pair t moved by cmd[t] - cmd[t - 1].
-TEST(LamProbe, CommandAndMeasuredDeltasAlignOnTheSamePair) {
-  torch::manual_seed(3);
-  const int64_t T = 12;
-  const auto cmd = torch::randn({T, 4}).cumsum(0);                               // [T, 4]
-  const auto pose = torch::cat({torch::zeros({1, 4}), cmd.slice(0, 0, T - 1)});  // pose[t + 1] = cmd[t]
-  const auto c = probe_deltas(cmd, /*commanded=*/true);
-  const auto m = probe_deltas(pose, /*commanded=*/false);
-  ASSERT_EQ(c.first_pair, 1);
-  ASSERT_EQ(c.deltas.size(0), T - 2);
-  ASSERT_EQ(m.first_pair, 0);
-  ASSERT_EQ(m.deltas.size(0), T - 1);
-  EXPECT_TRUE(torch::allclose(c.deltas, m.deltas.slice(0, 1)));
-  // The old pairing (cmd[t + 1] - cmd[t] for pair t) is one step ahead of the motion.
-  EXPECT_FALSE(torch::allclose((cmd.slice(0, 1) - cmd.slice(0, 0, -1)).slice(0, 1), m.deltas.slice(0, 1)));
-}
-
 }  // namespace dojo::train

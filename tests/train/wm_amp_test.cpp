@@ -109,7 +109,7 @@ TEST(WmAmp, Bf16TrainingLearnsLikeFloat32AndSavesFloat32Checkpoints) {
       EXPECT_TRUE(dtype == "F32" || dtype == "I64") << file << ": " << key << " is " << dtype;
     }
   }
-  const auto loaded = load_world_model(dir / "ckpt");
+  const auto loaded = models::load_world_model(dir / "ckpt");
   for (const auto& item : trainer->ema()->named_parameters()) {
     const auto& got = loaded->named_parameters()[item.key()];
     EXPECT_EQ(got.scalar_type(), torch::kFloat32);

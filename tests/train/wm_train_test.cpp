@@ -12,16 +12,18 @@
 #include "diffusion/samplers.h"
 #include "models/lam.h"
 #include "models/wan_vae.h"
-#include "sim/generate.h"
+#include "synthetic_data.h"
 #include "test_util.h"
 #include "train/lam_train.h"
-#include "train/tokenizer_trainer.h"
+#include "train/tokenizer_train.h"
 #include "wm_test_fixtures.h"
 
 namespace dojo::train {
 namespace {
 
+using test::SyntheticOptions;
 using test::TempDir;
+using test::write_synthetic_dataset;
 
 using test_fixtures::action_driven_latents;
 using test_fixtures::gen;
@@ -130,7 +132,7 @@ TEST(WmTrain, ResumeContinuesExactly) {
     EXPECT_TRUE(item.value().equal(resumed.ema()->named_parameters()[item.key()])) << "ema " << item.key();
 
   // The inference checkpoint is the EMA network under the released "net." names.
-  const auto loaded = load_world_model(dir / "ckpt");
+  const auto loaded = models::load_world_model(dir / "ckpt");
   EXPECT_FALSE(loaded->is_training());
   auto file = SafetensorsFile::open(dir / "ckpt" / "model.safetensors");
   EXPECT_TRUE(file.contains("net.blocks.0.self_attn.q_proj.weight"));
@@ -141,16 +143,14 @@ TEST(WmTrain, ResumeContinuesExactly) {
 struct CacheFixture {
   TempDir dir;
   CacheFixture() {
-    sim::GenerateOptions g;
+    SyntheticOptions g;
     g.embodiment = "human";
     g.episodes = 2;
     g.frames = 20;
-    g.width = g.height = 32;
-    g.workers = 1;
-    sim::generate_dataset(dir / "human", g);
+    write_synthetic_dataset(dir / "human", g);
     torch::manual_seed(0);
     models::WanVae vae(models::WanVaeConfig::tiny());
-    save_tokenizer(dir / "tok", vae);
+    models::save_tokenizer(dir / "tok", *vae);
     LamTrainer lam(models::LatentActionModel(models::LamConfig::tiny()), LamTrainOptions{});
     lam.save(dir / "lam");
   }
@@ -185,12 +185,12 @@ TEST(WmTrain, LatentCacheHoldsTokenizerLatentsAndLamActions) {
   cc.height = cc.width = 32;
   data::ClipDataset ds(store, cc, "all");
   const auto clip = ds.read(0, data::make_window(3, 1, 13));
-  auto vae = load_tokenizer(f.dir / "tok");
-  auto lam = load_lam(f.dir / "lam");
+  auto vae = models::load_tokenizer(f.dir / "tok");
+  auto lam = models::load_lam(f.dir / "lam");
   torch::NoGradGuard no_grad;
-  const auto z = vae->encode_latents(video_to_model(clip.video.unsqueeze(0)));
+  const auto z = vae->encode_latents(models::video_to_model(clip.video.unsqueeze(0)));
   EXPECT_LT((clips.latents[1] - z[0]).abs().max().item<double>(), 1e-5);
-  const auto lam_z = lam_encode_episode(lam, clip.video);  // [12, 32]
+  const auto lam_z = models::lam_encode_episode(lam, clip.video);  // [12, 32]
   EXPECT_LT((clips.actions[1].slice(1, 352, 384) - lam_z).abs().max().item<double>(), 1e-5);
   EXPECT_EQ(clips.actions[1].slice(1, 0, 352).abs().sum().item<double>(), 0.0);
 

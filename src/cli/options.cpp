@@ -1,0 +1,88 @@
+#include "cli/options.h"
+
+#include <CLI/CLI.hpp>
+
+namespace dojo::cli {
+
+const std::vector<SharedOption>& shared_options() {
+  static const std::vector<SharedOption> table = {
+      {"--device", "Where the networks run: cpu | cuda | cuda:N | auto"},
+      {"--precision", "fp32 | bf16 | fp16 (CUDA only): matmuls under autocast, weights stay fp32"},
+      {"--data,-d", "Dataset directory (episode store, LeRobot, EgoDex or video folder)"},
+      {"--split,-s", "Dataset split (train, val, ..., or all)"},
+      {"--seed", "Random seed: the same seed gives the same result"},
+      {"--workers,-j", "Worker threads for data generation and loading (0 = all cores)"},
+      {"--json", "Print the result as JSON"},
+      {"--out,-o", "Output"},
+      {"--checkpoint,--ckpt,-c", "Checkpoint directory"},
+  };
+  return table;
+}
+
+namespace {
+
+const SharedOption& shared(const std::string& names) {
+  for (const auto& o : shared_options())
+    if (o.names == names) return o;
+  throw std::logic_error("no shared option " + names);
+}
+
+}  // namespace
+
+CLI::Option* add_device_option(CLI::App* cmd, std::string& device) {
+  const auto& o = shared("--device");
+  return cmd->add_option(o.names, device, o.help)->capture_default_str();
+}
+
+CLI::Option* add_precision_option(CLI::App* cmd, std::string& precision) {
+  const auto& o = shared("--precision");
+  return cmd->add_option(o.names, precision, o.help)->capture_default_str();
+}
+
+CLI::Option* add_data_option(CLI::App* cmd, std::string& dir) {
+  const auto& o = shared("--data,-d");
+  return cmd->add_option(o.names, dir, o.help);
+}
+
+CLI::Option* add_data_option(CLI::App* cmd, std::vector<std::string>& dirs, const std::string& extra) {
+  const auto& o = shared("--data,-d");
+  return cmd->add_option(o.names, dirs,
+                         o.help + "; repeat for several" + (extra.empty() ? "" : "; " + extra));
+}
+
+CLI::Option* add_split_option(CLI::App* cmd, std::string& split) {
+  const auto& o = shared("--split,-s");
+  return cmd->add_option(o.names, split, o.help)->capture_default_str();
+}
+
+CLI::Option* add_split_option(CLI::App* cmd, std::vector<std::string>& splits) {
+  const auto& o = shared("--split,-s");
+  return cmd->add_option(o.names, splits, o.help + "; repeat for several")->capture_default_str();
+}
+
+CLI::Option* add_seed_option(CLI::App* cmd, uint64_t& seed) {
+  const auto& o = shared("--seed");
+  return cmd->add_option(o.names, seed, o.help)->capture_default_str();
+}
+
+CLI::Option* add_workers_option(CLI::App* cmd, int& workers) {
+  const auto& o = shared("--workers,-j");
+  return cmd->add_option(o.names, workers, o.help)->check(CLI::NonNegativeNumber)->capture_default_str();
+}
+
+CLI::Option* add_json_option(CLI::App* cmd, bool& json) {
+  const auto& o = shared("--json");
+  return cmd->add_flag(o.names, json, o.help);
+}
+
+CLI::Option* add_out_option(CLI::App* cmd, std::string& out, const std::string& what) {
+  const auto& o = shared("--out,-o");
+  return cmd->add_option(o.names, out, o.help + ": " + what);
+}
+
+CLI::Option* add_checkpoint_option(CLI::App* cmd, std::string& dir, const std::string& what) {
+  const auto& o = shared("--checkpoint,--ckpt,-c");
+  return cmd->add_option(o.names, dir, o.help + ": " + what);
+}
+
+}  // namespace dojo::cli

@@ -1,0 +1,37 @@
+// The options many `dojo` commands share, defined once: every command that takes one of these
+// gets the same name, the same alias and the same help text. Commands add the ones they use.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace CLI {
+class App;
+class Option;
+}  // namespace CLI
+
+namespace dojo::cli {
+
+CLI::Option* add_device_option(CLI::App* cmd, std::string& device);        // --device
+CLI::Option* add_precision_option(CLI::App* cmd, std::string& precision);  // --precision
+CLI::Option* add_data_option(CLI::App* cmd, std::string& dir);             // --data,-d
+// --data,-d, repeatable; `extra` is appended to the help (what else the value may say).
+CLI::Option* add_data_option(CLI::App* cmd, std::vector<std::string>& dirs, const std::string& extra = "");
+CLI::Option* add_split_option(CLI::App* cmd, std::string& split);  // --split,-s
+CLI::Option* add_split_option(CLI::App* cmd, std::vector<std::string>& splits);
+CLI::Option* add_seed_option(CLI::App* cmd, uint64_t& seed);   // --seed
+CLI::Option* add_workers_option(CLI::App* cmd, int& workers);  // --workers,-j
+CLI::Option* add_json_option(CLI::App* cmd, bool& json);       // --json
+// --out,-o: `what` says what the command writes there (a checkpoint directory, an mp4, ...).
+CLI::Option* add_out_option(CLI::App* cmd, std::string& out, const std::string& what);
+// --checkpoint,--ckpt,-c: `what` names the model the checkpoint holds.
+CLI::Option* add_checkpoint_option(CLI::App* cmd, std::string& dir, const std::string& what);
+
+// The names, aliases and help texts above, for `dojo --help` checks and the docs.
+struct SharedOption {
+  std::string names, help;
+};
+const std::vector<SharedOption>& shared_options();
+
+}  // namespace dojo::cli

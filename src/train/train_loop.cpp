@@ -1,0 +1,92 @@
+#include "train/train_loop.h"
+
+#include <chrono>
+#include <cmath>
+#include <optional>
+#include <sstream>
+
+#include "core/log.h"
+#include "core/progress.h"
+#include "train/train_util.h"
+
+namespace dojo::train {
+namespace {
+
+double seconds_between(std::chrono::steady_clock::time_point a, std::chrono::steady_clock::time_point b) {
+  return std::chrono::duration<double>(b - a).count();
+}
+
+std::string curve_header(const std::vector<std::string>& columns) {
+  std::string header = "step";
+  for (const auto& c : columns) header += "," + c;
+  return header;
+}
+
+std::string curve_row(int64_t step, const std::vector<double>& values) {
+  std::ostringstream row;
+  row.precision(6);
+  row << step;
+  for (double v : values) {
+    row << ',';
+    if (!std::isnan(v)) row << v;
+  }
+  return row.str();
+}
+
+}  // namespace
+
+LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
+                             const std::function<StepRecord(const LoopStep&)>& step,
+                             const std::function<void(int64_t, bool)>& save) {
+  LoopResult result;
+  result.start_step = result.end_step = start_step;
+  if (start_step >= o.steps) return result;
+
+  const auto start = std::chrono::steady_clock::now();
+  const bool main = o.main_process;
+  std::optional<LossCurve> curve;
+  if (main && !o.loss_curve.empty()) curve.emplace(o.loss_curve, curve_header(o.columns), start_step);
+  std::optional<Progress> progress;
+  if (main && o.progress) {
+    progress.emplace(o.name, o.steps - start_step, "step");
+    progress->set_time_budget(o.time_budget_s);
+  }
+  auto elapsed = [&] { return seconds_between(start, std::chrono::steady_clock::now()); };
+  auto out_of_time = [&] { return o.time_budget_s > 0 && elapsed() >= o.time_budget_s; };
+
+  int64_t timed_items = 0;
+  double timed_seconds = 0;
+  for (int64_t s = start_step; s < o.steps; ++s) {
+    LoopStep info;
+    info.index = s;
+    info.budget_fraction = o.time_budget_s > 0 ? std::min(1.0, elapsed() / o.time_budget_s) : 0.0;
+    result.out_of_time = out_of_time();
+    info.last = s + 1 == o.steps || result.out_of_time;
+    info.saves = info.last || (o.save_every > 0 && (s + 1) % o.save_every == 0);
+
+    const auto t0 = std::chrono::steady_clock::now();
+    const StepRecord record = step(info);
+    const double secs = seconds_between(t0, std::chrono::steady_clock::now());
+    // The first steps of a run warm up allocators, caches and thread pools.
+    if (s - start_step >= 2) {
+      timed_items += record.items;
+      timed_seconds += secs;
+    }
+    if (curve) curve->add(curve_row(s + 1, record.values));
+    if (progress) progress->advance(1, record.note);
+    if (info.saves && main) {
+      save(s + 1, info.last);
+      if (curve) curve->write();
+    }
+    result.end_step = s + 1;
+    if (info.last) break;
+  }
+  if (progress) progress->finish();
+  if (result.out_of_time)
+    LOG_INFO(o.name, ": time budget of ", o.time_budget_s, " s reached at step ", result.end_step);
+  result.seconds = elapsed();
+  result.items_per_second = timed_seconds > 0 ? static_cast<double>(timed_items) / timed_seconds : 0;
+  return result;
+}
+
+}  // namespace dojo::train

@@ -1,0 +1,25 @@
+// Small episode datasets written through the episode store without the simulator, for tests that
+// need data but not DojoSim (they run in a DOJO_WITH_SIM=OFF build too). A "robot" episode shows a
+// dark arm block moving over a coloured table as its 6-d actions command; a "human" episode shows
+// a skin-coloured hand block with no actions and its motion as hidden_motion.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <string>
+
+namespace dojo::test {
+
+struct SyntheticOptions {
+  std::string embodiment = "robot";  // robot | human
+  int episodes = 3;
+  int frames = 24;
+  int size = 32;  // square frames
+  uint64_t seed = 0;
+  int val_episodes = 0;  // the last ones are split "val"
+};
+
+// Writes DIR/info.json and DIR/episodes/NNNNNN like `dojo sim generate` does.
+void write_synthetic_dataset(const std::filesystem::path& dir, const SyntheticOptions& options);
+
+}  // namespace dojo::test
