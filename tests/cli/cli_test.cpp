@@ -73,7 +73,9 @@ TEST(Cli, SharedOptionsReadTheSameEverywhere) {
       {"tokenizer eval", {"--data", "--split", "--seed", "--json", "--out", "--checkpoint"}},
       {"lam train", {"--seed", "--workers", "--out"}},
       {"lam probe", {"--data", "--json", "--checkpoint"}},
+#ifdef DOJO_WITH_SIM
       {"sim generate", {"--seed", "--workers", "--json", "--out"}},
+#endif
       {"data info", {"--json"}},
       {"bench", {"--device", "--json"}}};
   for (const auto& [command, options] : commands) {
