@@ -27,14 +27,21 @@ void write_synthetic_dataset(const std::filesystem::path& dir, const SyntheticOp
     const auto table = torch::rand({3}, gen) * 0.5 + 0.3;
     const auto block = robot ? torch::tensor({0.15f, 0.15f, 0.2f}) : torch::tensor({0.9f, 0.7f, 0.6f});
     auto frames = torch::empty({T, S, S, 3}, torch::kFloat);
+    auto keypoints = torch::ones({T, 3, 3});  // (u, v, in_view): centre, top-left, bottom-right
     for (int64_t t = 0; t < T; ++t) {
       frames[t].copy_(table.expand({S, S, 3}));
       const int64_t y = static_cast<int64_t>(path[t][0].item<double>() * static_cast<double>(S - side));
       const int64_t x = static_cast<int64_t>(path[t][1].item<double>() * static_cast<double>(S - side));
       frames[t].narrow(0, y, side).narrow(1, x, side).copy_(block.expand({side, side, 3}));
+      const double s = static_cast<double>(S);
+      const double left = x / s, top = y / s, right = (x + side) / s, bottom = (y + side) / s;
+      keypoints[t][0][0] = 0.5 * (left + right), keypoints[t][0][1] = 0.5 * (top + bottom);
+      keypoints[t][1][0] = left, keypoints[t][1][1] = top;
+      keypoints[t][2][0] = right, keypoints[t][2][1] = bottom;
     }
     data::EpisodeData ep;
     ep.frames = (frames * 255).round().to(torch::kUInt8);
+    ep.keypoints = keypoints.view({T, 9});
     // Commands: action[t] moves the block to frame t + 1's position (the LeRobot convention).
     const auto next = torch::cat({path.slice(0, 1), path.slice(0, T - 1)}, 0);  // [T, 2]
     const auto command = torch::cat({next, torch::zeros({T, 4})}, 1);           // [T, 6]
@@ -54,6 +61,7 @@ void write_synthetic_dataset(const std::filesystem::path& dir, const SyntheticOp
     data::write_episode(dir / "episodes" / id, ep, 10.0);
     info.episodes.push_back({id, T, split, ep.meta["task"]});
   }
+  info.keypoint_names = {"centre", "top_left", "bottom_right"};
   if (robot) {
     info.action_stats = action_stats.finish();
     info.state_stats = state_stats.finish();

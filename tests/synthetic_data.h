@@ -1,7 +1,9 @@
 // Small episode datasets written through the episode store without the simulator, for tests that
 // need data but not DojoSim (they run in a DOJO_WITH_SIM=OFF build too). A "robot" episode shows a
 // dark arm block moving over a coloured table as its 6-d actions command; a "human" episode shows
-// a skin-coloured hand block with no actions and its motion as hidden_motion.
+// a skin-coloured hand block with no actions and its motion as hidden_motion. Both carry three
+// "keypoints" the way the simulator records them: the block's centre and its top-left and
+// bottom-right corners.
 #pragma once
 
 #include <cstdint>

@@ -18,10 +18,22 @@ void register_demo(CLI::App& app) {
                          "write report.html");
   auto o = std::make_shared<recipes::DemoOptions>();
   auto out = std::make_shared<std::string>(o->out.string());
+  auto reference = std::make_shared<std::string>();
   add_out_option(cmd, *out, "demo directory (datasets, models, report.html)")->capture_default_str();
-  cmd->add_option("--minutes,-m", o->minutes, "Training time budget shared by the stages")
-      ->check(CLI::PositiveNumber)
+  cmd->add_option("--minutes,-m", o->minutes,
+                  "Share this many minutes between the training stages instead of their step budgets "
+                  "(results then depend on the machine)")
+      ->check(CLI::NonNegativeNumber);
+  cmd->add_option("--lam-steps", o->lam_steps, "LAM training steps")->capture_default_str();
+  cmd->add_option("--tokenizer-steps", o->tokenizer_steps, "Tokenizer training steps")->capture_default_str();
+  cmd->add_option("--probe-steps", o->probe_steps, "Keypoint probe training steps")->capture_default_str();
+  cmd->add_option("--pretrain-steps", o->pretrain_steps, "World-model pretraining steps")
       ->capture_default_str();
+  cmd->add_option("--posttrain-steps", o->posttrain_steps, "World-model post-training steps")
+      ->capture_default_str();
+  cmd->add_option("--reference", *reference,
+                  "Reference model set to evaluate beside the demo's models (default: models/reference when "
+                  "present; \"none\" to skip)");
   cmd->add_option("--episodes,-n", o->episodes, "Training episodes per embodiment")
       ->check(CLI::Range(2, 100000))
       ->capture_default_str();
@@ -38,16 +50,20 @@ void register_demo(CLI::App& app) {
   add_workers_option(cmd, o->workers);
   add_device_option(cmd, o->device);
   add_precision_option(cmd, o->precision);
-  cmd->callback([o, out] {
-    set_action([o, out] {
+  cmd->callback([o, out, reference] {
+    set_action([o, out, reference] {
       o->out = *out;
+      o->reference = *reference == "none" ? std::filesystem::path() : std::filesystem::path(*reference);
+      if (reference->empty() && std::filesystem::exists(default_reference_dir() / "wm_posttrain"))
+        o->reference = default_reference_dir();
       o->matmul_threads = global_options().threads;  // an explicit --threads wins
       const auto s = recipes::run_demo(*o);
       std::printf("\nDreamDojo.cpp demo finished in %.1f min. Open %s in a browser.\n\n%s\n",
                   s.seconds / 60.0, s.report.string().c_str(), s.eval_table.c_str());
       std::printf(
-          "Outputs in %s/: datasets (human/, robot*/), lam/, tokenizer/, wm_pretrain/, wm_posttrain/, "
-          "rollouts/, eval.md, demo.json. Re-running resumes finished stages.\n",
+          "Outputs in %s/: datasets (human/, robot*/), lam/, tokenizer/, probe/, wm_pretrain/, "
+          "wm_posttrain/, "
+          "rollouts/, eval.md, demo.json, stages/. Re-running re-uses finished stages.\n",
           o->out.string().c_str());
       return 0;
     });

@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <optional>
 
 #include "cli/commands.h"
 #include "cli/options.h"
@@ -17,6 +18,7 @@
 #include "eval/wm_eval.h"
 #include "infer/world_model.h"
 #include "io/video.h"
+#include "models/keypoint_probe.h"
 #include "train/wm_train.h"
 
 namespace fs = std::filesystem;
@@ -30,9 +32,10 @@ struct WmTrainArgs {
   std::vector<std::string> data;
   int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100;
   int batch = 8;
-  double minutes = 0, lr = 1.6e-4, weight_decay = 0.1, grad_clip = 0.1, temporal_weight = 0.1;
+  double minutes = 0, lr = 1.6e-4, weight_decay = 0.1, grad_clip = 0.1, temporal_weight = 0.1, shift = 5.0,
+         action_scale = 1.0;
   uint64_t seed = 0;
-  bool absolute_actions = false, whole_clip_actions = false;
+  bool absolute_actions = false, whole_clip_actions = false, standardize_actions = false;
 };
 
 models::DitConfig model_preset(const std::string& name) {
@@ -75,6 +78,9 @@ int run_wm_train(const WmTrainArgs& a) {
   job.options.grad_clip = a.grad_clip;
   job.options.warmup_steps = a.warmup;
   job.options.flow.temporal_weight = a.temporal_weight;
+  job.options.flow.shift = a.shift;
+  job.action_scale = a.action_scale;
+  job.standardize_actions = a.standardize_actions;
   job.options.flow.temporal_axis =
       a.temporal_axis == "channel" ? diffusion::TemporalAxis::kChannel : diffusion::TemporalAxis::kTime;
   job.batch_size = a.batch;
@@ -98,6 +104,7 @@ struct RolloutArgs {
   std::string checkpoint, tokenizer, data, split = "val", episode, actions_file, out, solver = "unipc",
                                            concat = "aligned", device = "cpu", precision = "fp32";
   int chunks = 4, steps = 35;
+  double shift = 0;  // 0: the checkpoint's
   uint64_t seed = 0;
 };
 
@@ -110,8 +117,9 @@ int run_rollout(const RolloutArgs& a) {
   const bool counterfactual = !a.actions_file.empty();
   const auto actions =
       counterfactual ? eval::read_rollout_actions(a.actions_file) : clip.actions;  // [12 K, 384]
-  infer::SamplerOptions sampler;
+  auto sampler = infer::checkpoint_sampler(a.checkpoint);
   sampler.steps = a.steps;
+  if (a.shift > 0) sampler.shift = a.shift;
   sampler.solver = infer::parse_solver(a.solver);
   const auto pred = model.rollout(clip.video.select(0, 0).unsqueeze(0), actions.unsqueeze(0), a.seed, sampler,
                                   infer::parse_concat_mode(a.concat))[0];
@@ -125,13 +133,14 @@ int run_rollout(const RolloutArgs& a) {
 }
 
 struct EvalArgs {
-  std::string checkpoint, tokenizer, data, out, solver = "unipc", concat = "aligned", device = "cpu",
-                                                precision = "fp32";
+  std::string checkpoint, tokenizer, data, out, probe, solver = "unipc", concat = "aligned", device = "cpu",
+                                                       precision = "fp32";
   std::vector<std::string> splits = {"val"};
   std::vector<std::string> lpips_weights;
-  int chunks = 4, episodes = 16, steps = 35, videos = 4, batch = 4;
+  int chunks = 4, episodes = 16, steps = 35, videos = 4, batch = 4, video_scale = 4;
+  double shift = 0;  // 0: the checkpoint's
   uint64_t seed = 0;
-  bool json = false;
+  bool json = false, action_sensitivity = false;
 };
 
 int run_eval(const EvalArgs& a) {
@@ -144,12 +153,21 @@ int run_eval(const EvalArgs& a) {
   o.chunks = a.chunks;
   o.max_episodes = a.episodes;
   o.batch = a.batch;
+  o.sampler = infer::checkpoint_sampler(a.checkpoint);
   o.sampler.steps = a.steps;
+  if (a.shift > 0) o.sampler.shift = a.shift;
   o.sampler.solver = infer::parse_solver(a.solver);
   o.concat = infer::parse_concat_mode(a.concat);
   o.seed = a.seed;
   o.videos = a.videos;
+  o.video_scale = a.video_scale;
+  o.action_sensitivity = a.action_sensitivity;
   if (!a.out.empty()) o.video_dir = fs::path(a.out) / "videos";
+  std::optional<models::KeypointProbe> probe;
+  if (!a.probe.empty()) {
+    probe = models::load_keypoint_probe(a.probe);
+    o.probe = &*probe;
+  }
   eval::Lpips lpips;
   if (!a.lpips_weights.empty()) {
     std::vector<fs::path> files(a.lpips_weights.begin(), a.lpips_weights.end());
@@ -220,6 +238,16 @@ void register_wm(CLI::App& app) {
       ->capture_default_str();
   train_cmd->add_option("--temporal-weight", t->temporal_weight, "Temporal-consistency loss weight (0 = off)")
       ->capture_default_str();
+  train_cmd
+      ->add_option("--shift", t->shift, "Time shift of the noise levels (5 as released, for 60x80 latents)")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  train_cmd
+      ->add_option("--action-scale", t->action_scale,
+                   "Factor on the robot action dimensions before the action MLPs (kept in the checkpoint)")
+      ->capture_default_str();
+  train_cmd->add_flag("--standardize-actions", t->standardize_actions,
+                      "Scale each robot action dimension to unit standard deviation over the cached clips");
   train_cmd->add_option("--hop", t->hop, "Frames between cached clip starts")->capture_default_str();
   train_cmd->add_option("--max-clips", t->max_clips, "Cache at most this many clips per dataset (0 = all)");
   train_cmd->add_flag("--absolute-actions", t->absolute_actions,
@@ -243,6 +271,8 @@ void register_wm(CLI::App& app) {
   roll->add_option("--chunks", r->chunks, "Chunks of 12 actions")->capture_default_str();
   roll->add_option("--steps", r->steps, "Sampler steps")->capture_default_str();
   roll->add_option("--solver", r->solver, "unipc | euler")->capture_default_str();
+  roll->add_option("--shift", r->shift,
+                   "Sampler time shift (default: the one the checkpoint was trained with)");
   roll->add_option("--concat", r->concat, "aligned | released (chunk joining)")->capture_default_str();
   add_seed_option(roll, r->seed);
   add_out_option(roll, r->out, "mp4 file")->required();
@@ -261,11 +291,20 @@ void register_wm(CLI::App& app) {
   ev->add_option("--episodes,-n", e->episodes, "Episodes per split (0 = all)")->capture_default_str();
   ev->add_option("--steps", e->steps, "Sampler steps")->capture_default_str();
   ev->add_option("--solver", e->solver, "unipc | euler")->capture_default_str();
+  ev->add_option("--shift", e->shift,
+                 "Sampler time shift (default: the one the checkpoint was trained with)");
   ev->add_option("--concat", e->concat, "aligned | released (chunk joining)")->capture_default_str();
   ev->add_option("--batch,-b", e->batch, "Episodes rolled out together")->capture_default_str();
   ev->add_option("--videos", e->videos, "Side-by-side videos per split (with --out)")->capture_default_str();
   add_seed_option(ev, e->seed);
   add_out_option(ev, e->out, "directory for metrics.json, metrics.md and videos/");
+  ev->add_option("--probe", e->probe,
+                 "Keypoint probe checkpoint (dojo probe train): adds keypoint error and detection rate");
+  ev->add_flag("--action-sensitivity", e->action_sensitivity,
+               "Also roll out with shuffled and with zero actions: does the model use the actions?");
+  ev->add_option("--video-scale", e->video_scale, "Enlarge the side-by-side videos this many times")
+      ->check(CLI::Range(1, 16))
+      ->capture_default_str();
   ev->add_option("--lpips-weights", e->lpips_weights,
                  "LPIPS-VGG weights (safetensors; see docs/evaluation.md); adds LPIPS to the metrics");
   add_json_option(ev, e->json);

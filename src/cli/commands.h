@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <filesystem>
 #include <functional>
 #include <string>
 #include <utility>
@@ -27,6 +28,10 @@ const GlobalOptions& global_options();
 // --threads when given, else matmul_bound_threads() on CPU (core/runtime.h says why), logged.
 int matmul_bound_command_threads(const std::string& command, bool on_cuda);
 
+// The reference model set shipped in the repository (models/reference), or the directory named by
+// the environment variable DOJO_REFERENCE.
+std::filesystem::path default_reference_dir();
+
 // Parses a --size value "HxW" (positive integers) into {H, W}; throws dojo::UsageError.
 std::pair<int64_t, int64_t> parse_size(const std::string& text);
 
@@ -44,5 +49,6 @@ void register_lam(CLI::App& app);
 void register_tokenizer(CLI::App& app);
 void register_wm(CLI::App& app);
 void register_metrics(CLI::App& app);
+void register_probe(CLI::App& app);
 
 }  // namespace dojo::cli

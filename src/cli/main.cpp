@@ -3,6 +3,7 @@
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <cstdio>
+#include <cstdlib>
 #include <string>
 #include <vector>
 
@@ -29,6 +30,11 @@ int matmul_bound_command_threads(const std::string& command, bool on_cuda) {
   return n;
 }
 void set_action(std::function<int()> action) { g_action = std::move(action); }
+
+std::filesystem::path default_reference_dir() {
+  if (const char* dir = std::getenv("DOJO_REFERENCE"); dir != nullptr && *dir != 0) return dir;
+  return std::filesystem::path(DOJO_SOURCE_DIR) / "models" / "reference";
+}
 
 std::pair<int64_t, int64_t> parse_size(const std::string& text) {
   const auto x = text.find_first_of("xX");
@@ -140,6 +146,7 @@ int main(int argc, char** argv) {
   cli::register_lam(app);
   cli::register_wm(app);
   cli::register_metrics(app);
+  cli::register_probe(app);
 
   try {
     cli::check_command_words(app, argc, argv);

@@ -55,6 +55,45 @@ const EpisodeStore& ClipDataset::store() const {
   return s->store();
 }
 
+at::Tensor crop_keypoints(const at::Tensor& keypoints, int64_t src_h, int64_t src_w, int64_t out_h,
+                          int64_t out_w) {
+  // The frames were centre-cropped to the output's aspect, then scaled: normalised coordinates
+  // move with the crop box and scale with it.
+  const auto box = io::center_crop_box(src_h, src_w, out_w, out_h);
+  auto out = keypoints.clone();  // [..., K, 3]
+  auto u = out.select(-1, 0), v = out.select(-1, 1), in_view = out.select(-1, 2);
+  u.mul_(static_cast<double>(src_w)).sub_(static_cast<double>(box.left)).div_(static_cast<double>(box.width));
+  v.mul_(static_cast<double>(src_h)).sub_(static_cast<double>(box.top)).div_(static_cast<double>(box.height));
+  in_view.mul_((u >= 0).logical_and(u <= 1).logical_and(v >= 0).logical_and(v <= 1).to(in_view.dtype()));
+  return out;
+}
+
+KeypointFrames load_keypoint_frames(const std::vector<std::filesystem::path>& datasets,
+                                    const std::string& split, int64_t size) {
+  KeypointFrames out;
+  std::vector<at::Tensor> frames, keypoints;
+  for (const auto& dir : datasets) {
+    const auto store = EpisodeStore::open(dir);
+    const auto& info = store.info();
+    DOJO_CHECK(
+        info.keypoint_names.size() == 3,
+        dir.string() + ": no simulator keypoints (info.json keypoint_names); make it with dojo sim generate");
+    for (size_t e : store.split_indices(split)) {
+      const auto ep = store.load(e);
+      DOJO_CHECK(ep.keypoints.defined(), store.episode_dir(e).string() + ": no keypoints");
+      const int64_t T = ep.frames.size(0);
+      keypoints.push_back(
+          crop_keypoints(ep.keypoints.view({T, 3, 3}), ep.frames.size(1), ep.frames.size(2), size, size));
+      frames.push_back(io::resize_center_crop(ep.frames, size, size));
+      out.embodiment.insert(out.embodiment.end(), static_cast<size_t>(T), to_string(info.embodiment));
+    }
+  }
+  DOJO_CHECK(!frames.empty(), "keypoint frames: no episodes in split '" + split + "' of the given datasets");
+  out.frames = torch::cat(frames);
+  out.keypoints = torch::cat(keypoints);
+  return out;
+}
+
 Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
   const auto& info = source_->info();
   DOJO_CHECK(episode < info.episodes.size(),
@@ -95,6 +134,11 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
   }
   if (arrays.hidden_motion.defined())
     clip.hidden_motion = arrays.hidden_motion.index_select(0, steps.slice(0, 1));  // [T, M]
+  if (arrays.keypoints.defined()) {
+    const auto kp = arrays.keypoints.index_select(0, steps.slice(0, 1));  // [T, 3K]
+    clip.keypoints = crop_keypoints(kp.view({kp.size(0), -1, 3}), info.height, info.width, config_.height,
+                                    config_.width);  // [T, K, 3]
+  }
   return clip;
 }
 

@@ -29,11 +29,29 @@ struct Clip {
   at::Tensor video;          // [T, H, W, 3] uint8, T = num_frames
   at::Tensor actions;        // [T - 1, 384] float32 unified action rows
   at::Tensor hidden_motion;  // [T, M] float32 ground-truth motion at the frames, or undefined
+  // [T, K, 3] (u, v, in_view) simulator keypoints at the frames, mapped through the clip's crop and
+  // resize (u, v in [0, 1] over the clip's frames), or undefined.
+  at::Tensor keypoints;
   bool has_actions = false;  // false for action-free (human) video: the latent slot holds the mask
   std::string dataset;
   size_t episode = 0;
   ClipWindow window;
 };
+
+// Keypoints [..., K, 3] (u, v, in_view; u and v normalised to src_h x src_w frames) as they fall
+// on frames centre-cropped to out_w:out_h and resized: points cropped away lose in_view.
+at::Tensor crop_keypoints(const at::Tensor& keypoints, int64_t src_h, int64_t src_w, int64_t out_h,
+                          int64_t out_w);
+
+// Every frame of a split with its simulator keypoints, in memory, for pose probes.
+struct KeypointFrames {
+  at::Tensor frames;                    // [N, size, size, 3] uint8, centre-cropped and resized
+  at::Tensor keypoints;                 // [N, 3, 3] (u, v, in_view) on those frames
+  std::vector<std::string> embodiment;  // per frame: "robot" | "human"
+};
+// Throws dojo::Error naming a dataset without keypoints or a split without episodes.
+KeypointFrames load_keypoint_frames(const std::vector<std::filesystem::path>& datasets,
+                                    const std::string& split, int64_t size);
 
 // One dataset seen through the clip transforms.
 class ClipDataset {

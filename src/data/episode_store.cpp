@@ -46,6 +46,7 @@ void write_episode(const fs::path& dir, const EpisodeData& episode, double fps) 
   check_rows(episode.actions, "action");
   check_rows(episode.states, "state");
   check_rows(episode.hidden_motion, "hidden_motion");
+  check_rows(episode.keypoints, "keypoints");
 
   // Build the episode beside its final place, then rename: readers and a resumed generator
   // see either the whole episode or nothing.
@@ -67,6 +68,8 @@ void write_episode(const fs::path& dir, const EpisodeData& episode, double fps) 
   if (episode.states.defined()) arrays.emplace_back("state", episode.states.to(torch::kFloat32).contiguous());
   if (episode.hidden_motion.defined())
     arrays.emplace_back("hidden_motion", episode.hidden_motion.to(torch::kFloat32).contiguous());
+  if (episode.keypoints.defined())
+    arrays.emplace_back("keypoints", episode.keypoints.to(torch::kFloat32).contiguous());
   Metadata metadata;
   metadata["frames"] = std::to_string(t);
   save_safetensors(tmp / "data.safetensors", arrays, metadata);
@@ -108,6 +111,7 @@ nlohmann::json DatasetInfo::to_json() const {
   j["state_dim"] = state_dim;
   j["action_names"] = action_names;
   j["state_names"] = state_names;
+  if (!keypoint_names.empty()) j["keypoint_names"] = keypoint_names;
   j["num_episodes"] = episodes.size();
   j["num_frames"] = total_frames();
   j["splits"] = split_counts();
@@ -139,6 +143,7 @@ DatasetInfo DatasetInfo::from_json(const nlohmann::json& j, const std::string& w
     info.state_dim = j.value("state_dim", 0);
     info.action_names = j.value("action_names", std::vector<std::string>{});
     info.state_names = j.value("state_names", std::vector<std::string>{});
+    info.keypoint_names = j.value("keypoint_names", std::vector<std::string>{});
     if (j.contains("stats")) {
       const auto& stats = j.at("stats");
       if (stats.contains("action"))
@@ -233,6 +238,12 @@ EpisodeData EpisodeStore::load_arrays(size_t index) const {
   data.actions = take("action", info_.embodiment == Embodiment::kRobot ? info_.action_dim : 0);
   data.states = take("state", info_.embodiment == Embodiment::kRobot ? info_.state_dim : 0);
   data.hidden_motion = take("hidden_motion", 0);
+  data.keypoints = take("keypoints", 0);
+  if (data.keypoints.defined() &&
+      data.keypoints.size(1) != 3 * static_cast<int64_t>(info_.keypoint_names.size()))
+    throw Error(arrays_path.string() + ": 'keypoints' width " + std::to_string(data.keypoints.size(1)) +
+                " is not 3 x the " + std::to_string(info_.keypoint_names.size()) +
+                " keypoint_names of info.json");
   return data;
 }
 

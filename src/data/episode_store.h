@@ -3,7 +3,9 @@
 //   DIR/info.json                     dataset description, per-dimension statistics, splits
 //   DIR/episodes/000042/video.mp4     H.264 frames
 //   DIR/episodes/000042/data.safetensors  "action" [T, A] f32, "state" [T, S] f32,
-//                                     "hidden_motion" [T, M] f32 (optional; evaluation only)
+//                                     "hidden_motion" [T, M] f32 (optional; evaluation only),
+//                                     "keypoints" [T, 3K] f32 (optional; simulator ground truth:
+//                                     u, v, in_view per keypoint, u and v normalised to the image)
 //   DIR/episodes/000042/meta.json     embodiment, task text, objects, background, fps, seed
 //
 // T frames, T actions, T states: action[t] is the command issued after observing frame t.
@@ -36,6 +38,9 @@ struct EpisodeData {
   at::Tensor actions;        // [T, A] float32, or undefined for action-free (human) video
   at::Tensor states;         // [T, S] float32, or undefined
   at::Tensor hidden_motion;  // [T, M] float32, or undefined: ground truth never used for training
+  // [T, 3K] float32 (u, v, in_view) per keypoint of the embodiment, (u, v) in [0, 1] over the
+  // image; evaluation and pose probes only, never a world-model input. Undefined when unknown.
+  at::Tensor keypoints;
   nlohmann::json meta = nlohmann::json::object();
 };
 
@@ -58,6 +63,7 @@ struct DatasetInfo {
   int height = 0, width = 0;
   int action_dim = 0, state_dim = 0;
   std::vector<std::string> action_names, state_names;
+  std::vector<std::string> keypoint_names;  // the K keypoints of EpisodeData::keypoints, if any
   std::optional<ArrayStats> action_stats, state_stats;
   std::vector<EpisodeEntry> episodes;
   nlohmann::json generator = nlohmann::json::object();  // how the data was made (seed, options)

@@ -10,7 +10,7 @@
 #include "core/safetensors.h"
 #include "data/clip_loader.h"
 #include "data/episode_source.h"
-#include "data/episode_store.h"
+#include "eval/keypoint_metrics.h"
 #include "eval/lpips.h"
 #include "eval/metrics.h"
 #include "io/video.h"
@@ -19,14 +19,27 @@ namespace fs = std::filesystem;
 
 namespace dojo::eval {
 
+namespace {
+
+nlohmann::json number_or_null(double v) {
+  return std::isnan(v) ? nlohmann::json(nullptr) : nlohmann::json(v);
+}
+
+}  // namespace
+
+nlohmann::json SourceScore::to_json() const {
+  nlohmann::json j = {{"psnr", psnr}, {"ssim", ssim}};
+  if (!std::isnan(lpips)) j["lpips"] = lpips;
+  if (!std::isnan(keypoint_error)) j["keypoint_error_px"] = keypoint_error;
+  if (!std::isnan(detection)) j["detection"] = detection;
+  return j;
+}
+
 nlohmann::json WmEvalResult::to_json() const {
   nlohmann::json per = nlohmann::json::array();
   for (const auto& v : videos) {
-    nlohmann::json j = {
-        {"episode", v.episode},          {"psnr", v.psnr},           {"ssim", v.ssim},
-        {"copy_psnr", v.copy_psnr},      {"copy_ssim", v.copy_ssim}, {"tokenizer_psnr", v.recon_psnr},
-        {"tokenizer_ssim", v.recon_ssim}};
-    if (!std::isnan(v.lpips)) j["lpips"] = v.lpips, j["copy_lpips"] = v.copy_lpips;
+    nlohmann::json j = {{"episode", v.episode}};
+    for (const auto& [name, s] : v.sources) j[name] = s.to_json();
     if (!v.video.empty()) j["video"] = v.video;
     per.push_back(j);
   }
@@ -34,17 +47,26 @@ nlohmann::json WmEvalResult::to_json() const {
                         {"split", split},
                         {"videos", static_cast<int>(videos.size())},
                         {"frames_per_video", frames},
-                        {"psnr", psnr},
-                        {"ssim", ssim},
-                        {"copy_first_frame", {{"psnr", copy_psnr}, {"ssim", copy_ssim}}},
-                        {"tokenizer_round_trip", {{"psnr", recon_psnr}, {"ssim", recon_ssim}}},
                         {"seconds", seconds},
                         {"frames_per_second", frames_per_second},
+                        {"tokenizer_psnr_by_latent", tokenizer_psnr_by_latent},
                         {"per_video", per}};
-  if (!std::isnan(lpips)) {
-    out["lpips"] = lpips;
-    out["copy_first_frame"]["lpips"] = copy_lpips;
+  nlohmann::json curves = nlohmann::json::object();
+  for (const auto& [name, s] : sources) {
+    out[name] = s.to_json();
+    curves[name] = {{"psnr", s.psnr_per_frame}};
+    if (!s.keypoint_error_per_frame.empty()) {
+      nlohmann::json e = nlohmann::json::array(), d = nlohmann::json::array();
+      for (double v : s.keypoint_error_per_frame) e.push_back(number_or_null(v));
+      for (double v : s.detection_per_frame) d.push_back(number_or_null(v));
+      curves[name]["keypoint_error_px"] = e;
+      curves[name]["detection"] = d;
+    }
   }
+  out["per_frame"] = curves;
+  // The world model's scores also at the top level, as before the per-source layout.
+  out["psnr"] = model().psnr;
+  out["ssim"] = model().ssim;
   return out;
 }
 
@@ -76,6 +98,8 @@ EpisodeClip read_episode_clip(const fs::path& dataset, const std::string& split,
   const auto c = data::ClipDataset(source, clip, "all").read(ep, data::make_window(0, 1, clip.num_frames));
   out.video = c.video;
   out.actions = c.actions;
+  out.keypoints = c.keypoints;
+  out.embodiment = data::to_string(info.embodiment);
   return out;
 }
 
@@ -86,9 +110,95 @@ torch::Tensor read_rollout_actions(const fs::path& file) {
   return actions;
 }
 
+namespace {
+
+// What the keypoint scores of one video need besides its frames.
+struct KeypointTruth {
+  models::KeypointProbe* probe = nullptr;
+  int64_t offset = 0;
+  torch::Tensor truth;  // [T, 3, 3]
+};
+
+// One video from one source against the ground truth [T, H, W, 3].
+SourceScore score_video(const torch::Tensor& video, const torch::Tensor& gt, const Lpips* lpips,
+                        const KeypointTruth& kp) {
+  SourceScore s;
+  const auto psnr = psnr_per_frame(video, gt).to(torch::kFloat64).contiguous();  // [T]
+  s.psnr_per_frame.assign(psnr.data_ptr<double>(), psnr.data_ptr<double>() + psnr.numel());
+  const auto m = video_metrics(video, gt, lpips);
+  s.psnr = m.psnr;
+  s.ssim = m.ssim;
+  s.lpips = m.lpips;
+  if (kp.probe != nullptr && kp.truth.defined()) {
+    const auto scores = score_keypoints(models::detect_keypoints(*kp.probe, video), kp.offset, kp.truth,
+                                        video.size(1), video.size(2));
+    s.keypoint_error_per_frame = scores.error;
+    s.detection_per_frame = scores.detected;
+    s.keypoint_error = nan_mean(scores.error);
+    s.detection = nan_mean(scores.detected);
+  }
+  return s;
+}
+
+// Means over videos, and per frame index over the videos that have a value there.
+SourceScore mean_over_videos(const std::vector<const SourceScore*>& videos) {
+  SourceScore out;
+  const double n = static_cast<double>(videos.size());
+  std::vector<double> errors, detections, lpips;
+  for (const auto* v : videos) {
+    out.psnr += v->psnr / n;
+    out.ssim += v->ssim / n;
+    lpips.push_back(v->lpips);
+    errors.push_back(v->keypoint_error);
+    detections.push_back(v->detection);
+  }
+  bool all_lpips = true;
+  for (double v : lpips) all_lpips = all_lpips && !std::isnan(v);
+  if (all_lpips) out.lpips = nan_mean(lpips);
+  out.keypoint_error = nan_mean(errors);
+  out.detection = nan_mean(detections);
+  auto per_frame = [&](std::vector<double> SourceScore::*field) {
+    std::vector<double> mean;
+    for (size_t t = 0; t < (videos.front()->*field).size(); ++t) {
+      std::vector<double> at_t;
+      for (const auto* v : videos) at_t.push_back((v->*field)[t]);
+      mean.push_back(nan_mean(at_t));
+    }
+    return mean;
+  };
+  out.psnr_per_frame = per_frame(&SourceScore::psnr_per_frame);
+  out.keypoint_error_per_frame = per_frame(&SourceScore::keypoint_error_per_frame);
+  out.detection_per_frame = per_frame(&SourceScore::detection_per_frame);
+  return out;
+}
+
+// A panel of the side-by-side video: enlarged, with keypoints drawn (the simulator's on the
+// ground truth, the probe's elsewhere).
+torch::Tensor video_panel(const torch::Tensor& video, const WmEvalOptions& o, const KeypointTruth& kp,
+                          bool ground_truth) {
+  auto panel = io::upscale_nearest(video, o.video_scale).clone();  // [T, sH, sW, 3]
+  static const std::vector<std::array<uint8_t, 3>> kColors = {{255, 60, 60}, {60, 220, 60}, {70, 140, 255}};
+  if (kp.truth.defined() && (ground_truth || kp.probe != nullptr)) {
+    torch::Tensor points, show;
+    if (ground_truth) {
+      points = kp.truth.narrow(2, 0, 2);
+      show = kp.truth.select(2, 2).gt(0.5);
+    } else {
+      const auto out = models::detect_keypoints(*kp.probe, video);
+      points = out.coords.narrow(1, kp.offset, 3);
+      show = out.presence.narrow(1, kp.offset, 3).gt(0);
+    }
+    io::draw_markers(panel, points, show, std::max<int64_t>(1, o.video_scale), kColors);
+  }
+  return panel;
+}
+
+}  // namespace
+
 WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& dataset, const std::string& split,
                                   const WmEvalOptions& o) {
   DOJO_CHECK(o.chunks > 0, "eval: --chunks must be positive");
+  DOJO_CHECK(o.video_scale >= 1, "eval: the video scale must be >= 1");
   const auto source = data::open_dataset(dataset);
   const auto& info = source->info();
   data::ClipConfig clip;
@@ -104,96 +214,143 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
                                     "' is long enough for " + std::to_string(clip.num_frames) + " frames");
   if (o.max_episodes > 0 && static_cast<int>(episodes.size()) > o.max_episodes)
     episodes.resize(o.max_episodes);
+  DOJO_CHECK(!o.action_sensitivity || episodes.size() >= 2,
+             "eval: action sensitivity shuffles actions between episodes and needs at least 2");
   if (!o.video_dir.empty()) fs::create_directories(o.video_dir);
+  const int64_t offset = o.probe != nullptr
+                             ? models::keypoint_offset((*o.probe)->config(), data::to_string(info.embodiment))
+                             : 0;
+
+  std::vector<data::Clip> clips;
+  for (size_t ep : episodes) clips.push_back(ds.read(ep, data::make_window(0, 1, clip.num_frames)));
+  if (o.probe != nullptr && !clips.front().keypoints.defined())
+    LOG_WARN("eval: ", dataset.string(), " has no simulator keypoints; keypoint scores are left out");
+  const size_t n = clips.size();
 
   WmEvalResult r;
   r.dataset = dataset.string();
   r.split = split;
   r.frames = clip.num_frames;
-  Progress progress("eval " + split, static_cast<int64_t>(episodes.size()) * o.chunks, "chunk");
+  const int runs = o.action_sensitivity ? 3 : 1;
+  Progress progress("eval " + split, static_cast<int64_t>(n) * o.chunks * runs, "chunk");
   double rollout_seconds = 0;
-  for (size_t b = 0; b < episodes.size(); b += static_cast<size_t>(o.batch)) {
-    const size_t e = std::min(episodes.size(), b + static_cast<size_t>(o.batch));
-    std::vector<at::Tensor> gt_videos, gt_actions;
+  for (size_t b = 0; b < n; b += static_cast<size_t>(o.batch)) {
+    const size_t e = std::min(n, b + static_cast<size_t>(o.batch));
+    std::vector<at::Tensor> videos, actions, shuffled;
     for (size_t i = b; i < e; ++i) {
-      const auto c = ds.read(episodes[i], data::make_window(0, 1, clip.num_frames));
-      gt_videos.push_back(c.video);
-      gt_actions.push_back(c.actions);
+      videos.push_back(clips[i].video);
+      actions.push_back(clips[i].actions);
+      shuffled.push_back(clips[(i + 1) % n].actions);  // another episode's actions
     }
-    const auto gt = torch::stack(gt_videos);  // [n, 1 + 12K, H, W, 3]
+    const auto gt = torch::stack(videos);  // [n, 1 + 12K, H, W, 3]
+    const auto first = gt.select(1, 0).contiguous();
+    auto roll = [&](const torch::Tensor& a) {
+      return model.rollout(first, a, o.seed, o.sampler, o.concat,
+                           [&](int64_t) { progress.advance(static_cast<int64_t>(e - b)); });
+    };
     const auto t0 = std::chrono::steady_clock::now();
-    const auto pred =
-        model.rollout(gt.select(1, 0).contiguous(), torch::stack(gt_actions), o.seed, o.sampler, o.concat,
-                      [&](int64_t) { progress.advance(static_cast<int64_t>(e - b)); });
+    const auto pred = roll(torch::stack(actions));  // [n, 1 + 12K, H, W, 3]
     rollout_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    const auto recon = model.reconstruct_chunks(gt, o.concat);  // [n, 1 + 12K, H, W, 3]
+    std::map<std::string, torch::Tensor> rollouts = {{"world_model", pred},
+                                                     {"tokenizer", model.reconstruct_chunks(gt, o.concat)}};
+    if (o.action_sensitivity) {
+      rollouts["shuffled_actions"] = roll(torch::stack(shuffled));
+      rollouts["zero_actions"] = roll(torch::zeros_like(torch::stack(actions)));
+    }
     for (size_t i = b; i < e; ++i) {
       const int64_t k = static_cast<int64_t>(i - b);
+      KeypointTruth kp{o.probe, offset, clips[i].keypoints};
       VideoScore s;
       s.episode = info.episodes[episodes[i]].id;
-      const auto m = video_metrics(pred[k], gt[k], o.lpips);
       const auto copy = gt[k].select(0, 0).unsqueeze(0).expand_as(gt[k]).contiguous();
-      const auto mc = video_metrics(copy, gt[k], o.lpips);
-      const auto mr = video_metrics(recon[k], gt[k], nullptr);
-      s.recon_psnr = mr.psnr;
-      s.recon_ssim = mr.ssim;
-      s.lpips = m.lpips;
-      s.copy_lpips = mc.lpips;
-      s.psnr = m.psnr;
-      s.ssim = m.ssim;
-      s.copy_psnr = mc.psnr;
-      s.copy_ssim = mc.ssim;
+      for (const auto& [name, video] : rollouts)
+        s.sources[name] = score_video(video[k], gt[k], name == "tokenizer" ? nullptr : o.lpips, kp);
+      s.sources["copy_frame"] = score_video(copy, gt[k], o.lpips, kp);
+      if (o.probe != nullptr && kp.truth.defined())
+        s.sources["ground_truth"] = score_video(gt[k], gt[k], nullptr, kp);
       if (!o.video_dir.empty() && static_cast<int>(r.videos.size()) < o.videos) {
         s.video = (o.video_dir / (split + "_" + s.episode + ".mp4")).string();
-        io::write_comparison_video(s.video, {gt[k], pred[k], copy, recon[k]},
-                                   {"ground truth", "world model", "copy frame 0", "tokenizer"}, info.fps);
+        io::write_comparison_video(
+            s.video,
+            {video_panel(gt[k], o, kp, true), video_panel(pred[k], o, kp, false),
+             video_panel(copy, o, kp, false), video_panel(rollouts["tokenizer"][k], o, kp, false)},
+            {"ground truth", "world model", "copy frame 0", "tokenizer"}, info.fps);
       }
-      r.videos.push_back(s);
+      r.videos.push_back(std::move(s));
     }
   }
   progress.finish();
-  for (const auto& v : r.videos) {
-    r.psnr += v.psnr;
-    r.ssim += v.ssim;
-    r.copy_psnr += v.copy_psnr;
-    r.copy_ssim += v.copy_ssim;
-    r.recon_psnr += v.recon_psnr;
-    r.recon_ssim += v.recon_ssim;
+  for (const auto& [name, unused] : r.videos.front().sources) {
+    std::vector<const SourceScore*> per_video;
+    for (const auto& v : r.videos) per_video.push_back(&v.sources.at(name));
+    r.sources[name] = mean_over_videos(per_video);
   }
-  const double n = static_cast<double>(r.videos.size());
-  if (o.lpips) {
-    r.lpips = r.copy_lpips = 0;
-    for (const auto& v : r.videos) r.lpips += v.lpips / n, r.copy_lpips += v.copy_lpips / n;
+  // Tokenizer PSNR by latent index within a chunk: frame 0 alone, then 4 frames per latent.
+  const auto& tok = r.tokenizer().psnr_per_frame;
+  r.tokenizer_psnr_by_latent.assign(4, 0.0);
+  std::vector<int> counts(4, 0);
+  for (size_t f = 0; f < tok.size(); ++f) {
+    const size_t latent = f == 0 ? 0 : (f - 1) % 12 / 4 + 1;
+    r.tokenizer_psnr_by_latent[latent] += tok[f];
+    ++counts[latent];
   }
-  r.psnr /= n;
-  r.ssim /= n;
-  r.copy_psnr /= n;
-  r.copy_ssim /= n;
-  r.recon_psnr /= n;
-  r.recon_ssim /= n;
+  for (size_t l = 0; l < 4; ++l) r.tokenizer_psnr_by_latent[l] /= std::max(1, counts[l]);
   r.seconds = rollout_seconds;
-  r.frames_per_second = rollout_seconds > 0 ? n * (r.frames - 1) / rollout_seconds : 0;
+  r.frames_per_second = rollout_seconds > 0 ? static_cast<double>(n) * (r.frames - 1) / rollout_seconds : 0;
   return r;
 }
 
 std::string markdown_table(const std::vector<WmEvalResult>& results) {
-  const bool with_lpips = !results.empty() && !std::isnan(results[0].lpips);
+  if (results.empty()) return "";
+  const bool with_lpips = !std::isnan(results[0].model().lpips);
+  const bool with_keypoints = !std::isnan(results[0].model().keypoint_error);
+  const bool with_sensitivity = results[0].sources.count("shuffled_actions") > 0;
+  auto fmt = [](double v, int digits = 2) {
+    if (std::isnan(v)) return std::string("-");
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.*f", digits, v);
+    return std::string(buf);
+  };
   std::string s = "| split | videos | PSNR | SSIM |";
-  s += with_lpips ? " LPIPS |" : "";
+  std::string rule = "|---|---|---|---|";
+  if (with_lpips) s += " LPIPS |", rule += "---|";
   s += " copy-frame PSNR | copy-frame SSIM |";
-  s += with_lpips ? " copy-frame LPIPS |" : "";
-  s += " tokenizer round-trip PSNR |";
-  s += with_lpips ? "\n|---|---|---|---|---|---|---|---|---|\n" : "\n|---|---|---|---|---|---|---|\n";
-  char line[320];
+  rule += "---|---|";
+  if (with_lpips) s += " copy-frame LPIPS |", rule += "---|";
+  s += " tokenizer PSNR |";
+  rule += "---|";
+  s += "\n" + rule + "\n";
   for (const auto& r : results) {
-    if (with_lpips)
-      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f |\n",
-                    r.split.c_str(), r.videos.size(), r.psnr, r.ssim, r.lpips, r.copy_psnr, r.copy_ssim,
-                    r.copy_lpips, r.recon_psnr);
-    else
-      std::snprintf(line, sizeof line, "| %s | %zu | %.3f | %.3f | %.3f | %.3f | %.3f |\n", r.split.c_str(),
-                    r.videos.size(), r.psnr, r.ssim, r.copy_psnr, r.copy_ssim, r.recon_psnr);
-    s += line;
+    s += "| " + r.split + " | " + std::to_string(r.videos.size()) + " | " + fmt(r.model().psnr, 3) + " | " +
+         fmt(r.model().ssim, 3) + " |";
+    if (with_lpips) s += " " + fmt(r.model().lpips, 3) + " |";
+    s += " " + fmt(r.copy_frame().psnr, 3) + " | " + fmt(r.copy_frame().ssim, 3) + " |";
+    if (with_lpips) s += " " + fmt(r.copy_frame().lpips, 3) + " |";
+    s += " " + fmt(r.tokenizer().psnr, 3) + " |\n";
+  }
+  if (with_keypoints) {
+    s += "\nKeypoint error (pixels) and detection rate of the probe:\n\n"
+         "| split | world model | copy frame | tokenizer | ground truth | detection: world model | "
+         "detection: ground truth |\n|---|---|---|---|---|---|---|\n";
+    for (const auto& r : results) {
+      const auto gt = r.sources.count("ground_truth") ? r.sources.at("ground_truth") : SourceScore{};
+      s += "| " + r.split + " | " + fmt(r.model().keypoint_error) + " | " +
+           fmt(r.copy_frame().keypoint_error) + " | " + fmt(r.tokenizer().keypoint_error) + " | " +
+           fmt(gt.keypoint_error) + " | " + fmt(r.model().detection, 3) + " | " + fmt(gt.detection, 3) +
+           " |\n";
+    }
+  }
+  if (with_sensitivity) {
+    s += "\nAction sensitivity (the same rollouts driven by other actions):\n\n"
+         "| split | PSNR: true | shuffled | zero | keypoint error: true | shuffled | zero |\n"
+         "|---|---|---|---|---|---|---|\n";
+    for (const auto& r : results) {
+      const auto& sh = r.sources.at("shuffled_actions");
+      const auto& z = r.sources.at("zero_actions");
+      s += "| " + r.split + " | " + fmt(r.model().psnr) + " | " + fmt(sh.psnr) + " | " + fmt(z.psnr) + " | " +
+           fmt(r.model().keypoint_error) + " | " + fmt(sh.keypoint_error) + " | " + fmt(z.keypoint_error) +
+           " |\n";
+    }
   }
   return s;
 }

@@ -1,20 +1,29 @@
 // The paper's teacher evaluation on a dataset split: for each episode, the first ground-truth
 // frame and the episode's actions drive a rollout of 1 + 12 K frames (K = 4 chunks: 49 frames,
 // 3 autoregressive resets); PSNR and SSIM are taken per frame, averaged per video, then over
-// videos. Two references are scored the same way: the copy-first-frame baseline (the real
-// conditioning frame repeated: what a predictor that ignores the actions gets for free) and the
-// tokenizer round trip of the ground truth, chunked as the rollout is (the ceiling for a rollout
-// decoded by this tokenizer: every latent predicted perfectly).
+// videos. References are scored the same way:
+//   copy_frame         the real conditioning frame repeated: what ignoring the actions gets for free
+//   tokenizer          the tokenizer round trip of the ground truth, chunked as the rollout is: the
+//                      ceiling for a rollout decoded by this tokenizer (every latent predicted right)
+//   shuffled_actions   the same rollout driven by another episode's actions, and
+//   zero_actions       by all-zero (hold still) actions: with the true-action rollout these three
+//                      measure whether the model uses the actions at all (action sensitivity)
+// With a keypoint probe, every source also gets the keypoint error (pixels between the probe's
+// keypoints on its frames and the simulator's ground truth of the same step) and the detection
+// rate (share of the ground truth's in-view keypoints the probe finds); the probe on the ground
+// truth frames themselves is the "ground_truth" source, the floor of both.
 #pragma once
 
 #include <cmath>
 #include <cstdint>
 #include <filesystem>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
 
 #include "infer/world_model.h"
+#include "models/keypoint_probe.h"
 
 namespace dojo::eval {
 
@@ -27,37 +36,54 @@ struct WmEvalOptions {
   infer::SamplerOptions sampler;
   infer::ConcatMode concat = infer::ConcatMode::kAligned;
   uint64_t seed = 0;
-  std::filesystem::path video_dir;  // side-by-side videos (ground truth | prediction) when set
-  int videos = 4;                   // how many episodes get a video
-  const Lpips* lpips = nullptr;     // LPIPS as well, when the user supplied its weights
+  std::filesystem::path video_dir;         // side-by-side videos (ground truth | prediction | ...) when set
+  int videos = 4;                          // how many episodes get a video
+  int video_scale = 4;                     // videos enlarged this many times, nearest neighbour
+  const Lpips* lpips = nullptr;            // LPIPS as well, when the user supplied its weights
+  models::KeypointProbe* probe = nullptr;  // keypoint error and detection rate, when given
+  // Also roll out with shuffled and with zero actions (3x the rollouts).
+  bool action_sensitivity = false;
+};
+
+// One source's scores on a split: per-video means (each the mean over its frames), then the
+// mean over videos; per-frame means over videos for plotting.
+struct SourceScore {
+  double psnr = 0, ssim = 0;
+  double lpips = std::nan("");
+  double keypoint_error = std::nan("");  // pixels at the frame size
+  double detection = std::nan("");       // share of in-view ground-truth keypoints found
+  std::vector<double> psnr_per_frame, keypoint_error_per_frame, detection_per_frame;
+  nlohmann::json to_json() const;
 };
 
 struct VideoScore {
   std::string episode;
-  double psnr = 0, ssim = 0;            // world model
-  double lpips = std::nan("");          // NaN without LPIPS weights
-  double copy_psnr = 0, copy_ssim = 0;  // copy-first-frame baseline
-  double copy_lpips = std::nan("");
-  double recon_psnr = 0, recon_ssim = 0;  // tokenizer round trip of the ground truth
-  std::string video;                      // side-by-side file, when written
+  std::map<std::string, SourceScore> sources;  // per-frame vectors hold this video's frames
+  std::string video;                           // side-by-side file, when written
 };
 
 struct WmEvalResult {
   std::string dataset, split;
   std::vector<VideoScore> videos;
-  double psnr = 0, ssim = 0, copy_psnr = 0, copy_ssim = 0;  // means over videos
-  double recon_psnr = 0, recon_ssim = 0;
-  double lpips = std::nan(""), copy_lpips = std::nan("");
+  std::map<std::string, SourceScore> sources;  // world_model, copy_frame, tokenizer, ...
+  // Tokenizer round-trip PSNR by a frame's latent index within its chunk: [0] the conditioning
+  // frame, [i] frames 4(i-1)+1 .. 4i of each chunk. Later latents merge more motion.
+  std::vector<double> tokenizer_psnr_by_latent;
   int frames = 0;                             // per video
-  double seconds = 0, frames_per_second = 0;  // generated frames / rollout time
+  double seconds = 0, frames_per_second = 0;  // generated frames / rollout time (true actions)
+  const SourceScore& model() const { return sources.at("world_model"); }
+  const SourceScore& copy_frame() const { return sources.at("copy_frame"); }
+  const SourceScore& tokenizer() const { return sources.at("tokenizer"); }
   nlohmann::json to_json() const;
 };
 
 // The first 1 + 12 K frames of one episode with its actions, as a rollout replays them.
 struct EpisodeClip {
   std::string episode;
-  torch::Tensor video;    // [1 + 12 K, H, W, 3] uint8
-  torch::Tensor actions;  // [12 K, 384]
+  torch::Tensor video;      // [1 + 12 K, H, W, 3] uint8
+  torch::Tensor actions;    // [12 K, 384]
+  torch::Tensor keypoints;  // [1 + 12 K, 3, 3] simulator keypoints, or undefined
+  std::string embodiment;   // robot | human
   double fps = 10;
 };
 // `episode` names the episode by id; empty: the first episode of `split`. Throws dojo::Error
@@ -70,7 +96,8 @@ torch::Tensor read_rollout_actions(const std::filesystem::path& file);
 WmEvalResult evaluate_world_model(infer::WorldModel& model, const std::filesystem::path& dataset,
                                   const std::string& split, const WmEvalOptions& options);
 
-// Markdown table of several results (one row per split).
+// Markdown tables of several results (one row per split): scores, and with keypoints or action
+// sensitivity their own tables.
 std::string markdown_table(const std::vector<WmEvalResult>& results);
 
 }  // namespace dojo::eval

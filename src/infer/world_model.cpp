@@ -2,6 +2,7 @@
 
 #include <ATen/CPUGeneratorImpl.h>
 
+#include "core/checkpoint.h"
 #include "core/error.h"
 
 namespace dojo::infer {
@@ -10,6 +11,17 @@ diffusion::Solver parse_solver(const std::string& text) {
   if (text == "unipc") return diffusion::Solver::kUniPC;
   if (text == "euler") return diffusion::Solver::kEuler;
   throw Error("unknown solver '" + text + "' (expected unipc or euler)");
+}
+
+SamplerOptions checkpoint_sampler(const std::filesystem::path& checkpoint) {
+  SamplerOptions s;
+  const auto config = Checkpoint::open(resolve_checkpoint_dir(checkpoint)).config();
+  if (config.contains("sampler") && config["sampler"].contains("shift")) {
+    DOJO_CHECK(config["sampler"]["shift"].is_number() && config["sampler"]["shift"].get<double>() > 0,
+               checkpoint.string() + "/config.json: field 'sampler.shift' must be a positive number");
+    s.shift = config["sampler"]["shift"].get<double>();
+  }
+  return s;
 }
 
 ConcatMode parse_concat_mode(const std::string& text) {

@@ -24,6 +24,9 @@ struct SamplerOptions {
   diffusion::Solver solver = diffusion::Solver::kUniPC;
 };
 diffusion::Solver parse_solver(const std::string& text);  // unipc | euler
+// The sampler a world-model checkpoint was trained for: its config.json "sampler" entry (the
+// training time shift), else the defaults above.
+SamplerOptions checkpoint_sampler(const std::filesystem::path& checkpoint);
 
 // How chunks are joined. The release keeps frames [0, 12) of every chunk after the first, so the
 // re-decoded conditioning frame repeats and prediction k >= 13 shows ground-truth time k - 1;

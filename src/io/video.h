@@ -181,6 +181,15 @@ void draw_text(at::Tensor& image, const std::string& text, int64_t x, int64_t y,
 // Width and height in pixels of draw_text's output for `text` at `scale`.
 std::array<int64_t, 2> text_size(const std::string& text, int scale = 1);
 
+// Nearest-neighbour enlargement of frames [T, H, W, 3] by an integer factor (crisp pixels, so a
+// small render can be looked at): [T, H * factor, W * factor, 3].
+at::Tensor upscale_nearest(const at::Tensor& frames, int64_t factor);
+// Draws a small cross (arms of `radius` pixels) at each point onto frames [T, H, W, 3] in place:
+// points [T, K, 2] as (u, v) in [0, 1] over the frame, drawn where show [T, K] is true, in the
+// colour of the point's index (colors cycle).
+void draw_markers(at::Tensor& frames, const at::Tensor& points, const at::Tensor& show, int64_t radius,
+                  const std::vector<std::array<uint8_t, 3>>& colors);
+
 // Places the videos side by side on a black canvas with a label strip above each panel (label
 // centred, truncated to the panel width). Panels keep their size and are top-aligned; shorter
 // videos hold their last frame; a 4-pixel gap separates panels; the canvas is padded to even

@@ -150,6 +150,35 @@ void draw_text(at::Tensor& image, const std::string& text, int64_t x, int64_t y,
   }
 }
 
+at::Tensor upscale_nearest(const at::Tensor& frames, int64_t factor) {
+  DOJO_CHECK(frames.dim() == 4 && factor >= 1,
+             "upscale_nearest: expected [T, H, W, 3] frames and a factor >= 1");
+  if (factor == 1) return frames;
+  return frames.repeat_interleave(factor, 1).repeat_interleave(factor, 2).contiguous();
+}
+
+void draw_markers(at::Tensor& frames, const at::Tensor& points, const at::Tensor& show, int64_t radius,
+                  const std::vector<std::array<uint8_t, 3>>& colors) {
+  DOJO_CHECK(frames.dim() == 4 && points.dim() == 3 && points.size(0) == frames.size(0) &&
+                 points.size(2) == 2 && show.sizes() == points.sizes().slice(0, 2) && !colors.empty(),
+             "draw_markers: expected frames [T, H, W, 3], points [T, K, 2] and show [T, K]");
+  const int64_t T = frames.size(0), H = frames.size(1), W = frames.size(2), K = points.size(1);
+  const auto p = points.to(torch::kFloat64).contiguous();
+  const auto s = show.to(torch::kBool).contiguous();
+  auto acc = frames.accessor<uint8_t, 4>();
+  for (int64_t t = 0; t < T; ++t)
+    for (int64_t k = 0; k < K; ++k) {
+      if (!s[t][k].item<bool>()) continue;
+      const auto x = static_cast<int64_t>(p[t][k][0].item<double>() * static_cast<double>(W));
+      const auto y = static_cast<int64_t>(p[t][k][1].item<double>() * static_cast<double>(H));
+      const auto& c = colors[static_cast<size_t>(k) % colors.size()];
+      for (int64_t d = -radius; d <= radius; ++d)
+        for (const auto [yy, xx] : {std::pair<int64_t, int64_t>{y + d, x}, {y, x + d}})
+          if (yy >= 0 && yy < H && xx >= 0 && xx < W)
+            for (int ch = 0; ch < 3; ++ch) acc[t][yy][xx][ch] = c[static_cast<size_t>(ch)];
+    }
+}
+
 at::Tensor compose_side_by_side(const std::vector<at::Tensor>& videos,
                                 const std::vector<std::string>& labels) {
   DOJO_CHECK(!videos.empty(), "comparison video: no videos given");

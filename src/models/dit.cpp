@@ -396,25 +396,28 @@ torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
   // Actions: 4 per latent frame; the first frame of a sequence (frame 0) has none.
   auto t_emb = t_emb_raw;
   const int64_t lead = in.frame_offset == 0 ? 1 : 0;
+  const auto actions = in.actions.defined() && !c.action_scale.empty()
+                           ? in.actions * c.action_scale_tensor().to(in.actions.options())
+                           : in.actions;
   const int64_t action_frames = T - lead;
-  if (in.actions.defined() && c.whole_clip_actions > 0) {
-    DOJO_CHECK(in.actions.dim() == 3 && in.actions.size(0) == B &&
-                   in.actions.size(1) == c.whole_clip_actions && in.actions.size(2) == c.action_dim,
+  if (actions.defined() && c.whole_clip_actions > 0) {
+    DOJO_CHECK(actions.dim() == 3 && actions.size(0) == B && actions.size(1) == c.whole_clip_actions &&
+                   actions.size(2) == c.action_dim,
                "DiT: actions must be [B, " + std::to_string(c.whole_clip_actions) + ", " +
                    std::to_string(c.action_dim) + "] (whole-clip injection)");
-    const auto row = in.actions.to(dtype).reshape({B, 1, c.whole_clip_actions * c.action_dim});  // [B, 1, NA]
+    const auto row = actions.to(dtype).reshape({B, 1, c.whole_clip_actions * c.action_dim});  // [B, 1, NA]
     t_emb = t_emb + action_embedder_B_D(row);             // [B, T_t, D], the same for every frame
     adaln_lora = adaln_lora + action_embedder_B_3D(row);  // [B, T_t, 3D]
-  } else if (in.actions.defined() && action_frames > 0) {
+  } else if (actions.defined() && action_frames > 0) {
     const int64_t k = c.actions_per_latent_frame;
-    DOJO_CHECK(in.actions.dim() == 3 && in.actions.size(0) == B && in.actions.size(1) == k * action_frames &&
-                   in.actions.size(2) == c.action_dim,
+    DOJO_CHECK(actions.dim() == 3 && actions.size(0) == B && actions.size(1) == k * action_frames &&
+                   actions.size(2) == c.action_dim,
                "DiT: actions must be [B, " + std::to_string(k * action_frames) + ", " +
                    std::to_string(c.action_dim) + "] for " + std::to_string(T) +
                    " latent frames at frame_offset " + std::to_string(in.frame_offset));
-    const auto rows = in.actions.to(dtype).reshape({B, action_frames, k * c.action_dim});  // [B, T', 4A]
-    auto emb_D = action_embedder_B_D(rows);                                                // [B, T', D]
-    auto emb_3D = action_embedder_B_3D(rows);                                              // [B, T', 3D]
+    const auto rows = actions.to(dtype).reshape({B, action_frames, k * c.action_dim});  // [B, T', 4A]
+    auto emb_D = action_embedder_B_D(rows);                                             // [B, T', D]
+    auto emb_3D = action_embedder_B_3D(rows);                                           // [B, T', 3D]
     keep("action_emb_B_D", emb_D);
     keep("action_emb_B_3D", emb_3D);
     if (lead > 0) {

@@ -57,6 +57,12 @@ struct DitConfig {
   int64_t actions_per_latent_frame = 4;
   int64_t action_hidden_dim = 0;  // 0 => 4 * D
   bool zero_init_action_fc2 = true;
+  // Per action dimension, the factor the action rows are multiplied by before the action MLPs
+  // (empty: 1 everywhere, the released network). Small chunk-relative deltas (min-max normalised
+  // joints move ~0.02-0.3 per step) barely move fc1's output next to its bias; the release's own
+  // datasets scale relative deltas by 20 in their loader for that reason. Kept in the config, so
+  // every caller of a checkpoint feeds the same 384-d rows and gets the same scaling.
+  std::vector<double> action_scale;
   // Ablation only (> 0): the older Cosmos action DiT's injection, one embedding of all this many
   // actions of the clip added to every latent frame, instead of 4 actions per latent frame.
   int64_t whole_clip_actions = 0;
@@ -97,6 +103,8 @@ struct DitConfig {
   // when one it needs is missing or inconsistent.
   static DitConfig from_weights(const SafetensorsFile& file, const std::string& prefix = "net.");
   void validate() const;
+  // The action_scale factors as a tensor [action_dim] (ones when empty).
+  torch::Tensor action_scale_tensor() const;
 };
 
 // --- parameter inventory ----------------------------------------------------------------------

@@ -58,6 +58,11 @@ DitConfig DitConfig::small() {
   return c;
 }
 
+torch::Tensor DitConfig::action_scale_tensor() const {
+  if (action_scale.empty()) return torch::ones({action_dim});
+  return torch::tensor(action_scale, torch::kFloat64).to(torch::kFloat32);
+}
+
 int64_t DitConfig::patch_in_features() const {
   const int64_t channels = in_channels + 1 + (concat_padding_mask ? 1 : 0);
   return channels * patch_spatial * patch_spatial * patch_temporal;
@@ -92,6 +97,7 @@ nlohmann::json DitConfig::to_json() const {
           {"actions_per_latent_frame", actions_per_latent_frame},
           {"action_hidden_dim", action_hidden_dim},
           {"zero_init_action_fc2", zero_init_action_fc2},
+          {"action_scale", action_scale},
           {"whole_clip_actions", whole_clip_actions},
           {"concat_padding_mask", concat_padding_mask},
           {"mlp_ratio", mlp_ratio}};
@@ -125,6 +131,12 @@ DitConfig DitConfig::from_json(const nlohmann::json& j) {
   f.get("actions_per_latent_frame", c.actions_per_latent_frame);
   f.get("action_hidden_dim", c.action_hidden_dim);
   f.get("zero_init_action_fc2", c.zero_init_action_fc2);
+  if (j.contains("action_scale")) {
+    const auto& v = j["action_scale"];
+    DOJO_CHECK(v.is_array() && std::all_of(v.begin(), v.end(), [](const auto& x) { return x.is_number(); }),
+               "DiT config: field 'action_scale' must be a list of numbers");
+    c.action_scale = v.get<std::vector<double>>();
+  }
   f.get("whole_clip_actions", c.whole_clip_actions);
   f.get("concat_padding_mask", c.concat_padding_mask);
   f.get("mlp_ratio", c.mlp_ratio);
@@ -260,6 +272,9 @@ void DitConfig::validate() const {
              "DiT config: head dim (model_channels / num_heads) must be even and >= 6 for 3-D RoPE");
   DOJO_CHECK(model_channels % 2 == 0, "DiT config: field 'model_channels' must be even");
   DOJO_CHECK(mlp_ratio > 0.0, "DiT config: field 'mlp_ratio' must be positive");
+  DOJO_CHECK(action_scale.empty() || static_cast<int64_t>(action_scale.size()) == action_dim,
+             "DiT config: field 'action_scale' must be empty or have action_dim (" +
+                 std::to_string(action_dim) + ") entries");
   DOJO_CHECK(timestep_scale > 0.0, "DiT config: field 'timestep_scale' must be positive");
   DOJO_CHECK(
       rope_h_extrapolation_ratio > 0 && rope_w_extrapolation_ratio > 0 && rope_t_extrapolation_ratio > 0,

@@ -1,10 +1,16 @@
 // `dojo demo` as a library recipe: the whole system on the built-in DojoSim world, on a laptop
 // CPU, with no data or weights to download. DojoSim generates human and robot episodes; a small
-// LAM learns latent actions from video alone; a small tokenizer learns the latent space; the
-// world model is pretrained on human video with latent actions, post-trained on robot actions,
-// rolled out on held-out and out-of-distribution episodes and scored against a copy-the-first-frame
-// baseline. Everything lands in one directory with a self-contained HTML report. Every stage
-// resumes: re-running after an interruption continues where it stopped.
+// LAM learns latent actions from video alone; a small tokenizer learns the latent space; a
+// keypoint probe learns where the arm and the hand are; the world model is pretrained on human
+// video with latent actions, post-trained on robot actions, rolled out on held-out,
+// out-of-distribution and counterfactual episodes and scored against a copy-the-first-frame
+// baseline, with and without the true actions. Everything lands in one directory with a
+// self-contained HTML report.
+//
+// Reproducible: every stage has a budget in optimisation steps, so the same seed gives the same
+// models on any machine (a --minutes budget remains as an option). Resumable: a finished stage
+// records its result in OUT/stages/<stage>.json and is skipped when the demo runs again with the
+// same settings; an interrupted stage resumes from its checkpoint.
 #pragma once
 
 #include <cstdint>
@@ -15,23 +21,30 @@ namespace dojo::recipes {
 
 struct DemoOptions {
   std::filesystem::path out = "dojo_demo";
-  double minutes = 30;  // training budget over all stages
-  int episodes = 32;    // human and robot training episodes each
-  int eval_episodes = 8;
-  int frames = 64;
-  int sampler_steps = 35;
+  int episodes = 32;       // human and robot training episodes each (robot: plus the held-out ones)
+  int eval_episodes = 8;   // per evaluation split
+  int frames = 64;         // per episode, at 10 Hz
+  int sampler_steps = 35;  // UniPC steps per chunk
   uint64_t seed = 0;
   int workers = 0;
   std::string device = "cpu", precision = "fp32";  // world-model training and rollouts
   // Intra-op threads for the matmul-bound stages (LAM, world model, rollouts); 0: the runtime's
   // choice (core/runtime.h, matmul_bound_threads).
   int matmul_threads = 0;
+  // Stage budgets in optimisation steps (about 30 minutes on 2 cores in all).
+  int64_t lam_steps = 1500, tokenizer_steps = 2700, probe_steps = 600, pretrain_steps = 1200,
+          posttrain_steps = 1500;
+  // > 0: share this many minutes between the training stages instead (machine-dependent results).
+  double minutes = 0;
+  // A reference model set (models/reference) to evaluate beside the demo's own models; empty:
+  // none. Its tokenizer, probe and world model are used as a set.
+  std::filesystem::path reference;
 };
 
 struct DemoSummary {
   std::filesystem::path report;  // report.html
   double seconds = 0;
-  std::string eval_table;  // markdown, one row per split
+  std::string eval_table;  // markdown
 };
 
 DemoSummary run_demo(const DemoOptions& options);

@@ -48,6 +48,10 @@ EpisodeRecord run_episode(const EpisodeSpec& spec, Renderer* renderer) {
   if (spec.render) rec.frames.reserve(T);
   for (int t = 0; t < T; ++t) {
     if (spec.render) rec.frames.push_back(renderer->render(world));
+    std::vector<float> points;
+    for (const auto& p : world.keypoints())
+      points.insert(points.end(), {static_cast<float>(p.u), static_cast<float>(p.v), p.in_view ? 1.f : 0.f});
+    rec.keypoints.push_back(std::move(points));
     const std::vector<double> state = world.state();
     const std::vector<double> command = controller->act(world, t);
     if (human) {
@@ -91,6 +95,7 @@ EpisodeRecord run_episode(const EpisodeSpec& spec, Renderer* renderer) {
   m["hidden_motion_names"] =
       human ? nlohmann::json(world.command_names())
             : nlohmann::json({"grasp_x", "grasp_y", "grasp_z", "closing_yaw", "gripper"});
+  m["keypoint_names"] = world.keypoint_names();
   m["object_outcomes"] = object_outcomes(world, initial);
   m["success"] = std::isnan(rec.success) ? nlohmann::json(nullptr) : nlohmann::json(rec.success);
   return rec;

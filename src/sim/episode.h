@@ -54,12 +54,15 @@ struct EpisodeRecord {
   std::vector<std::vector<float>> actions;        // robot: T x 6; human: empty
   std::vector<std::vector<float>> states;         // robot: T x 6; human: empty
   std::vector<std::vector<float>> hidden_motion;  // T x 6 (human) / T x 5 (robot); never train on it
+  // T x 9: (u, v, in_view) of the 3 keypoints (World::keypoints) with each frame; never train on it.
+  std::vector<std::vector<float>> keypoints;
   // Robot scenes with a bin: bin_success() after the final settle; NaN otherwise.
   double success = std::numeric_limits<double>::quiet_NaN();
   // embodiment, task (instruction text), skills (human skill names in order / robot behaviour),
   // controller (full description with sampled parameters), scene (to_json, incl. objects and
   // background), novel_background, ood_objects, fps, num_steps, seed, scene_seed, width, height,
-  // action_names, state_names, hidden_motion_names, object_outcomes, success (null for human).
+  // action_names, state_names, hidden_motion_names, keypoint_names, object_outcomes, success
+  // (null for human).
   nlohmann::json meta;
 };
 

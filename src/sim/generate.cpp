@@ -134,6 +134,7 @@ data::EpisodeData to_episode_data(const EpisodeRecord& record) {
   episode.actions = rows_to_tensor(record.actions);
   episode.states = rows_to_tensor(record.states);
   episode.hidden_motion = rows_to_tensor(record.hidden_motion);
+  episode.keypoints = rows_to_tensor(record.keypoints);
   episode.meta = record.meta;
   return episode;
 }
@@ -188,6 +189,8 @@ data::DatasetInfo build_info(const fs::path& out, const GenerateOptions& options
     entry.split = plans[i].split;
     entry.task = meta.value("task", "");
     info.episodes.push_back(entry);
+    if (info.keypoint_names.empty())
+      info.keypoint_names = meta.value("keypoint_names", std::vector<std::string>{});
     if (info.embodiment == data::Embodiment::kRobot) {
       const auto arrays = SafetensorsFile::open(dir / "data.safetensors");
       action_stats.add(arrays.tensor("action"));

@@ -94,9 +94,11 @@ World::World(const SceneSpec& spec) : spec_(spec), id_(g_next_world_id.fetch_add
   for (int j = 0; j < m->njnt; ++j) {
     if (m->jnt_type[j] != mjJNT_FREE) embodiment_dofs_.push_back(m->jnt_dofadr[j]);
   }
+  camera_ = require_id(m, mjOBJ_CAMERA, "ego");
   if (spec_.embodiment == Embodiment::kRobot) {
     root_body_ = require_id(m, mjOBJ_BODY, "arm_hand");
     grasp_site_ = require_id(m, mjOBJ_SITE, "grasp");
+    keypoint_bodies_ = {require_id(m, mjOBJ_BODY, "arm_wrist"), require_id(m, mjOBJ_BODY, "arm_fore")};
     for (const char* finger : {"finger_l", "finger_r"}) {
       const int body = require_id(m, mjOBJ_BODY, finger);
       for (int g = 0; g < m->ngeom; ++g) {
@@ -108,6 +110,8 @@ World::World(const SceneSpec& spec) : spec_(spec), id_(g_next_world_id.fetch_add
     initial_command_.push_back(1.0);
   } else {
     root_body_ = require_id(m, mjOBJ_BODY, "hand");
+    keypoint_bodies_ = {root_body_, require_id(m, mjOBJ_BODY, "f1_dist"),
+                        require_id(m, mjOBJ_BODY, "thumb_dist")};
     for (int g = 0; g < m->ngeom; ++g) {
       // The hand subtree: bodies whose root ancestor is the hand body.
       if (m->body_rootid[m->geom_bodyid[g]] == root_body_ && m->geom_contype[g] != 0)
@@ -379,6 +383,41 @@ Vec3 World::grasp_point() const {
   mju_mulMatVec(world, d->xmat + 9 * root_body_, local, 3, 3);
   return {d->xpos[3 * root_body_] + world[0], d->xpos[3 * root_body_ + 1] + world[1],
           d->xpos[3 * root_body_ + 2] + world[2]};
+}
+
+ImagePoint World::project(const Vec3& point) const {
+  const mjData* d = data_;
+  // MuJoCo cameras look along their -z axis, x to the image's right and y up; cam_xmat holds
+  // those axes as the columns of a row-major 3x3 rotation.
+  const mjtNum* pos = d->cam_xpos + 3 * camera_;
+  const mjtNum* axes = d->cam_xmat + 9 * camera_;
+  const mjtNum rel[3] = {point[0] - pos[0], point[1] - pos[1], point[2] - pos[2]};
+  mjtNum c[3];
+  mju_mulMatTVec(c, axes, rel, 3, 3);
+  ImagePoint p;
+  const double depth = -c[2];
+  if (depth <= 1e-6) return p;  // behind the camera
+  // The vertical field of view sets the focal length; pixels are square.
+  const double h = spec_.height, w = spec_.width;
+  const double focal = 0.5 * h / std::tan(0.5 * model_->cam_fovy[camera_] * M_PI / 180.0);
+  p.u = (0.5 * w + focal * c[0] / depth) / w;
+  p.v = (0.5 * h - focal * c[1] / depth) / h;
+  p.in_view = p.u >= 0 && p.u <= 1 && p.v >= 0 && p.v <= 1;
+  return p;
+}
+
+std::vector<ImagePoint> World::keypoints() const {
+  const mjData* d = data_;
+  std::vector<ImagePoint> out;
+  if (spec_.embodiment == Embodiment::kRobot) out.push_back(project(grasp_point()));
+  for (int b : keypoint_bodies_)
+    out.push_back(project({d->xpos[3 * b], d->xpos[3 * b + 1], d->xpos[3 * b + 2]}));
+  return out;
+}
+
+std::vector<std::string> World::keypoint_names() const {
+  if (spec_.embodiment == Embodiment::kRobot) return {"gripper", "wrist", "elbow"};
+  return {"palm", "index", "thumb"};
 }
 
 ObjectPose World::object_pose(int index) const {

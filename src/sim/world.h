@@ -35,6 +35,14 @@ struct mjData_;
 
 namespace dojo::sim {
 
+// A point seen by the ego camera: (u, v) normalised to [0, 1] over the image (u to the right, v
+// down; 0 and 1 are the image edges), in_view when it lies in front of the camera and inside the
+// image. Occlusion is not considered.
+struct ImagePoint {
+  double u = 0, v = 0;
+  bool in_view = false;
+};
+
 struct ObjectPose {
   Vec3 pos{};                    // world position of the body frame (the object's centre)
   std::array<double, 4> quat{};  // world orientation, MuJoCo order (w, x, y, z)
@@ -76,6 +84,15 @@ class World {
   std::vector<double> effector_pose() const;
   // Point where a grasped object sits: between the robot's finger pads / under the human palm.
   Vec3 grasp_point() const;
+
+  // Where a world point appears in the ego camera's image, from the same kinematic state the
+  // renderer draws (so a frame and the keypoints recorded with it agree).
+  ImagePoint project(const Vec3& point) const;
+  // The embodiment's keypoints in the image, for pose probes and action-following metrics:
+  // robot gripper (grasp point), wrist (wrist pitch axis), elbow; human palm, index finger (its
+  // last joint), thumb (its last joint). Names in keypoint_names() order.
+  std::vector<ImagePoint> keypoints() const;
+  std::vector<std::string> keypoint_names() const;
 
   int num_objects() const { return static_cast<int>(spec_.objects.size()); }
   ObjectPose object_pose(int index) const;
@@ -126,6 +143,8 @@ class World {
   int grasp_site_ = -1;
   std::vector<int> weld_eq_;
   int forearm_mocap_ = -1, upper_arm_mocap_ = -1;
+  int camera_ = -1;
+  std::vector<int> keypoint_bodies_;  // wrist and elbow (robot) / palm, index, thumb (human) bodies
 };
 
 }  // namespace dojo::sim

@@ -14,6 +14,8 @@
 #include "core/error.h"
 #include "core/log.h"
 #include "core/state_dict.h"
+#include "data/actions.h"
+#include "data/episode_source.h"
 #include "train/train_loop.h"
 #include "train/train_util.h"
 
@@ -177,6 +179,8 @@ void WmTrainer::save(const fs::path& dir, const nlohmann::json& extra) const {
   // of a CPU tensor is the tensor itself, so CPU checkpoints stay bit-exact.)
   auto cpu = [](const torch::Tensor& t) { return t.detach().to(torch::kCPU); };
   CheckpointData data = models::world_model_checkpoint(*ema_);  // inference loads the EMA weights
+  // Sampling uses the time shift the network was trained with, unless told otherwise.
+  data.config["sampler"] = {{"shift", options_.flow.shift}};
   TrainerState ts;
   ts.step = steps_;
   ts.extra = extra;
@@ -202,6 +206,38 @@ void WmTrainer::resume(const fs::path& dir) {
   load_adamw_state(*optimizer_, *net_, tensors);
   restore_rng_state(tensors);
 }
+
+namespace {
+
+// The per-dimension action factors of a new network: the given scale (or unit-std
+// standardisation) on the dimensions the robot datasets' actions occupy, the network's present
+// factors elsewhere (so latent actions keep theirs).
+std::vector<double> robot_action_scale(const WmTrainJob& job, const LatentClips& clips,
+                                       const models::DitConfig& c) {
+  auto scale =
+      c.action_scale.empty() ? std::vector<double>(static_cast<size_t>(c.action_dim), 1.0) : c.action_scale;
+  const auto rows = clips.actions.reshape({-1, clips.actions.size(-1)}).to(torch::kFloat64);  // [N * 12, 384]
+  for (const auto& spec : job.data) {
+    const auto source = data::open_dataset(spec.dataset);
+    const auto& slot_name = source->info().action_slot;
+    if (slot_name.empty()) continue;  // action-free video
+    const auto slot = data::slot_by_name(slot_name);
+    const int64_t width = std::min<int64_t>(source->info().action_dim, slot.width());
+    for (int64_t d = slot.begin; d < slot.begin + width; ++d) {
+      double factor = job.action_scale;
+      if (job.standardize_actions) {
+        const double std = rows.select(1, d).std().item<double>();
+        factor = std > 1e-6 ? 1.0 / std : 1.0;
+      }
+      scale[static_cast<size_t>(d)] = factor;
+    }
+    LOG_INFO("wm train: actions of ", spec.dataset.string(), " (slot ", slot_name, ") scaled by ",
+             job.standardize_actions ? "1 / their standard deviation" : std::to_string(job.action_scale));
+  }
+  return scale;
+}
+
+}  // namespace
 
 WmTrainResult run_wm_training(const WmTrainJob& job) {
   DOJO_CHECK(!job.data.empty(), "wm train: no dataset given");
@@ -233,6 +269,8 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   } else {
     net.emplace(job.model);
   }
+  if (!resuming && (job.action_scale != 1.0 || job.standardize_actions))
+    (*net)->config.action_scale = robot_action_scale(job, clips, (*net)->config);
   WmTrainer trainer(*net, job.options, job.device, job.precision);
   if (resuming) {
     trainer.resume(ckpt_dir);

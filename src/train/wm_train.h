@@ -99,6 +99,12 @@ struct WmTrainJob {
   double time_budget_s = 0;  // wall-clock budget of the job, latent caching included; 0: none
   int64_t save_every = 100;
   uint64_t seed = 0;
+  // Scaling of the robot action dimensions (the datasets' action slots) before the action MLPs,
+  // stored in the network's config (models::DitConfig::action_scale) for a fresh or post-trained
+  // network: a factor, or with standardize_actions one per dimension that gives the cached
+  // chunk-relative deltas unit standard deviation. 1 / false: the released behaviour.
+  double action_scale = 1.0;
+  bool standardize_actions = false;
   torch::Device device = torch::kCPU;         // where the network trains (latent caching stays on CPU)
   Precision precision = Precision::kFloat32;  // bf16: autocast forward, float32 master weights
 };

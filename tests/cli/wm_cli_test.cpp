@@ -64,9 +64,9 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   EXPECT_EQ(j["splits"][0].at("videos"), 1);
   EXPECT_EQ(j["splits"][0].at("frames_per_video"), 13);
   EXPECT_GT(j["splits"][0].at("psnr").get<double>(), 0.0);
-  EXPECT_TRUE(std::isfinite(j["splits"][0].at("lpips").get<double>()));  // random heads: any sign
-  EXPECT_TRUE(j["splits"][0]["copy_first_frame"].contains("lpips"));
-  EXPECT_GT(j["splits"][0]["tokenizer_round_trip"].at("psnr").get<double>(), 0.0);
+  EXPECT_TRUE(std::isfinite(j["splits"][0]["world_model"].at("lpips").get<double>()));  // random heads
+  EXPECT_TRUE(j["splits"][0]["copy_frame"].contains("lpips"));
+  EXPECT_GT(j["splits"][0]["tokenizer"].at("psnr").get<double>(), 0.0);
   EXPECT_TRUE(std::filesystem::exists(tmp / "eval" / "metrics.md"));
   EXPECT_FALSE(std::filesystem::is_empty(tmp / "eval" / "videos"));
 
@@ -118,22 +118,38 @@ TEST(WmCli, CudaOnACpuMachineAndBadPrecisionsFailInOneLine) {
 }
 
 #ifdef DOJO_WITH_SIM
-TEST(WmCli, DemoRunsEndToEndOnATinyBudgetAndWritesTheReport) {
+TEST(WmCli, DemoRunsEndToEndOnTinyStepBudgetsAndReusesFinishedStages) {
   test::TempDir tmp;
   const auto out = (tmp / "demo").string();
-  auto r = test::run_dojo(
-      "--threads 1 demo --minutes 0.3 --episodes 2 --eval-episodes 1 --frames 50 "
-      "--sampler-steps 2 --workers 1 --out " +
-      out);
+  const std::string command =
+      "--threads 1 demo --lam-steps 3 --tokenizer-steps 3 --probe-steps 3 --pretrain-steps 3 "
+      "--posttrain-steps 3 --episodes 2 --eval-episodes 2 --frames 50 --sampler-steps 2 --workers 1 "
+      "--reference none --out " +
+      out;
+  auto r = test::run_dojo(command);
   ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("expected ~"), std::string::npos) << r.output;
   const auto html = test::read_file(tmp / "demo" / "report.html");
   EXPECT_NE(html.find("data:video/mp4;base64,"), std::string::npos);
   EXPECT_NE(html.find("<polyline"), std::string::npos);
+  EXPECT_NE(html.find("Does the model use the actions?"), std::string::npos);
   for (const char* split : {"val", "ood-objects", "counterfactual"})
     EXPECT_NE(html.find(std::string("<td>") + split + "</td>"), std::string::npos) << split;
   const auto demo = nlohmann::json::parse(test::read_file(tmp / "demo" / "demo.json"));
-  EXPECT_EQ(demo.at("eval").size(), 3u);
-  EXPECT_GT(demo["wm_posttrain"].at("steps").get<int>(), 0);
+  ASSERT_EQ(demo["eval"]["result"].size(), 3u);
+  EXPECT_TRUE(demo["eval"]["result"][0].contains("shuffled_actions"));
+  EXPECT_TRUE(demo["eval"]["result"][0]["world_model"].contains("keypoint_error_px"));
+  EXPECT_EQ(demo["wm_posttrain"]["result"].at("steps").get<int>(), 3);
+
+  // Running it again re-uses every stage: nothing trains, the records stay, the report is rewritten.
+  const auto posttrain = test::read_file(tmp / "demo" / "stages" / "wm_posttrain.json");
+  std::filesystem::remove(tmp / "demo" / "report.html");
+  r = test::run_dojo(command);
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_EQ(r.output.find("lam train:"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("re-using it"), std::string::npos) << r.output;
+  EXPECT_EQ(test::read_file(tmp / "demo" / "stages" / "wm_posttrain.json"), posttrain);
+  EXPECT_TRUE(std::filesystem::exists(tmp / "demo" / "report.html"));
 }
 #endif  // DOJO_WITH_SIM
 

@@ -198,4 +198,17 @@ TEST(ClipLoader, WorkerErrorReachesConsumer) {
   EXPECT_THROW(loader.next(), Error);
 }
 
+// A 40 x 80 frame centre-cropped to a square loses 20 columns each side: a keypoint at the frame's
+// centre stays at the centre, one at u = 0.2 (16 px) falls off the crop.
+TEST(ClipLoader, KeypointsFollowTheCropAndResize) {
+  auto kp = torch::tensor({0.5f, 0.5f, 1.f, 0.2f, 0.5f, 1.f, 0.75f, 0.25f, 1.f}).view({1, 3, 3});
+  const auto out = crop_keypoints(kp, 40, 80, 16, 16);
+  EXPECT_NEAR(out[0][0][0].item<float>(), 0.5f, 1e-6);
+  EXPECT_NEAR(out[0][0][1].item<float>(), 0.5f, 1e-6);
+  EXPECT_EQ(out[0][1][2].item<float>(), 0.f);                       // cropped away
+  EXPECT_NEAR(out[0][2][0].item<float>(), (60 - 20) / 40.f, 1e-6);  // 60 px in the frame, 40 in the crop
+  EXPECT_NEAR(out[0][2][1].item<float>(), 0.25f, 1e-6);
+  EXPECT_EQ(out[0][2][2].item<float>(), 1.f);
+}
+
 }  // namespace dojo::data

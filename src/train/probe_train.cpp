@@ -1,0 +1,135 @@
+#include "train/probe_train.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+#include <torch/torch.h>
+
+#include <deque>
+#include <sstream>
+
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/state_dict.h"
+#include "data/clip_loader.h"
+#include "data/episode_store.h"
+#include "train/train_loop.h"
+#include "train/train_util.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::train {
+
+torch::Tensor keypoint_probe_loss(const models::KeypointOutput& out, const torch::Tensor& target) {
+  const auto present = target.select(-1, 2);                                    // [B, K]
+  const auto l1 = (out.coords - target.narrow(-1, 0, 2)).abs().sum(-1);         // [B, K]
+  const auto coord_loss = (l1 * present).sum() / present.sum().clamp_min(1.0);  // present points only
+  return 10.0 * coord_loss + torch::binary_cross_entropy_with_logits(out.presence, present);
+}
+
+namespace {
+
+// Gaussian blur of each image [3, S, S] with its own sigma (0: untouched).
+torch::Tensor blur(const torch::Tensor& images, const torch::Tensor& sigma) {
+  constexpr int64_t kRadius = 3;
+  auto out = images.clone();
+  const auto offsets = torch::arange(-kRadius, kRadius + 1, torch::kFloat32);  // [7]
+  for (int64_t b = 0; b < images.size(0); ++b) {
+    const double s = sigma[b].item<double>();
+    if (s <= 0) continue;
+    auto k = torch::exp(-offsets.pow(2) / (2 * s * s));
+    k = (k / k.sum()).to(images.dtype());
+    const auto x = images[b].unsqueeze(1);  // [3, 1, S, S]: channels as a batch
+    const std::vector<int64_t> one = {1, 1}, pad_w = {0, kRadius}, pad_h = {kRadius, 0};
+    const auto h = torch::conv2d(x, k.view({1, 1, 1, -1}), torch::Tensor(), one, pad_w);
+    out[b] = torch::conv2d(h, k.view({1, 1, -1, 1}), torch::Tensor(), one, pad_h).squeeze(1);
+  }
+  return out;
+}
+
+}  // namespace
+
+ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
+  DOJO_CHECK(!job.datasets.empty(), "probe train: no dataset given");
+  DOJO_CHECK(job.batch_size > 0 && job.steps >= 0, "probe train: batch and steps must be positive");
+  fs::create_directories(job.out);
+  const auto ckpt_dir = job.out / "checkpoint";
+  const bool resuming = checkpoint_exists(ckpt_dir);
+  const auto config = resuming ? models::KeypointProbeConfig::from_json(
+                                     Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config().at("config"))
+                               : job.model;
+  const auto frames = data::load_keypoint_frames(job.datasets, job.split, config.size);
+  const auto targets = models::probe_targets(config, frames.embodiment, frames.keypoints);  // [N, K, 3]
+  const int64_t n = frames.frames.size(0);
+  LOG_INFO("probe train: ", n, " frames");
+
+  torch::manual_seed(job.seed);
+  models::KeypointProbe probe(config);
+  torch::optim::AdamW opt(probe->parameters(), torch::optim::AdamWOptions(job.lr).weight_decay(1e-4));
+  int64_t start = 0;
+  if (resuming) {
+    const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir));
+    LoadOptions opts;
+    opts.prefix = "probe.";
+    load_state_dict(*probe, ckpt.model(), opts);
+    start = ckpt.step();
+    const auto tensors = ckpt.trainer_tensors().tensors(/*copy=*/true);
+    load_adamw_state(opt, *probe, tensors);
+    LOG_INFO("probe train: resumed from ", ckpt_dir.string(), " at step ", start);
+  }
+  probe->train();
+
+  LoopOptions loop;
+  loop.name = "probe train";
+  loop.steps = job.steps;
+  loop.time_budget_s = job.time_budget_s;
+  loop.save_every = job.save_every;
+  loop.loss_curve = job.out / "loss.csv";
+  loop.columns = {"loss"};
+  loop.unit = "frames";
+  std::deque<double> recent;
+  const auto run = run_training_loop(
+      loop, start,
+      [&](const LoopStep& s) {
+        // The batch, its augmentation and nothing else depend on (seed, step): resumes continue
+        // the same stream.
+        auto gen = at::make_generator<at::CPUGeneratorImpl>(job.seed * 0x9E3779B97F4A7C15ULL +
+                                                            static_cast<uint64_t>(s.index) + 1);
+        const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
+        auto images = frames.frames.index_select(0, idx).permute({0, 3, 1, 2}).to(torch::kFloat32).div(255.0);
+        const auto target = targets.index_select(0, idx);
+        const auto offset = (torch::rand({job.batch_size, 1, 1, 1}, gen) * 2 - 1) * job.brightness;
+        const auto blurred = torch::rand({job.batch_size}, gen) < job.blur_probability;
+        const auto sigma = (torch::rand({job.batch_size}, gen) * 1.2 + 0.3) * blurred.to(torch::kFloat32);
+        images = blur(images, sigma).add(offset).clamp(0, 1);
+        for (auto& group : opt.param_groups())
+          static_cast<torch::optim::AdamWOptions&>(group.options())
+              .lr(job.lr * std::min(1.0, static_cast<double>(s.index + 1) / 50.0));
+        const auto loss = keypoint_probe_loss(probe->forward(images), target);
+        opt.zero_grad();
+        loss.backward();
+        opt.step();
+        const double value = loss.item<double>();
+        recent.push_back(value);
+        if (recent.size() > 20) recent.pop_front();
+        std::ostringstream note;
+        note << "loss " << value;
+        return StepRecord{{value}, job.batch_size, note.str()};
+      },
+      [&](int64_t steps_done, bool) {
+        CheckpointData ckpt = models::keypoint_probe_checkpoint(*probe);
+        TrainerState state;
+        state.step = steps_done;
+        state.tensors = adamw_state(opt, *probe);
+        ckpt.trainer = state;
+        save_checkpoint(ckpt_dir, ckpt);
+      });
+  ProbeTrainResult r;
+  r.steps = run.end_step;
+  for (double v : recent) r.loss += v / static_cast<double>(recent.size());
+  r.seconds = run.seconds;
+  r.frames_per_second = run.items_per_second;
+  probe->eval();
+  return r;
+}
+
+}  // namespace dojo::train

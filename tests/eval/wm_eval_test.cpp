@@ -1,0 +1,78 @@
+#include "eval/wm_eval.h"
+
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include <cmath>
+
+#include "io/video.h"
+#include "synthetic_data.h"
+#include "test_util.h"
+#include "train/wm_test_fixtures.h"
+
+namespace dojo::eval {
+namespace {
+
+// A random world model and probe on synthetic episodes: every source is scored, the copy-frame
+// baseline is exact, the probe's keypoint scores and the action-sensitivity runs appear, and the
+// side-by-side video is enlarged.
+TEST(WmEval, ScoresEverySourceWithKeypointsAndActionSensitivity) {
+  test::OneThread one;
+  test::TempDir tmp;
+  test::SyntheticOptions data;
+  data.episodes = 3;
+  data.frames = 30;
+  data.size = 16;
+  test::write_synthetic_dataset(tmp / "robot", data);
+  torch::manual_seed(0);
+  infer::WorldModel model(models::ActionDit(train::test_fixtures::tiny_dit(true, 32)),
+                          models::WanVae(models::WanVaeConfig::tiny()));
+  models::KeypointProbeConfig pc;
+  pc.size = 16;
+  pc.width = 8;
+  pc.keypoints = {"arm.a", "arm.b", "arm.c"};
+  models::KeypointProbe probe(pc);
+
+  WmEvalOptions o;
+  o.chunks = 2;
+  o.sampler.steps = 2;
+  o.probe = &probe;
+  o.action_sensitivity = true;
+  o.video_dir = tmp / "videos";
+  o.videos = 1;
+  o.video_scale = 3;
+  const auto r = evaluate_world_model(model, tmp / "robot", "all", o);
+  ASSERT_EQ(r.videos.size(), 3u);
+  for (const char* name :
+       {"world_model", "copy_frame", "tokenizer", "shuffled_actions", "zero_actions", "ground_truth"})
+    ASSERT_TRUE(r.sources.count(name)) << name;
+  EXPECT_EQ(r.frames, 25);
+  EXPECT_EQ(r.model().psnr_per_frame.size(), 25u);
+  EXPECT_EQ(r.copy_frame().psnr_per_frame[0], 80.0);  // frame 0 is the real frame itself
+  EXPECT_FALSE(std::isnan(r.model().keypoint_error));
+  EXPECT_FALSE(std::isnan(r.sources.at("ground_truth").detection));
+  EXPECT_EQ(r.model().keypoint_error_per_frame.size(), 25u);
+  EXPECT_EQ(r.tokenizer_psnr_by_latent.size(), 4u);
+  // Another episode's actions drive another rollout.
+  EXPECT_NE(r.model().psnr, r.sources.at("shuffled_actions").psnr);
+
+  const auto j = r.to_json();
+  EXPECT_TRUE(j.contains("world_model") && j["world_model"].contains("keypoint_error_px"));
+  EXPECT_EQ(j["per_frame"]["copy_frame"]["psnr"].size(), 25u);
+  const auto table = markdown_table({r});
+  EXPECT_NE(table.find("Keypoint error"), std::string::npos) << table;
+  EXPECT_NE(table.find("Action sensitivity"), std::string::npos) << table;
+
+  ASSERT_FALSE(r.videos[0].video.empty());
+  const auto info = io::probe_video(r.videos[0].video);
+  EXPECT_GE(info.width, 4 * 16 * 3);  // four panels, each 3x the frame
+  EXPECT_GE(info.height, 16 * 3);
+
+  o.max_episodes = 1;
+  EXPECT_NE(
+      test::error_message([&] { evaluate_world_model(model, tmp / "robot", "all", o); }).find("at least 2"),
+      std::string::npos);
+}
+
+}  // namespace
+}  // namespace dojo::eval
