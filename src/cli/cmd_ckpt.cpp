@@ -4,12 +4,17 @@
 #include <filesystem>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <set>
 
 #include "cli/commands.h"
 #include "cli/options.h"
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/safetensors.h"
+#include "models/dit.h"
+#include "models/keypoint_probe.h"
+#include "models/lam.h"
+#include "models/wan_vae.h"
 
 namespace dojo::cli {
 namespace {
@@ -126,6 +131,40 @@ void print_info(const nlohmann::ordered_json& info) {
   print_file(info["format"] == "checkpoint" ? "model.safetensors" : "tensors", info["model"]);
 }
 
+// The model a checkpoint holds, loaded by its config.json ("model" names the family).
+std::shared_ptr<torch::nn::Module> load_any_model(const fs::path& dir) {
+  const auto config = Checkpoint::open(resolve_checkpoint_dir(dir)).config();
+  const std::string model = config.value("model", "");
+  if (model == "lam") return models::load_lam(dir).ptr();
+  if (model == "wan21_vae") return models::load_tokenizer(dir).ptr();
+  if (model == "action_dit") return models::load_world_model(dir).ptr();
+  if (model == "keypoint_probe") return models::load_keypoint_probe(dir).ptr();
+  throw Error((dir / "config.json").string() + ": unknown model '" + model +
+              "' (expected lam, wan21_vae, action_dit or keypoint_probe)");
+}
+
+// A checkpoint for inference: the same config and weights with no trainer state, the learned
+// parameters stored in `dtype` (buffers such as RoPE tables keep theirs, so a bf16 export
+// changes only what bf16 weights change).
+void export_checkpoint(const fs::path& src, const fs::path& dst, torch::ScalarType dtype) {
+  const auto module = load_any_model(src);
+  const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(src));
+  std::set<std::string> params;  // module names of the learned parameters
+  for (const auto& p : module->named_parameters()) params.insert(p.key());
+  CheckpointData data;
+  data.config = ckpt.config();
+  for (const auto& name : ckpt.model().keys()) {
+    auto t = ckpt.model().tensor(name, /*copy=*/true);
+    // File names are the module's, possibly behind one prefix ("net.", "lam.", "probe.").
+    const auto dot = name.find('.');
+    const bool is_param =
+        params.count(name) || (dot != std::string::npos && params.count(name.substr(dot + 1)));
+    if (is_param && at::isFloatingType(t.scalar_type())) t = t.to(dtype);
+    data.model.emplace_back(name, t);
+  }
+  save_checkpoint(dst, data);
+}
+
 }  // namespace
 
 void register_ckpt(CLI::App& app) {
@@ -137,6 +176,25 @@ void register_ckpt(CLI::App& app) {
   auto json = std::make_shared<bool>(false);
   info->add_option("path", *path, "Checkpoint directory or .safetensors file")->required();
   add_json_option(info, *json);
+  auto* exp = ckpt->add_subcommand(
+      "export",
+      "Write a model checkpoint for inference: no trainer state, parameters in --dtype (buffers kept)");
+  auto src = std::make_shared<std::string>(), dst = std::make_shared<std::string>(),
+       dtype = std::make_shared<std::string>("bf16");
+  exp->add_option("SRC", *src, "Checkpoint directory (LAM, tokenizer, world model or keypoint probe)")
+      ->required();
+  exp->add_option("DST", *dst, "Output checkpoint directory")->required();
+  exp->add_option("--dtype", *dtype, "bf16 | fp16 | fp32")
+      ->check(CLI::IsMember({"bf16", "fp16", "fp32"}))
+      ->capture_default_str();
+  exp->callback([src, dst, dtype] {
+    set_action([src, dst, dtype] {
+      const auto type = *dtype == "bf16" ? torch::kBFloat16 : *dtype == "fp16" ? torch::kHalf : torch::kFloat;
+      export_checkpoint(*src, *dst, type);
+      std::printf("%s -> %s (%s parameters, no trainer state)\n", src->c_str(), dst->c_str(), dtype->c_str());
+      return 0;
+    });
+  });
   info->callback([path, json] {
     set_action([path, json] {
       const auto result = info_json(*path);

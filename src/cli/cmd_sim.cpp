@@ -53,6 +53,11 @@ void add_generate(CLI::App& sim) {
   cmd->add_option("--skills", o->skills,
                   "Human: restrict to these skills (push, poke, pat, sweep, pick_place, ...)");
   cmd->add_option("--quality", o->quality, "Robot bin policy: expert, good, medium, poor (default: a mix)");
+  cmd->add_option(
+         "--play-fraction", o->play_fraction,
+         "Robot train split: share of episodes moving the arm at random (play) instead of the bin task")
+      ->check(CLI::Range(0.0, 1.0))
+      ->capture_default_str();
   add_json_option(cmd, *json);
   cmd->callback([=] {
     set_action([=] {

@@ -19,6 +19,9 @@
 #include "infer/world_model.h"
 #include "io/video.h"
 #include "models/keypoint_probe.h"
+#ifdef DOJO_WITH_SIM
+#include "sim/generate.h"
+#endif
 #include "train/wm_train.h"
 
 namespace fs = std::filesystem;
@@ -33,7 +36,7 @@ struct WmTrainArgs {
   int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100;
   int batch = 8;
   double minutes = 0, lr = 1.6e-4, weight_decay = 0.1, grad_clip = 0.1, temporal_weight = 0.1, shift = 5.0,
-         action_scale = 1.0;
+         action_scale = 1.0, condition_noise = 0, motion_weight = 0, action_dropout = 0;
   uint64_t seed = 0;
   bool absolute_actions = false, whole_clip_actions = false, standardize_actions = false;
 };
@@ -79,6 +82,9 @@ int run_wm_train(const WmTrainArgs& a) {
   job.options.warmup_steps = a.warmup;
   job.options.flow.temporal_weight = a.temporal_weight;
   job.options.flow.shift = a.shift;
+  job.options.condition_noise = a.condition_noise;
+  job.options.motion_weight = a.motion_weight;
+  job.options.action_dropout = a.action_dropout;
   job.action_scale = a.action_scale;
   job.standardize_actions = a.standardize_actions;
   job.options.flow.temporal_axis =
@@ -100,19 +106,57 @@ int run_wm_train(const WmTrainArgs& a) {
   return 0;
 }
 
+// The models of `dojo eval` / `dojo wm rollout`: the given checkpoint and tokenizer, or the
+// reference model set shipped in models/reference when no --checkpoint is given.
+void resolve_models(std::string& checkpoint, std::string& tokenizer, std::string* probe) {
+  const auto reference = default_reference_dir();
+  if (checkpoint.empty()) {
+    DOJO_CHECK(fs::exists(reference / "wm_posttrain" / "config.json"),
+               "no --checkpoint given and no reference model set at " + reference.string() +
+                   " (train one with `dojo demo`, or set DOJO_REFERENCE)");
+    checkpoint = (reference / "wm_posttrain").string();
+    if (tokenizer.empty()) tokenizer = (reference / "tokenizer").string();
+    LOG_INFO("using the reference world model ", checkpoint);
+  }
+  if (tokenizer.empty()) throw UsageError("--tokenizer is required with --checkpoint");
+  if (probe != nullptr && probe->empty() && fs::exists(reference / "probe" / "config.json"))
+    *probe = (reference / "probe").string();
+}
+
+// Without --data: held-out DojoSim robot episodes (seed 1001, never a training seed), generated
+// once into the temporary directory and re-used.
+std::string default_eval_data() {
+#ifdef DOJO_WITH_SIM
+  const auto dir = fs::temp_directory_path() / "dojo-heldout-robot";
+  sim::GenerateOptions g;
+  g.episodes = 8;
+  g.val_fraction = 1.0;  // all "val"
+  g.seed = 1001;
+  sim::generate_dataset(dir, g);
+  LOG_INFO("no --data: held-out DojoSim episodes in ", dir.string());
+  return dir.string();
+#else
+  throw UsageError("--data is required (this build has no DojoSim to make episodes)");
+#endif
+}
+
 struct RolloutArgs {
   std::string checkpoint, tokenizer, data, split = "val", episode, actions_file, out, solver = "unipc",
                                            concat = "aligned", device = "cpu", precision = "fp32";
   int chunks = 4, steps = 35;
   double shift = 0;  // 0: the checkpoint's
+  double action_guidance = 1;
   uint64_t seed = 0;
 };
 
-int run_rollout(const RolloutArgs& a) {
+int run_rollout(RolloutArgs a) {
   const auto device = parse_device(a.device);
+  resolve_models(a.checkpoint, a.tokenizer, nullptr);
+  if (a.data.empty()) a.data = default_eval_data();
   ScopedThreads matmul_bound(matmul_bound_command_threads("wm rollout", device.is_cuda()));
   auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, device, parse_precision(a.precision));
-  const auto clip = eval::read_episode_clip(a.data, a.split, a.episode, a.chunks);
+  const auto clip = eval::read_episode_clip(a.data, a.split, a.episode, a.chunks,
+                                            eval::checkpoint_action_ranges(a.checkpoint));
   // Counterfactual: the episode's first frame with actions from a file.
   const bool counterfactual = !a.actions_file.empty();
   const auto actions =
@@ -120,6 +164,7 @@ int run_rollout(const RolloutArgs& a) {
   auto sampler = infer::checkpoint_sampler(a.checkpoint);
   sampler.steps = a.steps;
   if (a.shift > 0) sampler.shift = a.shift;
+  sampler.action_guidance = a.action_guidance;
   sampler.solver = infer::parse_solver(a.solver);
   const auto pred = model.rollout(clip.video.select(0, 0).unsqueeze(0), actions.unsqueeze(0), a.seed, sampler,
                                   infer::parse_concat_mode(a.concat))[0];
@@ -139,12 +184,15 @@ struct EvalArgs {
   std::vector<std::string> lpips_weights;
   int chunks = 4, episodes = 16, steps = 35, videos = 4, batch = 4, video_scale = 4;
   double shift = 0;  // 0: the checkpoint's
+  double action_guidance = 1;
   uint64_t seed = 0;
   bool json = false, action_sensitivity = false;
 };
 
-int run_eval(const EvalArgs& a) {
+int run_eval(EvalArgs a) {
   const auto device = parse_device(a.device);
+  resolve_models(a.checkpoint, a.tokenizer, &a.probe);
+  if (a.data.empty()) a.data = default_eval_data();
   // Rollouts are DiT sampling: 31.0 generated frames/s with one OpenMP thread, 12.6 with two
   // (2 cores, OpenBLAS pthreads; docs/benchmarks.md).
   ScopedThreads matmul_bound(matmul_bound_command_threads("eval", device.is_cuda()));
@@ -156,6 +204,8 @@ int run_eval(const EvalArgs& a) {
   o.sampler = infer::checkpoint_sampler(a.checkpoint);
   o.sampler.steps = a.steps;
   if (a.shift > 0) o.sampler.shift = a.shift;
+  o.sampler.action_guidance = a.action_guidance;
+  o.action_ranges = eval::checkpoint_action_ranges(a.checkpoint);
   o.sampler.solver = infer::parse_solver(a.solver);
   o.concat = infer::parse_concat_mode(a.concat);
   o.seed = a.seed;
@@ -246,6 +296,21 @@ void register_wm(CLI::App& app) {
       ->add_option("--action-scale", t->action_scale,
                    "Factor on the robot action dimensions before the action MLPs (kept in the checkpoint)")
       ->capture_default_str();
+  train_cmd
+      ->add_option("--condition-noise", t->condition_noise,
+                   "Largest std of noise added to the conditioning latent in training (0 = clean)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  train_cmd
+      ->add_option("--motion-weight", t->motion_weight,
+                   "Strength of the motion-weighted loss: moving latent positions weigh 1 + S * motion")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  train_cmd
+      ->add_option("--action-dropout", t->action_dropout,
+                   "Probability per clip of training without actions (enables --action-guidance)")
+      ->check(CLI::Range(0.0, 1.0))
+      ->capture_default_str();
   train_cmd->add_flag("--standardize-actions", t->standardize_actions,
                       "Scale each robot action dimension to unit standard deviation over the cached clips");
   train_cmd->add_option("--hop", t->hop, "Frames between cached clip starts")->capture_default_str();
@@ -261,9 +326,15 @@ void register_wm(CLI::App& app) {
 
   auto r = std::make_shared<RolloutArgs>();
   auto* roll = wm->add_subcommand("rollout", "Roll the model out from an episode's first frame and actions");
-  add_checkpoint_option(roll, r->checkpoint, "the world model")->required();
-  roll->add_option("--tokenizer", r->tokenizer, "Tokenizer checkpoint")->required();
-  add_data_option(roll, r->data)->required();
+  add_checkpoint_option(roll, r->checkpoint,
+                        "the world model (default: the reference set, models/reference)");
+  roll->add_option("--tokenizer", r->tokenizer,
+                   "Tokenizer checkpoint (default with the reference set: its own)");
+  add_data_option(roll, r->data)
+      ->description(
+          "Dataset directory (episode store, LeRobot, EgoDex or video folder); default: 8 held-out DojoSim "
+          "robot "
+          "episodes made on the spot");
   add_split_option(roll, r->split);
   roll->add_option("--episode", r->episode, "Episode id (default: the first episode of --split)");
   roll->add_option("--actions", r->actions_file,
@@ -273,6 +344,9 @@ void register_wm(CLI::App& app) {
   roll->add_option("--solver", r->solver, "unipc | euler")->capture_default_str();
   roll->add_option("--shift", r->shift,
                    "Sampler time shift (default: the one the checkpoint was trained with)");
+  roll->add_option("--action-guidance", r->action_guidance,
+                   "Action guidance scale (1 = off; > 1 needs a model trained with --action-dropout)")
+      ->capture_default_str();
   roll->add_option("--concat", r->concat, "aligned | released (chunk joining)")->capture_default_str();
   add_seed_option(roll, r->seed);
   add_out_option(roll, r->out, "mp4 file")->required();
@@ -282,9 +356,14 @@ void register_wm(CLI::App& app) {
   auto e = std::make_shared<EvalArgs>();
   auto* ev =
       app.add_subcommand("eval", "Evaluate a world model: PSNR/SSIM of rollouts vs ground truth per split");
-  add_checkpoint_option(ev, e->checkpoint, "the world model")->required();
-  ev->add_option("--tokenizer", e->tokenizer, "Tokenizer checkpoint")->required();
-  add_data_option(ev, e->data)->required();
+  add_checkpoint_option(ev, e->checkpoint, "the world model (default: the reference set, models/reference)");
+  ev->add_option("--tokenizer", e->tokenizer,
+                 "Tokenizer checkpoint (default with the reference set: its own)");
+  add_data_option(ev, e->data)
+      ->description(
+          "Dataset directory (episode store, LeRobot, EgoDex or video folder); default: 8 held-out DojoSim "
+          "robot "
+          "episodes made on the spot");
   add_split_option(ev, e->splits);
   ev->add_option("--chunks", e->chunks, "Chunks of 12 actions per video (4 = the paper's 49 frames)")
       ->capture_default_str();
@@ -293,13 +372,17 @@ void register_wm(CLI::App& app) {
   ev->add_option("--solver", e->solver, "unipc | euler")->capture_default_str();
   ev->add_option("--shift", e->shift,
                  "Sampler time shift (default: the one the checkpoint was trained with)");
+  ev->add_option("--action-guidance", e->action_guidance,
+                 "Action guidance scale (1 = off; > 1 needs a model trained with --action-dropout)")
+      ->capture_default_str();
   ev->add_option("--concat", e->concat, "aligned | released (chunk joining)")->capture_default_str();
   ev->add_option("--batch,-b", e->batch, "Episodes rolled out together")->capture_default_str();
   ev->add_option("--videos", e->videos, "Side-by-side videos per split (with --out)")->capture_default_str();
   add_seed_option(ev, e->seed);
   add_out_option(ev, e->out, "directory for metrics.json, metrics.md and videos/");
   ev->add_option("--probe", e->probe,
-                 "Keypoint probe checkpoint (dojo probe train): adds keypoint error and detection rate");
+                 "Keypoint probe checkpoint (dojo probe train): adds keypoint error and detection rate "
+                 "(default: the reference set's, when present)");
   ev->add_flag("--action-sensitivity", e->action_sensitivity,
                "Also roll out with shuffled and with zero actions: does the model use the actions?");
   ev->add_option("--video-scale", e->video_scale, "Enlarge the side-by-side videos this many times")

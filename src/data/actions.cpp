@@ -72,6 +72,17 @@ void StatsAccumulator::add(const at::Tensor& rows) {
   }
 }
 
+ArrayStats union_range(const ArrayStats& a, const ArrayStats& b) {
+  DOJO_CHECK(a.dim() == b.dim(), "action statistics of different widths (" + std::to_string(a.dim()) +
+                                     " and " + std::to_string(b.dim()) + ") cannot be combined");
+  ArrayStats out = a;
+  for (int i = 0; i < a.dim(); ++i) {
+    out.min[i] = std::min(a.min[i], b.min[i]);
+    out.max[i] = std::max(a.max[i], b.max[i]);
+  }
+  return out;
+}
+
 ArrayStats StatsAccumulator::finish() const {
   ArrayStats stats;
   for (size_t k = 0; k < min_.size(); ++k) {

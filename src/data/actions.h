@@ -53,6 +53,10 @@ struct ArrayStats {
   static ArrayStats from_json(const nlohmann::json& j, const std::string& where);
 };
 
+// The range covering both: elementwise min of the minima and max of the maxima (mean and std
+// are those of `a`; min-max normalisation reads only the range). Throws on different widths.
+ArrayStats union_range(const ArrayStats& a, const ArrayStats& b);
+
 // Accumulates ArrayStats over many [T, D] arrays (Welford for mean/std).
 class StatsAccumulator {
  public:

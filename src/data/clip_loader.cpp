@@ -30,7 +30,12 @@ ClipDataset::ClipDataset(std::shared_ptr<const EpisodeSource> source, ClipConfig
   const auto& info = source_->info();
   const std::string root = source_->root().string();
   if (info.embodiment == Embodiment::kRobot) {
-    DOJO_CHECK(info.action_stats.has_value(), root + ": robot dataset has no action statistics");
+    DOJO_CHECK(info.action_stats.has_value() || config_.action_stats.has_value(),
+               root + ": robot dataset has no action statistics");
+    if (config_.action_stats)
+      DOJO_CHECK(config_.action_stats->dim() == info.action_dim,
+                 root + ": the given action statistics have " + std::to_string(config_.action_stats->dim()) +
+                     " dimensions, the dataset's actions " + std::to_string(info.action_dim));
     DOJO_CHECK(!info.action_slot.empty(), root + ": robot dataset names no action_slot");
   }
   int64_t total = 0;
@@ -121,8 +126,9 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
   } else if (info.embodiment == Embodiment::kRobot) {
     DOJO_CHECK(arrays.actions.defined() && arrays.actions.size(0) == frames,
                where + ": robot episode has no action row per frame");
-    const auto absolute = arrays.actions.index_select(0, steps);              // [T + 1, A]
-    const auto normalized = normalize_min_max(absolute, *info.action_stats);  // [T + 1, A]
+    const auto absolute = arrays.actions.index_select(0, steps);  // [T + 1, A]
+    const auto& stats = config_.action_stats ? *config_.action_stats : *info.action_stats;
+    const auto normalized = normalize_min_max(absolute, stats);  // [T + 1, A]
     const auto relative = config_.relative_actions ? chunk_relative(normalized, config_.action_chunk)
                                                    : normalized.slice(0, 1, rows + 1);  // [T - 1, A]
     DOJO_CHECK(relative.size(0) == rows, where + ": clip length " + std::to_string(config_.num_frames) +

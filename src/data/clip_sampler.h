@@ -8,6 +8,8 @@
 #include <random>
 #include <vector>
 
+#include "data/actions.h"
+
 namespace dojo::data {
 
 struct ClipConfig {
@@ -19,6 +21,10 @@ struct ClipConfig {
   bool relative_actions = true;
   int height = 64;  // output size after centre crop + resize
   int width = 64;
+  // Robot actions are min-max normalised with these statistics instead of the dataset's own:
+  // a world model's, so that datasets whose ranges differ (an evaluation split, a second
+  // training set) mean the same motion by the same numbers. Must match the action width.
+  std::optional<ArrayStats> action_stats;
 };
 
 // A clip's position in its episode. steps[0] is the action baseline, steps[1..] are the frames:

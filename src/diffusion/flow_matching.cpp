@@ -76,8 +76,20 @@ TrainingNoise sample_training_noise(const torch::Tensor& x0, const FlowMatchingC
   return sample_training_noise(x0, config, at::make_generator<at::CPUGeneratorImpl>(seed));
 }
 
+torch::Tensor motion_weight(const torch::Tensor& x0, double strength) {
+  torch::NoGradGuard no_grad;
+  DOJO_CHECK(x0.dim() == 5, "motion_weight: latents must be [B, C, T, H, W]");
+  const int64_t T = x0.size(2);
+  auto d = torch::zeros({x0.size(0), 1, T, x0.size(3), x0.size(4)}, x0.options());  // [B, 1, T, H, W]
+  if (T > 1)
+    d.narrow(2, 1, T - 1).copy_((x0.narrow(2, 1, T - 1) - x0.narrow(2, 0, T - 1)).abs().mean(1, true));
+  const auto mean = d.reshape({d.size(0), -1}).mean(1).clamp_min(1e-8).view({-1, 1, 1, 1, 1});
+  return 1.0 + strength * d / mean;
+}
+
 torch::Tensor flow_matching_loss(const torch::Tensor& pred_velocity, const torch::Tensor& target_velocity,
-                                 const FlowMatchingConfig& config, torch::Tensor* per_sample) {
+                                 const FlowMatchingConfig& config, torch::Tensor* per_sample,
+                                 const torch::Tensor& weight) {
   DOJO_CHECK(pred_velocity.dim() == 5, "flow_matching_loss: prediction must be [B, C, T, H, W], got " +
                                            std::to_string(pred_velocity.dim()) + " dims");
   DOJO_CHECK(pred_velocity.sizes() == target_velocity.sizes(),
@@ -90,7 +102,9 @@ torch::Tensor flow_matching_loss(const torch::Tensor& pred_velocity, const torch
   if (target.scalar_type() != pred.scalar_type()) target = target.to(pred.scalar_type());
 
   const int64_t batch = pred.size(0);
-  auto loss = (pred - target).pow(2).reshape({batch, -1}).mean(1);  // [B]
+  auto squared = (pred - target).pow(2);
+  if (weight.defined()) squared = squared * weight.to(squared.scalar_type());
+  auto loss = squared.reshape({batch, -1}).mean(1);  // [B]
   const int64_t axis = config.temporal_axis == TemporalAxis::kTime ? 2 : 1;
   const int64_t len = pred.size(axis);
   if (config.temporal_weight != 0 && len > 1) {

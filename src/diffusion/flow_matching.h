@@ -49,12 +49,21 @@ TrainingNoise sample_training_noise(const torch::Tensor& x0, const FlowMatchingC
                                     torch::Generator gen);
 TrainingNoise sample_training_noise(const torch::Tensor& x0, const FlowMatchingConfig& config, uint64_t seed);
 
-// Loss per sample: mean((v̂ − v)²) + temporal_weight · mean((Δv̂ − Δv)²), Δ the forward difference
+// Loss per sample: mean(w·(v̂ − v)²) + temporal_weight · mean((Δv̂ − Δv)²), Δ the forward difference
 // along the configured axis (time = dim 2, channel = dim 1); returns the batch mean (a scalar,
 // float32 or wider). With `per_sample`, also stores the [B] per-sample losses there. Inputs
-// [B, C, T, H, W] of equal shape; a size-1 difference axis contributes 0.
+// [B, C, T, H, W] of equal shape; a size-1 difference axis contributes 0. `weight` (undefined: 1)
+// broadcasts against the inputs, e.g. motion_weight's [B, 1, T, H, W].
 torch::Tensor flow_matching_loss(const torch::Tensor& pred_velocity, const torch::Tensor& target_velocity,
-                                 const FlowMatchingConfig& config, torch::Tensor* per_sample = nullptr);
+                                 const FlowMatchingConfig& config, torch::Tensor* per_sample = nullptr,
+                                 const torch::Tensor& weight = {});
+
+// Per-position loss weight that favours what moves (Vista's motion-weighted loss, on latents):
+// w = 1 + strength · d / mean(d), d the channel-mean |x0[t] − x0[t − 1]| of each latent position
+// (d = 0 on frame 0), the mean taken per sample. Moving parts (an arm) are a small share of the
+// pixels, so an unweighted loss learns the static background first. x0 [B, C, T, H, W] ->
+// [B, 1, T, H, W], no gradient.
+torch::Tensor motion_weight(const torch::Tensor& x0, double strength);
 
 // Power EMA (Karras et al. 2024, as configured in DreamDojo, dreamdojo.md §8).
 // γ for a relative standard deviation σ_rel: the largest real root of

@@ -3,7 +3,9 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <optional>
 
+#include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "core/progress.h"
@@ -70,8 +72,24 @@ nlohmann::json WmEvalResult::to_json() const {
   return out;
 }
 
+nlohmann::json checkpoint_action_ranges(const fs::path& checkpoint) {
+  return Checkpoint::open(resolve_checkpoint_dir(checkpoint))
+      .config()
+      .value("actions", nlohmann::json::object());
+}
+
+namespace {
+
+// The model's range for the dataset's action slot, when it has one.
+std::optional<data::ArrayStats> model_range(const nlohmann::json& ranges, const data::DatasetInfo& info) {
+  if (info.action_slot.empty() || !ranges.contains(info.action_slot)) return std::nullopt;
+  return data::ArrayStats::from_json(ranges[info.action_slot], "world model actions." + info.action_slot);
+}
+
+}  // namespace
+
 EpisodeClip read_episode_clip(const fs::path& dataset, const std::string& split, const std::string& episode,
-                              int chunks) {
+                              int chunks, const nlohmann::json& action_ranges) {
   DOJO_CHECK(chunks > 0, "rollout: --chunks must be positive");
   const auto source = data::open_dataset(dataset);
   const auto& info = source->info();
@@ -89,6 +107,7 @@ EpisodeClip read_episode_clip(const fs::path& dataset, const std::string& split,
   clip.strides = {1};
   clip.height = info.height;
   clip.width = info.width;
+  clip.action_stats = model_range(action_ranges, info);
   EpisodeClip out;
   out.episode = info.episodes[ep].id;
   out.fps = info.fps;
@@ -206,6 +225,7 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
   clip.strides = {1};
   clip.height = info.height;
   clip.width = info.width;
+  clip.action_stats = model_range(o.action_ranges, info);
   data::ClipDataset ds(source, clip, split);
   std::vector<size_t> episodes;
   for (size_t ep : ds.episodes())

@@ -95,6 +95,7 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
   const auto noise = torch::randn(gt.sizes(), gen).to(opts);
   const auto acts = actions.to(device_, torch::kFloat);
 
+  const bool guided = sampler.action_guidance != 1.0;
   const diffusion::VelocityFn velocity = [&](const torch::Tensor& x, double /*sigma*/, int64_t timestep) {
     models::DitInputs in;
     in.timesteps = torch::full({batch, 1}, static_cast<double>(timestep), opts);
@@ -102,7 +103,16 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
     in.actions = acts;
     // Only the network runs in the lower precision; the solver's updates stay float32.
     AutocastGuard autocast(device_.type(), precision_);
-    return models::denoise_velocity(*net_, in, x, gt, noise, mask).to(torch::kFloat32);
+    if (!guided) return models::denoise_velocity(*net_, in, x, gt, noise, mask).to(torch::kFloat32);
+    // Both branches in one batch: [with actions; zero actions].
+    in.timesteps = in.timesteps.repeat({2, 1});
+    in.condition_mask = mask.repeat({2, 1, 1, 1, 1});
+    in.actions = torch::cat({acts, torch::zeros_like(acts)});
+    const auto v = models::denoise_velocity(*net_, in, x.repeat({2, 1, 1, 1, 1}), gt.repeat({2, 1, 1, 1, 1}),
+                                            noise.repeat({2, 1, 1, 1, 1}), in.condition_mask)
+                       .to(torch::kFloat32);
+    const auto v_actions = v.narrow(0, 0, batch), v_free = v.narrow(0, batch, batch);
+    return v_free + sampler.action_guidance * (v_actions - v_free);
   };
   const auto schedule = diffusion::flow_sigma_schedule(sampler.steps, sampler.shift);
   auto x0 = diffusion::sample_flow(velocity, noise, schedule, sampler.solver);  // [B, 16, 4, h, w]

@@ -22,6 +22,9 @@ struct SamplerOptions {
   int steps = 35;  // as released
   double shift = 5.0;
   diffusion::Solver solver = diffusion::Solver::kUniPC;
+  // Action guidance: v = v(no actions) + g·(v(actions) − v(no actions)), for networks trained
+  // with action dropout; 1 = the plain conditional velocity (one network call per step).
+  double action_guidance = 1.0;
 };
 diffusion::Solver parse_solver(const std::string& text);  // unipc | euler
 // The sampler a world-model checkpoint was trained for: its config.json "sampler" entry (the

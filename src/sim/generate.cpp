@@ -36,10 +36,13 @@ const std::vector<std::string>& split_names() {
 
 nlohmann::json GenerateOptions::to_json() const {
   // Only what determines the bytes of the episodes: workers is deliberately absent.
-  return {
+  nlohmann::json j = {
       {"embodiment", embodiment}, {"split", split},    {"episodes", episodes}, {"frames", frames},
       {"width", width},           {"height", height},  {"seed", seed},         {"val_fraction", val_fraction},
       {"skills", skills},         {"quality", quality}};
+  // Recorded only when used, so runs from before the option still resume.
+  if (play_fraction > 0) j["play_fraction"] = play_fraction;
+  return j;
 }
 
 namespace {
@@ -81,6 +84,9 @@ PlannedEpisode plan_episode(const GenerateOptions& o, int index) {
       static const RobotBehavior kBehaviors[] = {RobotBehavior::kPat, RobotBehavior::kReachMiss,
                                                  RobotBehavior::kPush, RobotBehavior::kRandomMotion};
       controller.robot.behavior = kBehaviors[index % 4];
+    } else if (o.split == "train" && o.play_fraction > 0 &&
+               data::uniform_index(rng, 1000000) < static_cast<uint64_t>(o.play_fraction * 1000000)) {
+      controller.robot.behavior = RobotBehavior::kRandomMotion;
     } else if (o.split != "train") {
       std::string names;
       for (const auto& n : split_names()) names += (names.empty() ? "" : ", ") + n;

@@ -34,6 +34,11 @@ struct GenerateOptions {
   double val_fraction = 0.125;      // robot train split: share of episodes marked "val"
   std::vector<std::string> skills;  // human: restrict to these skills (default: all)
   std::string quality;              // robot bin policy preset; empty = mix of expert/good/medium
+  // Robot train split: share of episodes that are "play" (random_motion: the arm moves to random
+  // reachable poses with random gripper commands) instead of the bin task. Demonstrations make
+  // the next motion predictable from the scene; play data is where a world model must read the
+  // actions to know where the arm goes.
+  double play_fraction = 0;
 
   nlohmann::json to_json() const;
 };

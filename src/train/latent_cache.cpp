@@ -72,7 +72,8 @@ nlohmann::json LatentCacheSpec::to_json() const {
           {"hop", hop},
           {"size", size},
           {"max_clips", max_clips},
-          {"relative_actions", relative_actions}};
+          {"relative_actions", relative_actions},
+          {"action_stats", action_stats ? action_stats->to_json() : nlohmann::json(nullptr)}};
 }
 
 LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::path& cache_file) {
@@ -107,6 +108,7 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
   data::ClipConfig clip;
   clip.strides = spec.strides;
   clip.relative_actions = spec.relative_actions;
+  clip.action_stats = spec.action_stats;
   clip.height = spec.size > 0 ? spec.size : info.height;
   clip.width = spec.size > 0 ? spec.size : info.width;
   DOJO_CHECK(clip.height > 0 && clip.width > 0 && clip.height % 8 == 0 && clip.width % 8 == 0,

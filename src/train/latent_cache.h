@@ -8,8 +8,11 @@
 #include <cstdint>
 #include <filesystem>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <string>
 #include <vector>
+
+#include "data/actions.h"
 
 namespace dojo::train {
 
@@ -35,6 +38,9 @@ struct LatentCacheSpec {
   int size = 0;                  // frame size fed to the tokenizer (0: the dataset's)
   int64_t max_clips = 0;         // 0: all windows
   bool relative_actions = true;  // false: absolute normalised actions (ablation)
+  // Robot actions normalised with these instead of the dataset's statistics (the world model's
+  // own, shared by all its robot datasets); unset: the dataset's.
+  std::optional<data::ArrayStats> action_stats;
   nlohmann::json to_json() const;
 };
 

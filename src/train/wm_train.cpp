@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <deque>
+#include <map>
 #include <optional>
 #include <sstream>
 
@@ -48,6 +49,9 @@ nlohmann::json WmTrainOptions::to_json() const {
           {"grad_clip", grad_clip},
           {"warmup_steps", warmup_steps},
           {"ema_sigma_rel", ema_sigma_rel},
+          {"condition_noise", condition_noise},
+          {"motion_weight", motion_weight},
+          {"action_dropout", action_dropout},
           {"flow",
            {{"shift", flow.shift},
             {"high_sigma_prob", flow.high_sigma_prob},
@@ -62,6 +66,9 @@ WmTrainOptions WmTrainOptions::from_json(const nlohmann::json& j) {
   o.grad_clip = j.value("grad_clip", o.grad_clip);
   o.warmup_steps = j.value("warmup_steps", o.warmup_steps);
   o.ema_sigma_rel = j.value("ema_sigma_rel", o.ema_sigma_rel);
+  o.condition_noise = j.value("condition_noise", o.condition_noise);
+  o.motion_weight = j.value("motion_weight", o.motion_weight);
+  o.action_dropout = j.value("action_dropout", o.action_dropout);
   if (j.contains("flow")) {
     const auto& f = j["flow"];
     o.flow.shift = f.value("shift", o.flow.shift);
@@ -90,21 +97,39 @@ struct FlowLoss {
 
 // x0 and actions on the network's device. Only the network's forward runs under autocast; its
 // velocity is taken back to float32 so the loss (and the start of the backward pass) is float32.
-FlowLoss flow_loss(models::ActionDit& net, const diffusion::FlowMatchingConfig& flow, const torch::Tensor& x0,
+FlowLoss flow_loss(models::ActionDit& net, const WmTrainOptions& options, const torch::Tensor& clean,
                    const torch::Tensor& actions, torch::Generator gen, Precision precision) {
+  const auto& flow = options.flow;
+  auto x0 = clean;
+  if (options.condition_noise > 0) {
+    // Noise on the conditioning latent: rollouts condition on frames the model made itself, so
+    // it learns not to copy every detail of its context (GameNGen's context noise, without the
+    // level embedding). Drawn on the CPU like the rest, so a seed gives the same run anywhere.
+    const auto level = torch::rand({x0.size(0), 1, 1, 1}, gen) * options.condition_noise;  // [B, 1, 1, 1]
+    const auto eps = torch::randn({x0.size(0), x0.size(1), x0.size(3), x0.size(4)}, gen);
+    x0 = clean.clone();
+    x0.select(2, 0).add_((level * eps).to(x0.options()));
+  }
   const auto noise = diffusion::sample_training_noise(x0, flow, gen);  // drawn on CPU, on x0's device
   const auto mask = condition_mask_like(x0);
   models::DitInputs in;
   in.timesteps = noise.timesteps.view({x0.size(0), 1});  // [B, 1]
   in.condition_mask = mask;
   in.actions = actions;
+  if (options.action_dropout > 0) {
+    const auto keep =
+        (torch::rand({actions.size(0), 1, 1}, gen) >= options.action_dropout).to(actions.options());
+    in.actions = actions * keep;  // [B, 4 (T - 1), A]: whole clips lose their actions
+  }
   torch::Tensor v;  // [B, 16, T, h, w]
   {
     AutocastGuard autocast(x0.device().type(), precision);
     v = models::denoise_velocity(*net, in, noise.x_t, x0, noise.noise, mask);
   }
   v = v.to(torch::kFloat32);
-  return {diffusion::flow_matching_loss(v, noise.target_velocity, flow),
+  const auto weight =
+      options.motion_weight > 0 ? diffusion::motion_weight(x0, options.motion_weight) : torch::Tensor();
+  return {diffusion::flow_matching_loss(v, noise.target_velocity, flow, nullptr, weight),
           (v - noise.target_velocity).pow(2).mean()};
 }
 
@@ -152,8 +177,7 @@ WmStepStats WmTrainer::step(const torch::Tensor& x0, const torch::Tensor& action
   for (auto& group : optimizer_->param_groups())
     static_cast<torch::optim::AdamWOptions&>(group.options()).lr(s.lr);
   optimizer_->zero_grad();
-  const auto loss =
-      flow_loss(net_, options_.flow, x0.to(device_), actions.to(device_), generator, precision_);
+  const auto loss = flow_loss(net_, options_, x0.to(device_), actions.to(device_), generator, precision_);
   loss.total.backward();
   const double clip = options_.grad_clip > 0 ? options_.grad_clip : std::numeric_limits<double>::infinity();
   s.grad_norm = torch::nn::utils::clip_grad_norm_(params_, clip);
@@ -169,8 +193,10 @@ WmStepStats WmTrainer::step(const torch::Tensor& x0, const torch::Tensor& action
 double WmTrainer::eval_loss(const torch::Tensor& x0, const torch::Tensor& actions, uint64_t seed) {
   torch::NoGradGuard no_grad;
   ema_->eval();
-  return flow_loss(ema_, options_.flow, x0.to(device_), actions.to(device_), make_cpu_generator(seed),
-                   precision_)
+  // The held-out loss measures the plain objective: no conditioning noise, no weighting.
+  WmTrainOptions plain = options_;
+  plain.condition_noise = plain.motion_weight = plain.action_dropout = 0;
+  return flow_loss(ema_, plain, x0.to(device_), actions.to(device_), make_cpu_generator(seed), precision_)
       .total.item<double>();
 }
 
@@ -181,6 +207,7 @@ void WmTrainer::save(const fs::path& dir, const nlohmann::json& extra) const {
   CheckpointData data = models::world_model_checkpoint(*ema_);  // inference loads the EMA weights
   // Sampling uses the time shift the network was trained with, unless told otherwise.
   data.config["sampler"] = {{"shift", options_.flow.shift}};
+  data.config.update(config_extras_);
   TrainerState ts;
   ts.step = steps_;
   ts.extra = extra;
@@ -208,6 +235,22 @@ void WmTrainer::resume(const fs::path& dir) {
 }
 
 namespace {
+
+// Per robot action slot, the union of the ranges of the datasets that fill it.
+nlohmann::json robot_action_ranges(const std::vector<LatentCacheSpec>& data) {
+  std::map<std::string, data::ArrayStats> ranges;
+  for (const auto& spec : data) {
+    const auto source = data::open_dataset(spec.dataset);
+    const auto& info = source->info();
+    if (info.action_slot.empty() || !info.action_stats) continue;
+    const auto it = ranges.find(info.action_slot);
+    ranges[info.action_slot] =
+        it == ranges.end() ? *info.action_stats : data::union_range(it->second, *info.action_stats);
+  }
+  nlohmann::json out = nlohmann::json::object();
+  for (const auto& [slot, stats] : ranges) out[slot] = stats.to_json();
+  return out;
+}
 
 // The per-dimension action factors of a new network: the given scale (or unit-std
 // standardisation) on the dimensions the robot datasets' actions occupy, the network's present
@@ -247,14 +290,27 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint";
 
+  // The network's own action normalisation, one range per robot action slot: the union of its
+  // robot datasets' ranges (kept from the checkpoint when resuming), so the same motion gives the
+  // same numbers whichever dataset it comes from, in training and in every later rollout.
+  const bool resuming = checkpoint_exists(ckpt_dir);
+  const auto action_ranges = resuming ? Checkpoint::open(resolve_checkpoint_dir(ckpt_dir))
+                                            .config()
+                                            .value("actions", nlohmann::json::object())
+                                      : robot_action_ranges(job.data);
   std::vector<LatentClips> sets;
-  for (size_t i = 0; i < job.data.size(); ++i)
+  for (size_t i = 0; i < job.data.size(); ++i) {
+    auto spec = job.data[i];
+    const auto& slot = data::open_dataset(spec.dataset)->info().action_slot;
+    if (!slot.empty() && action_ranges.contains(slot))
+      spec.action_stats =
+          data::ArrayStats::from_json(action_ranges[slot], ckpt_dir.string() + ": actions." + slot);
     sets.push_back(
-        load_or_build_latent_clips(job.data[i], job.out / ("latents-" + std::to_string(i) + ".safetensors")));
+        load_or_build_latent_clips(spec, job.out / ("latents-" + std::to_string(i) + ".safetensors")));
+  }
   const auto clips = concat_latent_clips(sets);
   const int64_t n = clips.size();
 
-  const bool resuming = checkpoint_exists(ckpt_dir);
   torch::manual_seed(job.seed);
   std::optional<models::ActionDit> net;
   if (resuming) {
@@ -272,6 +328,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   if (!resuming && (job.action_scale != 1.0 || job.standardize_actions))
     (*net)->config.action_scale = robot_action_scale(job, clips, (*net)->config);
   WmTrainer trainer(*net, job.options, job.device, job.precision);
+  if (!action_ranges.empty()) trainer.set_config_extras({{"actions", action_ranges}});
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("wm train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());

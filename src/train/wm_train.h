@@ -32,6 +32,14 @@ struct WmTrainOptions {
   int64_t warmup_steps = 100;  // linear warm-up of the learning rate from 0
   double ema_sigma_rel = 0.1;  // power EMA, as released
   diffusion::FlowMatchingConfig flow;
+  // Largest standard deviation of the Gaussian noise added to the conditioning latent (a level
+  // drawn uniformly per clip); 0: clean context, as released.
+  double condition_noise = 0;
+  // Strength of the motion-weighted loss (diffusion::motion_weight); 0: uniform, as released.
+  double motion_weight = 0;
+  // Probability per clip of training with zero actions, so that sampling can guide with the
+  // difference (infer::SamplerOptions::action_guidance); 0: as released.
+  double action_dropout = 0;
   nlohmann::json to_json() const;
   static WmTrainOptions from_json(const nlohmann::json& j);
 };
@@ -63,6 +71,10 @@ class WmTrainer {
   const torch::Device& device() const { return device_; }
   Precision precision() const { return precision_; }
 
+  // Entries merged into the checkpoint's config.json beside the network's: the action
+  // normalisation {"actions": {slot: statistics}} run_wm_training gives the network.
+  void set_config_extras(nlohmann::json extras) { config_extras_ = std::move(extras); }
+
   // Checkpoint: model.safetensors holds the EMA weights as "net.*" (what inference loads, as
   // in the released converted checkpoints); trainer_state holds the raw weights, AdamW moments
   // and RNG. Always CPU float32 tensors, whatever the device and precision; resume() loads them
@@ -81,6 +93,7 @@ class WmTrainer {
   std::unique_ptr<torch::optim::AdamW> optimizer_;
   double ema_gamma_;
   int64_t steps_ = 0;
+  nlohmann::json config_extras_ = nlohmann::json::object();
 };
 
 enum class WmStage { kPretrain, kPosttrain, kScratch };
