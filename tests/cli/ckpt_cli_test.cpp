@@ -4,6 +4,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/checkpoint.h"
+#include "models/wan_vae.h"
 #include "test_util.h"
 
 namespace dojo {
@@ -85,6 +86,37 @@ TEST(CkptCli, MissingOrCorruptInputIsAOneLineError) {
     EXPECT_EQ(std::count(result.output.begin(), result.output.end(), '\n'), 1) << result.output;
   }
   EXPECT_EQ(test::run_dojo("ckpt info").exit_code, 2);
+}
+
+// An inference export keeps the config, drops the trainer state, stores the learned parameters
+// in bf16 and still loads as the same model, whose decoder output moves only by bf16 rounding.
+TEST(CkptCli, ExportWritesABf16ModelThatStillLoads) {
+  test::OneThread one;
+  test::TempDir dir;
+  torch::manual_seed(0);
+  models::WanVae vae(models::WanVaeConfig::tiny());
+  vae->eval();
+  models::save_tokenizer(dir / "vae", *vae);
+  const auto result = test::run_dojo("ckpt export " + (dir / "vae").string() + " " + (dir / "out").string());
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  const auto exported = Checkpoint::open(dir / "out");
+  EXPECT_FALSE(exported.has_trainer_state());
+  EXPECT_EQ(exported.config(), Checkpoint::open(dir / "vae").config());
+  size_t bf16 = 0;
+  for (const auto& name : exported.model().keys())
+    bf16 += exported.model().tensor(name, /*copy=*/true).scalar_type() == torch::kBFloat16;
+  EXPECT_GT(bf16, 0u);
+
+  auto reloaded = models::load_tokenizer(dir / "out");
+  torch::NoGradGuard no_grad;
+  const auto video = torch::rand({1, 3, 5, 16, 16}) * 2 - 1;  // [B, 3, T, H, W]
+  const auto a = models::reconstruct(vae, video), b = models::reconstruct(reloaded, video);
+  EXPECT_GT((a - b).abs().max().item<float>(), 0.f) << "bf16 weights change the output a little";
+  EXPECT_LT((a - b).abs().max().item<float>(), 0.1f);
+
+  const auto bad = test::run_dojo("ckpt export " + (dir / "nothing").string() + " " + (dir / "x").string());
+  EXPECT_EQ(bad.exit_code, 1) << bad.output;
+  EXPECT_NE(bad.output.find("nothing"), std::string::npos) << bad.output;
 }
 
 }  // namespace

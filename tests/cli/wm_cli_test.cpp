@@ -42,12 +42,21 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   EXPECT_NE(r.output.find("4 steps"), std::string::npos) << r.output;
 
   // Post-training in bf16 (CPU autocast); its float32 checkpoint is evaluated in fp32 below.
+  // With the action-following levers on; the checkpoint keeps the robot data's action range, the
+  // normalisation every later rollout uses.
   r = test::run_dojo("--threads 1 wm train --stage posttrain --steps 2 --precision bf16" + common +
-                     " --init " + (tmp / "s" / "checkpoint").string() + " --out " + (tmp / "p").string());
+                     " --condition-noise 0.3 --action-dropout 0.1 --motion-weight 1 --init " +
+                     (tmp / "s" / "checkpoint").string() + " --out " + (tmp / "p").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto summary = nlohmann::json::parse(test::read_file(tmp / "p" / "train_summary.json"));
   EXPECT_EQ(summary.at("precision"), "bf16");
   EXPECT_EQ(summary.at("device"), "cpu");
+  const auto config = nlohmann::json::parse(test::read_file(tmp / "p" / "checkpoint" / "config.json"));
+  const auto stats =
+      nlohmann::json::parse(test::read_file(tmp / "robot" / "info.json")).at("stats").at("action");
+  ASSERT_TRUE(config.contains("actions")) << config.dump();
+  EXPECT_EQ(config["actions"].begin().value().at("min"), stats.at("min"));
+  EXPECT_EQ(config["actions"].begin().value().at("max"), stats.at("max"));
 
   // LPIPS with random weights: the wiring is what is tested here (values are checked in metrics_test).
   torch::manual_seed(0);

@@ -84,4 +84,18 @@ TEST(Actions, StatsAccumulator) {
   EXPECT_EQ(back.max, s.max);
 }
 
+TEST(Actions, UnionRangeWidensEachDimension) {
+  ArrayStats a, b;
+  a.min = {0.f, -1.f};
+  a.max = {1.f, 2.f};
+  b.min = {-0.5f, 0.f};
+  b.max = {0.5f, 3.f};
+  const auto u = union_range(a, b);
+  EXPECT_EQ(u.min, (std::vector<float>{-0.5f, -1.f}));
+  EXPECT_EQ(u.max, (std::vector<float>{1.f, 3.f}));
+  b.min.push_back(0.f);
+  b.max.push_back(1.f);
+  EXPECT_THROW(union_range(a, b), Error);
+}
+
 }  // namespace dojo::data

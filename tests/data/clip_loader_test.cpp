@@ -211,4 +211,27 @@ TEST(ClipLoader, KeypointsFollowTheCropAndResize) {
   EXPECT_EQ(out[0][2][2].item<float>(), 1.f);
 }
 
+// A model's own ranges replace the dataset's: the same motion gives the same numbers whichever
+// dataset it comes from. Dim 0 spans [0, 39] in the data; with [0, 78] its deltas halve.
+TEST(ClipLoader, GivenActionStatsReplaceTheDatasets) {
+  test::TempDir tmp;
+  make_dataset(tmp / "robot", Embodiment::kRobot, 1, 40);
+  auto config = small_config();
+  ArrayStats wide;
+  wide.min = {0.f, 0.f, 0.f};
+  wide.max = {78.f, 78.f, 14.f};
+  config.action_stats = wide;
+  ClipDataset dataset(EpisodeStore::open(tmp / "robot"), config);
+  const auto clip = dataset.read(0, make_window(2, 2, 13));
+  for (int j = 0; j < 12; ++j) {
+    const double step = 2 + 2 * (1 + j);
+    const double base = 2 + 2 * (4 * (j / 4));
+    EXPECT_NEAR(clip.actions[j][169].item<float>(), 2 * (step - base) / 78.0, 1e-5) << j;
+  }
+  wide.min.pop_back();
+  wide.max.pop_back();
+  config.action_stats = wide;
+  EXPECT_THROW(ClipDataset(EpisodeStore::open(tmp / "robot"), config), Error);
+}
+
 }  // namespace dojo::data

@@ -145,4 +145,27 @@ TEST(Flow, EmaUpdateInPlaceWithoutGrad) {
   EXPECT_THROW(ema_update(wrong, params, 0.5), Error);
 }
 
+// The motion weight is 1 + strength on average over a clip's moving frames' mean change: 1 on the
+// first (conditioning) frame and everywhere in a still clip, larger where the latent changes.
+TEST(Flow, MotionWeightFollowsTheLatentsChange) {
+  auto x0 = torch::zeros({2, 4, 3, 2, 2});                  // [B, C, T, H, W]
+  x0[0].select(1, 2).select(1, 0).select(1, 0).fill_(1.0);  // sample 0: one pixel changes at t = 2
+  const auto w = motion_weight(x0, 2.0);
+  ASSERT_EQ(w.sizes(), (std::vector<int64_t>{2, 1, 3, 2, 2}));
+  EXPECT_TRUE(w[1].eq(1.0).all().item<bool>()) << "a still clip is weighted evenly";
+  EXPECT_TRUE(w[0].select(1, 0).eq(1.0).all().item<bool>());
+  // Sample 0: change 1 at one of 12 (t, h, w) sites -> mean 1/12, weight there 1 + 2 * 12.
+  EXPECT_NEAR(w[0][0][2][0][0].item<float>(), 25.0, 1e-4);
+  EXPECT_NEAR(w[0][0][1][0][0].item<float>(), 1.0, 1e-6);
+  EXPECT_NEAR(w[0].mean().item<float>(), 3.0, 1e-4);
+  // A weighted loss counts the moving site more.
+  const auto target = torch::zeros_like(x0);
+  auto pred = torch::zeros_like(x0);
+  pred[0][0][2][0][0] = 1.0;
+  FlowMatchingConfig config;
+  config.temporal_weight = 0;
+  EXPECT_NEAR(flow_matching_loss(pred, target, config, nullptr, w).item<double>(),
+              25.0 * flow_matching_loss(pred, target, config).item<double>(), 1e-5);
+}
+
 }  // namespace dojo::diffusion

@@ -92,4 +92,26 @@ TEST(WorldModel, RejectsBadShapesClearly) {
 }
 
 }  // namespace
+// Action guidance extrapolates from the zero-action prediction toward the action one: scale 1 is
+// the plain sampler and scale 0 is the rollout with zero actions.
+TEST(WorldModel, ActionGuidanceInterpolatesBetweenZeroAndTrueActions) {
+  test::OneThread one;
+  auto model = random_model();
+  const auto first = torch::randint(0, 255, {1, 16, 16, 3}, torch::kByte);
+  const auto actions = torch::rand({1, 12, 384}) * 2 - 1;
+  SamplerOptions plain;
+  plain.steps = 3;
+  auto guided = plain;
+  guided.action_guidance = 1.0 + 1e-9;  // through the batched branch
+  const auto a = model.rollout(first, actions, 3, plain, ConcatMode::kAligned);
+  const auto b = model.rollout(first, actions, 3, guided, ConcatMode::kAligned);
+  EXPECT_LE((a.to(torch::kInt) - b.to(torch::kInt)).abs().max().item<int>(), 1);
+  guided.action_guidance = 0.0;
+  const auto zero = model.rollout(first, torch::zeros_like(actions), 3, plain, ConcatMode::kAligned);
+  const auto c = model.rollout(first, actions, 3, guided, ConcatMode::kAligned);
+  EXPECT_LE((zero.to(torch::kInt) - c.to(torch::kInt)).abs().max().item<int>(), 1);
+  guided.action_guidance = 3.0;
+  EXPECT_FALSE(model.rollout(first, actions, 3, guided, ConcatMode::kAligned).equal(a));
+}
+
 }  // namespace dojo::infer
