@@ -266,7 +266,10 @@ DemoSummary run_demo(const DemoOptions& o) {
     spec.max_clips = kMaxClips;
     job.data = {spec};
     job.out = out / name;
-    if (stage == train::WmStage::kPosttrain) job.init = out / "wm_pretrain" / "checkpoint";
+    if (stage == train::WmStage::kPosttrain) {
+      job.init = out / "wm_pretrain" / "checkpoint";
+      job.options.condition_noise = o.posttrain_condition_noise;
+    }
     job.model = models::DitConfig::small();
     job.options.lr = 3e-4;  // small network, few thousand steps
     job.options.grad_clip = 1.0;
@@ -296,12 +299,14 @@ DemoSummary run_demo(const DemoOptions& o) {
                                                     train::ActionMode::kLatent, "wm_pretrain");
                                     });
   LOG_INFO("[6/8] world model post-training on robot actions");
-  stages["wm_posttrain"] =
-      run_stage(out, "wm_posttrain",
-                {{"budget", budget_settings("wm_posttrain")}, {"init", stages["wm_pretrain"]}}, [&] {
-                  return wm_job(train::WmStage::kPosttrain, out / "robot", "train",
-                                train::ActionMode::kDataset, "wm_posttrain");
-                });
+  stages["wm_posttrain"] = run_stage(out, "wm_posttrain",
+                                     {{"budget", budget_settings("wm_posttrain")},
+                                      {"init", stages["wm_pretrain"]},
+                                      {"condition_noise", o.posttrain_condition_noise}},
+                                     [&] {
+                                       return wm_job(train::WmStage::kPosttrain, out / "robot", "train",
+                                                     train::ActionMode::kDataset, "wm_posttrain");
+                                     });
 
   // 7. Rollouts and evaluation, of the demo's models and of the reference set.
   LOG_INFO(

@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Trains the DojoSim reference model set and exports it (bf16, no trainer state) into
+# models/reference, then scores it. About 1.5 hours on 2 CPU cores.
+#
+#   scripts/train_reference.sh [WORK_DIR=ref_work]
+#
+# 1. `dojo demo` makes the datasets, the LAM, the tokenizer, the keypoint probe and a pretrained
+#    world model (its stage budgets; --reference none so it does not score an older set).
+# 2. Pretraining continues to 3500 steps on 768 human clips (the demo caches 192).
+# 3. Post-training from that checkpoint: 5000 steps on every robot training clip, conditioning
+#    noise 0.3 (docs/action_following.md).
+# 4. `dojo ckpt export` of the five models into models/reference; `dojo eval` on the demo's three
+#    robot splits (8 episodes each, with the probe and the action-sensitivity runs).
+# Re-running resumes: finished demo stages and trainings are kept.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+WORK=${1:-ref_work}
+DOJO=${DOJO:-build/dojo}
+REF=models/reference
+
+"$DOJO" demo --out "$WORK" --reference none
+if [[ ! -d $WORK/ref_pretrain ]]; then  # resume the demo's pretraining in a copy (optimizer state and all)
+  mkdir -p "$WORK/ref_pretrain" && cp -r "$WORK/wm_pretrain/checkpoint" "$WORK/ref_pretrain/"
+fi
+"$DOJO" wm train --stage pretrain --data "$WORK/human" --split all --tokenizer "$WORK/tokenizer/checkpoint" \
+  --lam "$WORK/lam/checkpoint" --out "$WORK/ref_pretrain" --steps 3500 \
+  --batch 8 --lr 3e-4 --grad-clip 1 --warmup 50 --hop 4 --max-clips 768 --save-every 250
+"$DOJO" wm train --stage posttrain --data "$WORK/robot" --tokenizer "$WORK/tokenizer/checkpoint" \
+  --init "$WORK/ref_pretrain/checkpoint" --out "$WORK/ref_posttrain" --steps 5000 --batch 8 --lr 3e-4 \
+  --grad-clip 1 --warmup 50 --hop 4 --max-clips 0 --condition-noise 0.3 --save-every 500
+
+mkdir -p "$REF"
+for pair in "lam $WORK/lam/checkpoint" "tokenizer $WORK/tokenizer/checkpoint" "probe $WORK/probe/checkpoint" \
+            "wm_pretrain $WORK/ref_pretrain/checkpoint" "wm_posttrain $WORK/ref_posttrain/checkpoint"; do
+  set -- $pair
+  rm -rf "$REF/$1.new" && "$DOJO" ckpt export "$2" "$REF/$1.new" --dtype bf16
+  rm -rf "$REF/$1" && mv "$REF/$1.new" "$REF/$1"
+done
+for split in "val robot val" "ood robot_ood_objects all" "cf robot_counterfactual all"; do
+  set -- $split
+  "$DOJO" eval --data "$WORK/$2" --split "$3" -n 8 --action-sensitivity --out "$WORK/ref_eval_$1" --videos 2
+done
