@@ -39,26 +39,31 @@ constexpr int64_t kMaxClips = 192;  // per dataset in the world model's latent c
 
 // Seconds per step of each stage on the 2-core reference machine (docs/benchmarks.md), for the
 // estimate printed up front; scaled by this machine's matrix-multiply speed.
-constexpr double kReferenceGflops = 160.0;
+constexpr double kReferenceGflops = 150.0;  // `dojo bench`'s matmul_f32 row there
 struct StageCost {
   const char* name;
   double fixed_s, step_s;
 };
-constexpr StageCost kCosts[] = {{"data", 60, 0},     {"lam", 5, 0.10},          {"tokenizer", 5, 0.24},
-                                {"probe", 10, 0.15}, {"wm_pretrain", 45, 0.26}, {"wm_posttrain", 40, 0.26},
-                                {"eval", 200, 0}};
+// Measured on a fresh clone of 6144186 (docs/benchmarks.md, "Action following"); the world-model
+// stages' fixed part is building their latent caches, eval's the three splits' rollouts.
+constexpr StageCost kCosts[] = {{"data", 35, 0},     {"lam", 5, 0.11},           {"tokenizer", 5, 0.29},
+                                {"probe", 5, 0.025}, {"wm_pretrain", 30, 0.225}, {"wm_posttrain", 30, 0.225},
+                                {"eval", 135, 0},    {"eval_reference", 135, 0}};
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-// This machine's float32 matmul speed (GFLOP/s), from a few 1024^3 products.
-double matmul_gflops() {
-  const auto a = torch::rand({1024, 1024}), b = torch::rand({1024, 1024});
+// This machine's float32 matmul speed (GFLOP/s), from 1024^3 products under the thread layout of
+// the matmul-bound stages (as `dojo bench` measures it).
+double matmul_gflops(int threads) {
+  ScopedThreads matmul_bound(threads);
+  const auto a = torch::randn({1024, 1024}), b = torch::randn({1024, 1024});
   (void)torch::mm(a, b);
+  const int reps = 10;
   const auto t0 = std::chrono::steady_clock::now();
-  for (int i = 0; i < 3; ++i) (void)torch::mm(a, b);
-  return 3 * 2.0 * 1024 * 1024 * 1024 / seconds_since(t0) / 1e9;
+  for (int i = 0; i < reps; ++i) (void)torch::mm(a, b);
+  return reps * 2.0 * 1024 * 1024 * 1024 / seconds_since(t0) / 1e9;
 }
 
 // Runs `body` unless OUT/stages/<name>.json records a finished run with the same settings. Returns
@@ -129,10 +134,12 @@ DemoSummary run_demo(const DemoOptions& o) {
     return std::max(0.05, left * time_share.at(name) / later);
   };
   {
-    const double factor = kReferenceGflops / std::max(1.0, matmul_gflops());
+    const double factor = kReferenceGflops / std::max(1.0, matmul_gflops(matmul_threads(/*on_cuda=*/false)));
     double reference_s = 0;
-    for (const auto& c : kCosts)
+    for (const auto& c : kCosts) {
+      if (std::string(c.name) == "eval_reference" && o.reference.empty()) continue;
       reference_s += c.fixed_s + c.step_s * (steps.count(c.name) ? steps.at(c.name) : 0);
+    }
     if (o.minutes > 0)
       LOG_INFO("demo: time budget ", o.minutes, " min (results depend on the machine's speed)");
     else
@@ -204,6 +211,10 @@ DemoSummary run_demo(const DemoOptions& o) {
       run_stage(out, "tokenizer", {{"budget", budget_settings("tokenizer")}, {"data", stages["data"]}}, [&] {
         models::WanVaeConfig cfg;
         cfg.dim = 16;
+        // Seeded before the weights are drawn: the LAM stage draws from the global generator as it
+        // trains, so without this the tokenizer's initialisation would depend on whether the LAM
+        // stage ran in this process or was re-used, and for how many steps.
+        torch::manual_seed(o.seed);
         models::WanVae vae(cfg);
         models::init_frame_by_frame(vae);  // image phase first; a resumed run loads over this
         data::ClipConfig clip;
