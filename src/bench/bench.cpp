@@ -150,7 +150,8 @@ BenchCase sim_case(const std::string& embodiment, int size, bool render) {
   BenchCase c;
   c.name = std::string("sim_") + (render ? "render_" : "physics_") + embodiment;
   c.unit = "steps/s";
-  c.params = std::string(render ? std::to_string(size) + "x" + std::to_string(size) : "no rendering") + ", 48-step episode incl. world build";
+  c.params = std::string(render ? std::to_string(size) + "x" + std::to_string(size) : "no rendering") +
+             ", 48-step episode incl. world build";
   c.run_once = [embodiment, size, render] {
     sim::SceneSampling sampling;
     sampling.width = size;
