@@ -39,7 +39,9 @@ constexpr int64_t kMaxClips = 192;  // per dataset in the world model's latent c
 
 // Seconds per step of each stage on the 2-core reference machine (docs/benchmarks.md), for the
 // estimate printed up front; scaled by this machine's matrix-multiply speed.
-constexpr double kReferenceGflops = 150.0;  // `dojo bench`'s matmul_f32 row there
+// What matmul_gflops() below measures on that machine, idle (back-to-back products; `dojo
+// bench`'s matmul row, one product per timing, reads 150 there).
+constexpr double kReferenceGflops = 280.0;
 struct StageCost {
   const char* name;
   double fixed_s, step_s;
@@ -55,7 +57,7 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 }
 
 // This machine's float32 matmul speed (GFLOP/s), from 1024^3 products under the thread layout of
-// the matmul-bound stages (as `dojo bench` measures it).
+// the matmul-bound stages.
 double matmul_gflops(int threads) {
   ScopedThreads matmul_bound(threads);
   const auto a = torch::randn({1024, 1024}), b = torch::randn({1024, 1024});
