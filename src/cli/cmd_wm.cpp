@@ -140,34 +140,71 @@ std::string default_eval_data() {
 #endif
 }
 
-struct RolloutArgs {
-  std::string checkpoint, tokenizer, data, split = "val", episode, actions_file, out, solver = "unipc",
-                                           concat = "aligned", device = "cpu", precision = "fp32";
-  int chunks = 4, steps = 35;
+// What `wm rollout` and `eval` share: the model (the reference set by default), the data (held-out
+// DojoSim episodes by default) and the sampler.
+struct ModelArgs {
+  std::string checkpoint, tokenizer, data;
+  int steps = 35;
+  std::string solver = "unipc", concat = "aligned";
   double shift = 0;  // 0: the checkpoint's
   double action_guidance = 1;
+
+  void add_options(CLI::App* cmd) {
+    add_checkpoint_option(cmd, checkpoint, "the world model (default: the reference set, models/reference)");
+    cmd->add_option("--tokenizer", tokenizer,
+                    "Tokenizer checkpoint (default with the reference set: its own)");
+    add_data_option(cmd, data)->description(
+        "Dataset directory (episode store, LeRobot, EgoDex or video folder); default: 8 held-out DojoSim "
+        "robot "
+        "episodes made on the spot");
+  }
+  void add_sampler_options(CLI::App* cmd) {
+    cmd->add_option("--steps", steps, "Sampler steps")->capture_default_str();
+    cmd->add_option("--solver", solver, "unipc | euler")->capture_default_str();
+    cmd->add_option("--shift", shift,
+                    "Sampler time shift (default: the one the checkpoint was trained with)");
+    cmd->add_option("--action-guidance", action_guidance,
+                    "Action guidance scale (1 = off; > 1 needs a model trained with --action-dropout)")
+        ->capture_default_str();
+    cmd->add_option("--concat", concat, "aligned | released (chunk joining)")->capture_default_str();
+  }
+  // The defaults filled in (probe: the reference set's, when one is wanted and none given).
+  void resolve(std::string* probe) {
+    resolve_models(checkpoint, tokenizer, probe);
+    if (data.empty()) data = default_eval_data();
+  }
+  // The model's trained sampler with the options given on the command line.
+  infer::SamplerOptions sampler(const infer::WorldModel& model) const {
+    auto s = model.trained_sampler();
+    s.steps = steps;
+    if (shift > 0) s.shift = shift;
+    s.action_guidance = action_guidance;
+    s.solver = infer::parse_solver(solver);
+    return s;
+  }
+};
+
+struct RolloutArgs {
+  ModelArgs model;
+  std::string split = "val", episode, actions_file, out, device = "cpu", precision = "fp32";
+  int chunks = 4;
   uint64_t seed = 0;
 };
 
 int run_rollout(RolloutArgs a) {
   const auto device = parse_device(a.device);
-  resolve_models(a.checkpoint, a.tokenizer, nullptr);
-  if (a.data.empty()) a.data = default_eval_data();
+  a.model.resolve(nullptr);
   ScopedThreads matmul_bound(matmul_bound_command_threads("wm rollout", device.is_cuda()));
-  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, device, parse_precision(a.precision));
-  const auto clip = eval::read_episode_clip(a.data, a.split, a.episode, a.chunks,
-                                            eval::checkpoint_action_ranges(a.checkpoint));
+  auto model =
+      infer::WorldModel::load(a.model.checkpoint, a.model.tokenizer, device, parse_precision(a.precision));
+  const auto clip =
+      eval::read_episode_clip(a.model.data, a.split, a.episode, a.chunks, model.action_ranges());
   // Counterfactual: the episode's first frame with actions from a file.
   const bool counterfactual = !a.actions_file.empty();
   const auto actions =
       counterfactual ? eval::read_rollout_actions(a.actions_file) : clip.actions;  // [12 K, 384]
-  auto sampler = infer::checkpoint_sampler(a.checkpoint);
-  sampler.steps = a.steps;
-  if (a.shift > 0) sampler.shift = a.shift;
-  sampler.action_guidance = a.action_guidance;
-  sampler.solver = infer::parse_solver(a.solver);
-  const auto pred = model.rollout(clip.video.select(0, 0).unsqueeze(0), actions.unsqueeze(0), a.seed, sampler,
-                                  infer::parse_concat_mode(a.concat))[0];
+  const auto pred = model.rollout(clip.video.select(0, 0).unsqueeze(0), actions.unsqueeze(0), a.seed,
+                                  a.model.sampler(model), infer::parse_concat_mode(a.model.concat))[0];
   if (counterfactual)
     io::write_video(a.out, pred, {});
   else
@@ -178,36 +215,29 @@ int run_rollout(RolloutArgs a) {
 }
 
 struct EvalArgs {
-  std::string checkpoint, tokenizer, data, out, probe, solver = "unipc", concat = "aligned", device = "cpu",
-                                                       precision = "fp32";
+  ModelArgs model;
+  std::string out, probe, device = "cpu", precision = "fp32";
   std::vector<std::string> splits = {"val"};
   std::vector<std::string> lpips_weights;
-  int chunks = 4, episodes = 16, steps = 35, videos = 4, batch = 4, video_scale = 4;
-  double shift = 0;  // 0: the checkpoint's
-  double action_guidance = 1;
+  int chunks = 4, episodes = 16, videos = 4, batch = 4, video_scale = 4;
   uint64_t seed = 0;
   bool json = false, action_sensitivity = false;
 };
 
 int run_eval(EvalArgs a) {
   const auto device = parse_device(a.device);
-  resolve_models(a.checkpoint, a.tokenizer, &a.probe);
-  if (a.data.empty()) a.data = default_eval_data();
+  a.model.resolve(&a.probe);
   // Rollouts are DiT sampling: 31.0 generated frames/s with one OpenMP thread, 12.6 with two
   // (2 cores, OpenBLAS pthreads; docs/benchmarks.md).
   ScopedThreads matmul_bound(matmul_bound_command_threads("eval", device.is_cuda()));
-  auto model = infer::WorldModel::load(a.checkpoint, a.tokenizer, device, parse_precision(a.precision));
+  auto model =
+      infer::WorldModel::load(a.model.checkpoint, a.model.tokenizer, device, parse_precision(a.precision));
   eval::WmEvalOptions o;
   o.chunks = a.chunks;
   o.max_episodes = a.episodes;
   o.batch = a.batch;
-  o.sampler = infer::checkpoint_sampler(a.checkpoint);
-  o.sampler.steps = a.steps;
-  if (a.shift > 0) o.sampler.shift = a.shift;
-  o.sampler.action_guidance = a.action_guidance;
-  o.action_ranges = eval::checkpoint_action_ranges(a.checkpoint);
-  o.sampler.solver = infer::parse_solver(a.solver);
-  o.concat = infer::parse_concat_mode(a.concat);
+  o.sampler = a.model.sampler(model);
+  o.concat = infer::parse_concat_mode(a.model.concat);
   o.seed = a.seed;
   o.videos = a.videos;
   o.video_scale = a.video_scale;
@@ -226,16 +256,16 @@ int run_eval(EvalArgs a) {
   }
   std::vector<eval::WmEvalResult> results;
   nlohmann::json j = {
-      {"checkpoint", a.checkpoint},
-      {"tokenizer", a.tokenizer},
-      {"sampler", {{"solver", a.solver}, {"steps", a.steps}, {"shift", o.sampler.shift}}},
-      {"concat", a.concat},
+      {"checkpoint", a.model.checkpoint},
+      {"tokenizer", a.model.tokenizer},
+      {"sampler", {{"solver", a.model.solver}, {"steps", a.model.steps}, {"shift", o.sampler.shift}}},
+      {"concat", a.model.concat},
       {"device", model.device().str()},
       {"precision", to_string(model.precision())},
       {"metrics", "PSNR/SSIM per frame (piq conventions), mean per video, then mean over videos"},
       {"splits", nlohmann::json::array()}};
   for (const auto& s : a.splits) {
-    results.push_back(eval::evaluate_world_model(model, a.data, s, o));
+    results.push_back(eval::evaluate_world_model(model, a.model.data, s, o));
     j["splits"].push_back(results.back().to_json());
   }
   const auto table = eval::markdown_table(results);
@@ -326,28 +356,13 @@ void register_wm(CLI::App& app) {
 
   auto r = std::make_shared<RolloutArgs>();
   auto* roll = wm->add_subcommand("rollout", "Roll the model out from an episode's first frame and actions");
-  add_checkpoint_option(roll, r->checkpoint,
-                        "the world model (default: the reference set, models/reference)");
-  roll->add_option("--tokenizer", r->tokenizer,
-                   "Tokenizer checkpoint (default with the reference set: its own)");
-  add_data_option(roll, r->data)
-      ->description(
-          "Dataset directory (episode store, LeRobot, EgoDex or video folder); default: 8 held-out DojoSim "
-          "robot "
-          "episodes made on the spot");
+  r->model.add_options(roll);
   add_split_option(roll, r->split);
   roll->add_option("--episode", r->episode, "Episode id (default: the first episode of --split)");
   roll->add_option("--actions", r->actions_file,
                    "safetensors file with 'actions' [12 K, 384] (counterfactual)");
   roll->add_option("--chunks", r->chunks, "Chunks of 12 actions")->capture_default_str();
-  roll->add_option("--steps", r->steps, "Sampler steps")->capture_default_str();
-  roll->add_option("--solver", r->solver, "unipc | euler")->capture_default_str();
-  roll->add_option("--shift", r->shift,
-                   "Sampler time shift (default: the one the checkpoint was trained with)");
-  roll->add_option("--action-guidance", r->action_guidance,
-                   "Action guidance scale (1 = off; > 1 needs a model trained with --action-dropout)")
-      ->capture_default_str();
-  roll->add_option("--concat", r->concat, "aligned | released (chunk joining)")->capture_default_str();
+  r->model.add_sampler_options(roll);
   add_seed_option(roll, r->seed);
   add_out_option(roll, r->out, "mp4 file")->required();
   add_device_options(roll, r->device, r->precision);
@@ -356,26 +371,12 @@ void register_wm(CLI::App& app) {
   auto e = std::make_shared<EvalArgs>();
   auto* ev =
       app.add_subcommand("eval", "Evaluate a world model: PSNR/SSIM of rollouts vs ground truth per split");
-  add_checkpoint_option(ev, e->checkpoint, "the world model (default: the reference set, models/reference)");
-  ev->add_option("--tokenizer", e->tokenizer,
-                 "Tokenizer checkpoint (default with the reference set: its own)");
-  add_data_option(ev, e->data)
-      ->description(
-          "Dataset directory (episode store, LeRobot, EgoDex or video folder); default: 8 held-out DojoSim "
-          "robot "
-          "episodes made on the spot");
+  e->model.add_options(ev);
   add_split_option(ev, e->splits);
   ev->add_option("--chunks", e->chunks, "Chunks of 12 actions per video (4 = the paper's 49 frames)")
       ->capture_default_str();
   ev->add_option("--episodes,-n", e->episodes, "Episodes per split (0 = all)")->capture_default_str();
-  ev->add_option("--steps", e->steps, "Sampler steps")->capture_default_str();
-  ev->add_option("--solver", e->solver, "unipc | euler")->capture_default_str();
-  ev->add_option("--shift", e->shift,
-                 "Sampler time shift (default: the one the checkpoint was trained with)");
-  ev->add_option("--action-guidance", e->action_guidance,
-                 "Action guidance scale (1 = off; > 1 needs a model trained with --action-dropout)")
-      ->capture_default_str();
-  ev->add_option("--concat", e->concat, "aligned | released (chunk joining)")->capture_default_str();
+  e->model.add_sampler_options(ev);
   ev->add_option("--batch,-b", e->batch, "Episodes rolled out together")->capture_default_str();
   ev->add_option("--videos", e->videos, "Side-by-side videos per split (with --out)")->capture_default_str();
   add_seed_option(ev, e->seed);

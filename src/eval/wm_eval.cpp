@@ -5,7 +5,6 @@
 #include <cstdio>
 #include <optional>
 
-#include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "core/progress.h"
@@ -70,12 +69,6 @@ nlohmann::json WmEvalResult::to_json() const {
   out["psnr"] = model().psnr;
   out["ssim"] = model().ssim;
   return out;
-}
-
-nlohmann::json checkpoint_action_ranges(const fs::path& checkpoint) {
-  return Checkpoint::open(resolve_checkpoint_dir(checkpoint))
-      .config()
-      .value("actions", nlohmann::json::object());
 }
 
 namespace {
@@ -225,7 +218,7 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
   clip.strides = {1};
   clip.height = info.height;
   clip.width = info.width;
-  clip.action_stats = model_range(o.action_ranges, info);
+  clip.action_stats = model_range(model.action_ranges(), info);
   data::ClipDataset ds(source, clip, split);
   std::vector<size_t> episodes;
   for (size_t ep : ds.episodes())

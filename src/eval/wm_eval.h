@@ -43,14 +43,7 @@ struct WmEvalOptions {
   models::KeypointProbe* probe = nullptr;  // keypoint error and detection rate, when given
   // Also roll out with shuffled and with zero actions (3x the rollouts).
   bool action_sensitivity = false;
-  // The world model's own action normalisation (checkpoint_action_ranges): robot actions are
-  // normalised with its range for the dataset's slot, not with the dataset's own statistics.
-  nlohmann::json action_ranges = nlohmann::json::object();
 };
-
-// The action normalisation a world-model checkpoint was trained with: its config.json "actions"
-// entry, {slot: statistics}; empty for checkpoints without one.
-nlohmann::json checkpoint_action_ranges(const std::filesystem::path& checkpoint);
 
 // One source's scores on a split: per-video means (each the mean over its frames), then the
 // mean over videos; per-frame means over videos for plotting.

@@ -13,9 +13,11 @@ diffusion::Solver parse_solver(const std::string& text) {
   throw Error("unknown solver '" + text + "' (expected unipc or euler)");
 }
 
-SamplerOptions checkpoint_sampler(const std::filesystem::path& checkpoint) {
+namespace {
+
+// The sampler a world-model checkpoint's config was trained for (its "sampler" entry).
+SamplerOptions sampler_from_config(const nlohmann::json& config, const std::filesystem::path& checkpoint) {
   SamplerOptions s;
-  const auto config = Checkpoint::open(resolve_checkpoint_dir(checkpoint)).config();
   if (config.contains("sampler") && config["sampler"].contains("shift")) {
     DOJO_CHECK(config["sampler"]["shift"].is_number() && config["sampler"]["shift"].get<double>() > 0,
                checkpoint.string() + "/config.json: field 'sampler.shift' must be a positive number");
@@ -23,6 +25,8 @@ SamplerOptions checkpoint_sampler(const std::filesystem::path& checkpoint) {
   }
   return s;
 }
+
+}  // namespace
 
 ConcatMode parse_concat_mode(const std::string& text) {
   if (text == "aligned") return ConcatMode::kAligned;
@@ -43,8 +47,12 @@ WorldModel::WorldModel(models::ActionDit net, models::WanVae tokenizer, torch::D
 WorldModel WorldModel::load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer,
                             torch::Device device, Precision precision) {
   check_precision_supported(precision, device.type());  // before reading any weights
-  return WorldModel(models::load_world_model(checkpoint), models::load_tokenizer(tokenizer), device,
-                    precision);
+  const auto config = Checkpoint::open(resolve_checkpoint_dir(checkpoint)).config();
+  WorldModel model(models::load_world_model(checkpoint), models::load_tokenizer(tokenizer), device,
+                   precision);
+  model.trained_sampler_ = sampler_from_config(config, checkpoint);
+  model.action_ranges_ = config.value("actions", nlohmann::json::object());
+  return model;
 }
 
 torch::Tensor WorldModel::reconstruct_frames(const torch::Tensor& frames) {

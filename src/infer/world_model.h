@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <functional>
+#include <nlohmann/json.hpp>
 #include <string>
 
 #include "core/autocast.h"
@@ -27,9 +28,6 @@ struct SamplerOptions {
   double action_guidance = 1.0;
 };
 diffusion::Solver parse_solver(const std::string& text);  // unipc | euler
-// The sampler a world-model checkpoint was trained for: its config.json "sampler" entry (the
-// training time shift), else the defaults above.
-SamplerOptions checkpoint_sampler(const std::filesystem::path& checkpoint);
 
 // How chunks are joined. The release keeps frames [0, 12) of every chunk after the first, so the
 // re-decoded conditioning frame repeats and prediction k >= 13 shows ground-truth time k - 1;
@@ -44,7 +42,8 @@ class WorldModel {
  public:
   WorldModel(models::ActionDit net, models::WanVae tokenizer, torch::Device device = torch::kCPU,
              Precision precision = Precision::kFloat32);
-  // A world-model checkpoint and the tokenizer it was trained with.
+  // A world-model checkpoint and the tokenizer it was trained with, with what its config.json
+  // records of its training: the time shift (trained_sampler) and the action ranges.
   static WorldModel load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer,
                          torch::Device device = torch::kCPU, Precision precision = Precision::kFloat32);
 
@@ -73,6 +72,13 @@ class WorldModel {
   models::WanVae& tokenizer() { return tokenizer_; }
   const torch::Device& device() const { return device_; }
   Precision precision() const { return precision_; }
+  // The sampler the network was trained for: the checkpoint's "sampler" entry (the training time
+  // shift), else the SamplerOptions defaults.
+  const SamplerOptions& trained_sampler() const { return trained_sampler_; }
+  // The network's own action normalisation, {slot: statistics} (the checkpoint's "actions" entry;
+  // empty for older checkpoints): robot actions are normalised with its range for the dataset's
+  // slot, not with the dataset's own statistics.
+  const nlohmann::json& action_ranges() const { return action_ranges_; }
   static constexpr int64_t kChunkActions = 12;
 
  private:
@@ -80,6 +86,8 @@ class WorldModel {
   models::WanVae tokenizer_;
   torch::Device device_;
   Precision precision_;
+  SamplerOptions trained_sampler_;
+  nlohmann::json action_ranges_ = nlohmann::json::object();
 };
 
 }  // namespace dojo::infer

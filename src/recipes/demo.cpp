@@ -331,8 +331,7 @@ DemoSummary run_demo(const DemoOptions& o) {
     auto probe = models::load_keypoint_probe(probe_ckpt);
     eval::WmEvalOptions eo;
     eo.max_episodes = o.eval_episodes;
-    eo.sampler = infer::checkpoint_sampler(wm);
-    eo.action_ranges = eval::checkpoint_action_ranges(wm);
+    eo.sampler = model.trained_sampler();
     eo.sampler.steps = o.sampler_steps;
     eo.seed = o.seed;
     eo.video_dir = videos;

@@ -237,11 +237,9 @@ void WmTrainer::resume(const fs::path& dir) {
 namespace {
 
 // Per robot action slot, the union of the ranges of the datasets that fill it.
-nlohmann::json robot_action_ranges(const std::vector<LatentCacheSpec>& data) {
+nlohmann::json robot_action_ranges(const std::vector<data::DatasetInfo>& datasets) {
   std::map<std::string, data::ArrayStats> ranges;
-  for (const auto& spec : data) {
-    const auto source = data::open_dataset(spec.dataset);
-    const auto& info = source->info();
+  for (const auto& info : datasets) {
     if (info.action_slot.empty() || !info.action_stats) continue;
     const auto it = ranges.find(info.action_slot);
     ranges[info.action_slot] =
@@ -294,14 +292,16 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   // robot datasets' ranges (kept from the checkpoint when resuming), so the same motion gives the
   // same numbers whichever dataset it comes from, in training and in every later rollout.
   const bool resuming = checkpoint_exists(ckpt_dir);
+  std::vector<data::DatasetInfo> infos;  // each dataset opened once
+  for (const auto& spec : job.data) infos.push_back(data::open_dataset(spec.dataset)->info());
   const auto action_ranges = resuming ? Checkpoint::open(resolve_checkpoint_dir(ckpt_dir))
                                             .config()
                                             .value("actions", nlohmann::json::object())
-                                      : robot_action_ranges(job.data);
+                                      : robot_action_ranges(infos);
   std::vector<LatentClips> sets;
   for (size_t i = 0; i < job.data.size(); ++i) {
     auto spec = job.data[i];
-    const auto& slot = data::open_dataset(spec.dataset)->info().action_slot;
+    const auto& slot = infos[i].action_slot;
     if (!slot.empty() && action_ranges.contains(slot))
       spec.action_stats =
           data::ArrayStats::from_json(action_ranges[slot], ckpt_dir.string() + ": actions." + slot);

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include "core/checkpoint.h"
 #include "core/error.h"
 #include "test_util.h"
 #include "train/wm_test_fixtures.h"
@@ -112,6 +113,35 @@ TEST(WorldModel, ActionGuidanceInterpolatesBetweenZeroAndTrueActions) {
   EXPECT_LE((zero.to(torch::kInt) - c.to(torch::kInt)).abs().max().item<int>(), 1);
   guided.action_guidance = 3.0;
   EXPECT_FALSE(model.rollout(first, actions, 3, guided, ConcatMode::kAligned).equal(a));
+}
+
+// A loaded world model carries what its checkpoint records of training: the time shift its
+// sampler defaults to and the action ranges rollouts normalise with; older checkpoints have
+// neither and get the defaults.
+TEST(WorldModel, LoadKeepsTheTrainedShiftAndActionRanges) {
+  test::OneThread one;
+  test::TempDir tmp;
+  torch::manual_seed(0);
+  models::ActionDit net(train::test_fixtures::tiny_dit(/*live_actions=*/true, /*width=*/32));
+  models::WanVae vae(models::WanVaeConfig::tiny());
+  models::save_tokenizer(tmp / "tok", *vae);
+  auto data = models::world_model_checkpoint(*net);
+  save_checkpoint(tmp / "plain", data);
+  const nlohmann::json ranges = {{"dojosim_robot", {{"min", {0.0, 1.0}}, {"max", {1.0, 2.0}}}}};
+  data.config["sampler"] = {{"shift", 1.5}};
+  data.config["actions"] = ranges;
+  save_checkpoint(tmp / "trained", data);
+
+  const auto trained = WorldModel::load(tmp / "trained", tmp / "tok");
+  EXPECT_EQ(trained.trained_sampler().shift, 1.5);
+  EXPECT_EQ(trained.action_ranges(), ranges);
+  const auto plain = WorldModel::load(tmp / "plain", tmp / "tok");
+  EXPECT_EQ(plain.trained_sampler().shift, SamplerOptions{}.shift);
+  EXPECT_TRUE(plain.action_ranges().empty());
+
+  data.config["sampler"] = {{"shift", -1}};
+  save_checkpoint(tmp / "bad", data);
+  EXPECT_THROW(WorldModel::load(tmp / "bad", tmp / "tok"), Error);
 }
 
 }  // namespace dojo::infer
