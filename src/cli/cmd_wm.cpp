@@ -8,6 +8,7 @@
 #include <optional>
 
 #include "cli/commands.h"
+#include "cli/model_args.h"
 #include "cli/options.h"
 #include "core/atomic_file.h"
 #include "core/autocast.h"
@@ -16,12 +17,10 @@
 #include "core/runtime.h"
 #include "eval/lpips.h"
 #include "eval/wm_eval.h"
+#include "infer/streaming.h"
 #include "infer/world_model.h"
 #include "io/video.h"
 #include "models/keypoint_probe.h"
-#ifdef DOJO_WITH_SIM
-#include "sim/generate.h"
-#endif
 #include "train/wm_train.h"
 
 namespace fs = std::filesystem;
@@ -106,84 +105,6 @@ int run_wm_train(const WmTrainArgs& a) {
   return 0;
 }
 
-// The models of `dojo eval` / `dojo wm rollout`: the given checkpoint and tokenizer, or the
-// reference model set shipped in models/reference when no --checkpoint is given.
-void resolve_models(std::string& checkpoint, std::string& tokenizer, std::string* probe) {
-  const auto reference = default_reference_dir();
-  if (checkpoint.empty()) {
-    DOJO_CHECK(fs::exists(reference / "wm_posttrain" / "config.json"),
-               "no --checkpoint given and no reference model set at " + reference.string() +
-                   " (train one with `dojo demo`, or set DOJO_REFERENCE)");
-    checkpoint = (reference / "wm_posttrain").string();
-    if (tokenizer.empty()) tokenizer = (reference / "tokenizer").string();
-    LOG_INFO("using the reference world model ", checkpoint);
-  }
-  if (tokenizer.empty()) throw UsageError("--tokenizer is required with --checkpoint");
-  if (probe != nullptr && probe->empty() && fs::exists(reference / "probe" / "config.json"))
-    *probe = (reference / "probe").string();
-}
-
-// Without --data: held-out DojoSim robot episodes (seed 1001, never a training seed), generated
-// once into the temporary directory and re-used.
-std::string default_eval_data() {
-#ifdef DOJO_WITH_SIM
-  const auto dir = fs::temp_directory_path() / "dojo-heldout-robot";
-  sim::GenerateOptions g;
-  g.episodes = 8;
-  g.val_fraction = 1.0;  // all "val"
-  g.seed = 1001;
-  sim::generate_dataset(dir, g);
-  LOG_INFO("no --data: held-out DojoSim episodes in ", dir.string());
-  return dir.string();
-#else
-  throw UsageError("--data is required (this build has no DojoSim to make episodes)");
-#endif
-}
-
-// What `wm rollout` and `eval` share: the model (the reference set by default), the data (held-out
-// DojoSim episodes by default) and the sampler.
-struct ModelArgs {
-  std::string checkpoint, tokenizer, data;
-  int steps = 35;
-  std::string solver = "unipc", concat = "aligned";
-  double shift = 0;  // 0: the checkpoint's
-  double action_guidance = 1;
-
-  void add_options(CLI::App* cmd) {
-    add_checkpoint_option(cmd, checkpoint, "the world model (default: the reference set, models/reference)");
-    cmd->add_option("--tokenizer", tokenizer,
-                    "Tokenizer checkpoint (default with the reference set: its own)");
-    add_data_option(cmd, data)->description(
-        "Dataset directory (episode store, LeRobot, EgoDex or video folder); default: 8 held-out DojoSim "
-        "robot "
-        "episodes made on the spot");
-  }
-  void add_sampler_options(CLI::App* cmd) {
-    cmd->add_option("--steps", steps, "Sampler steps")->capture_default_str();
-    cmd->add_option("--solver", solver, "unipc | euler")->capture_default_str();
-    cmd->add_option("--shift", shift,
-                    "Sampler time shift (default: the one the checkpoint was trained with)");
-    cmd->add_option("--action-guidance", action_guidance,
-                    "Action guidance scale (1 = off; > 1 needs a model trained with --action-dropout)")
-        ->capture_default_str();
-    cmd->add_option("--concat", concat, "aligned | released (chunk joining)")->capture_default_str();
-  }
-  // The defaults filled in (probe: the reference set's, when one is wanted and none given).
-  void resolve(std::string* probe) {
-    resolve_models(checkpoint, tokenizer, probe);
-    if (data.empty()) data = default_eval_data();
-  }
-  // The model's trained sampler with the options given on the command line.
-  infer::SamplerOptions sampler(const infer::WorldModel& model) const {
-    auto s = model.trained_sampler();
-    s.steps = steps;
-    if (shift > 0) s.shift = shift;
-    s.action_guidance = action_guidance;
-    s.solver = infer::parse_solver(solver);
-    return s;
-  }
-};
-
 struct RolloutArgs {
   ModelArgs model;
   std::string split = "val", episode, actions_file, out, device = "cpu", precision = "fp32";
@@ -221,7 +142,7 @@ struct EvalArgs {
   std::vector<std::string> lpips_weights;
   int chunks = 4, episodes = 16, videos = 4, batch = 4, video_scale = 4;
   uint64_t seed = 0;
-  bool json = false, action_sensitivity = false;
+  bool json = false, action_sensitivity = false, student = false;
 };
 
 int run_eval(EvalArgs a) {
@@ -243,6 +164,14 @@ int run_eval(EvalArgs a) {
   o.video_scale = a.video_scale;
   o.action_sensitivity = a.action_sensitivity;
   if (!a.out.empty()) o.video_dir = fs::path(a.out) / "videos";
+  std::optional<infer::StreamingEngine> student;
+  if (a.student) {
+    infer::StreamingEngine::Options so;
+    so.device = device;
+    so.precision = parse_precision(a.precision);
+    student.emplace(infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, so));
+    o.student = &*student;
+  }
   std::optional<models::KeypointProbe> probe;
   if (!a.probe.empty()) {
     probe = models::load_keypoint_probe(a.probe);
@@ -258,7 +187,10 @@ int run_eval(EvalArgs a) {
   nlohmann::json j = {
       {"checkpoint", a.model.checkpoint},
       {"tokenizer", a.model.tokenizer},
-      {"sampler", {{"solver", a.model.solver}, {"steps", a.model.steps}, {"shift", o.sampler.shift}}},
+      {"sampler", a.student ? nlohmann::json{{"student", student->options().student.to_json()}}
+                            : nlohmann::json{{"solver", a.model.solver},
+                                             {"steps", a.model.steps},
+                                             {"shift", o.sampler.shift}}},
       {"concat", a.model.concat},
       {"device", model.device().str()},
       {"precision", to_string(model.precision())},
@@ -286,6 +218,7 @@ int run_eval(EvalArgs a) {
 void register_wm(CLI::App& app) {
   auto* wm = app.add_subcommand("wm", "Action-conditioned world model (DiT, rectified flow)");
   wm->require_subcommand(1);
+  register_wm_stream(*wm);
 
   auto t = std::make_shared<WmTrainArgs>();
   auto* train_cmd =
@@ -384,6 +317,9 @@ void register_wm(CLI::App& app) {
   ev->add_option("--probe", e->probe,
                  "Keypoint probe checkpoint (dojo probe train): adds keypoint error and detection rate "
                  "(default: the reference set's, when present)");
+  ev->add_flag(
+      "--student", e->student,
+      "The checkpoint is a distilled student (dojo distill): roll out by streaming it, 4 frames a step");
   ev->add_flag("--action-sensitivity", e->action_sensitivity,
                "Also roll out with shuffled and with zero actions: does the model use the actions?");
   ev->add_option("--video-scale", e->video_scale, "Enlarge the side-by-side videos this many times")

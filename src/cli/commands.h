@@ -48,7 +48,9 @@ void register_demo(CLI::App& app);
 void register_lam(CLI::App& app);
 void register_tokenizer(CLI::App& app);
 void register_wm(CLI::App& app);
+void register_wm_stream(CLI::App& wm);  // `wm stream`, under register_wm's `wm`
 void register_metrics(CLI::App& app);
 void register_probe(CLI::App& app);
+void register_distill(CLI::App& app);
 
 }  // namespace dojo::cli

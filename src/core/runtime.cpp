@@ -54,6 +54,13 @@ void use_one_thread_in_this_thread() {
 ScopedThreads::ScopedThreads(int n) : saved_(threads()) { set_threads(std::max(1, std::min(n, saved_))); }
 ScopedThreads::~ScopedThreads() { set_threads(saved_); }
 
+int64_t resident_memory_bytes() {
+  std::ifstream statm("/proc/self/statm");
+  int64_t pages_total = 0, pages_resident = 0;
+  if (!(statm >> pages_total >> pages_resident)) return 0;
+  return pages_resident * static_cast<int64_t>(sysconf(_SC_PAGESIZE));
+}
+
 int matmul_bound_threads() {
   static const bool blas_has_own_pool = blas_library().find("pthread") != std::string::npos;
   return blas_has_own_pool ? 1 : threads();

@@ -1,6 +1,7 @@
 // Process-wide runtime facts and settings: intra-op threads, device selection, build info.
 #pragma once
 
+#include <cstdint>
 #include <string>
 
 #include <nlohmann/json_fwd.hpp>
@@ -39,6 +40,9 @@ class ScopedThreads {
 // against it between ops: measured on 2 cores, the DiT trained at 29.6 clips/s with one OpenMP
 // thread and 10.7 with two, the LAM at 9.8 vs 6.3 steps/s. Then 1; otherwise threads().
 int matmul_bound_threads();
+
+// Resident set size of this process now, in bytes (/proc/self/statm; 0 where unavailable).
+int64_t resident_memory_bytes();
 
 bool cuda_available();
 int cuda_device_count();

@@ -144,6 +144,30 @@ at::Tensor place_in_slot(const at::Tensor& actions, const ActionSlot& slot) {
   return out;
 }
 
+ActionChunker::ActionChunker(ActionSlot slot, ArrayStats stats, int chunk)
+    : slot_(slot), stats_(std::move(stats)), chunk_(chunk) {
+  DOJO_CHECK(chunk_ > 0 && stats_.dim() > 0 && stats_.dim() <= slot_.width(),
+             "action chunker: the range's width " + std::to_string(stats_.dim()) + " does not fit slot '" +
+                 slot_.name + "'");
+}
+
+void ActionChunker::set_baseline(const at::Tensor& raw_row) {
+  DOJO_CHECK(raw_row.dim() == 1 && raw_row.size(0) == width(),
+             "action baseline must have " + std::to_string(width()) + " values");
+  last_ = normalize_min_max(raw_row.unsqueeze(0), stats_).squeeze(0);  // [w]
+}
+
+at::Tensor ActionChunker::push(const at::Tensor& raw_chunk) {
+  DOJO_CHECK(raw_chunk.dim() == 2 && raw_chunk.size(0) == chunk_ && raw_chunk.size(1) == width(),
+             "an action chunk must be " + std::to_string(chunk_) + " rows of " + std::to_string(width()) +
+                 " values");
+  const auto normalized = normalize_min_max(raw_chunk, stats_);  // [chunk, w]
+  if (!last_.defined()) last_ = normalized[0];
+  const auto relative = normalized - last_.unsqueeze(0);  // [chunk, w]
+  last_ = normalized[chunk_ - 1].clone();
+  return place_in_slot(relative, slot_);  // [chunk, 384]
+}
+
 at::Tensor human_action_placeholder(int64_t rows) {
   auto out = torch::zeros({rows, kUnifiedActionDim}, torch::kFloat32);  // [T, 384]
   out.slice(1, slots::kLatent.begin, slots::kLatent.end).fill_(1.0);

@@ -82,6 +82,28 @@ at::Tensor chunk_relative(const at::Tensor& actions, int chunk = 4);
 // Writes `actions` [T, w] into columns [slot.begin, slot.begin + w) of a zero [T, 384] tensor.
 at::Tensor place_in_slot(const at::Tensor& actions, const ActionSlot& slot);
 
+// A live stream of raw commands in the embodiment's own units, turned into the rows a world
+// model was trained on, chunk by chunk: min-max normalised with the model's range, made relative
+// to the last row before the chunk (the previous chunk's last row, or the baseline), placed in
+// the slot. What a streaming or teleoperation client sends goes through this.
+class ActionChunker {
+ public:
+  ActionChunker(ActionSlot slot, ArrayStats stats, int chunk = 4);
+  // The command in force at the start frame, [w]. Without one, the first chunk's first row
+  // serves as its own baseline.
+  void set_baseline(const at::Tensor& raw_row);
+  // raw [chunk, w] -> [chunk, 384]. Throws dojo::Error on a wrong shape.
+  at::Tensor push(const at::Tensor& raw_chunk);
+  int width() const { return stats_.dim(); }
+  void reset() { last_ = at::Tensor(); }
+
+ private:
+  ActionSlot slot_;
+  ArrayStats stats_;
+  int chunk_;
+  at::Tensor last_;  // the last raw row seen, normalised [w]
+};
+
 // Human video carries no actions: zeros everywhere, ones in the latent slot. The ones act as
 // the mask the world model multiplies with the LAM's latent actions.
 at::Tensor human_action_placeholder(int64_t rows);

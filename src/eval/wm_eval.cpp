@@ -258,6 +258,10 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
     const auto gt = torch::stack(videos);  // [n, 1 + 12K, H, W, 3]
     const auto first = gt.select(1, 0).contiguous();
     auto roll = [&](const torch::Tensor& a) {
+      if (o.student != nullptr)
+        return o.student->rollout(first, a, o.seed, [&](int64_t step) {
+          if ((step + 1) % 3 == 0) progress.advance(static_cast<int64_t>(e - b));  // 3 steps a chunk
+        });
       return model.rollout(first, a, o.seed, o.sampler, o.concat,
                            [&](int64_t) { progress.advance(static_cast<int64_t>(e - b)); });
     };

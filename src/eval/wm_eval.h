@@ -22,6 +22,7 @@
 #include <string>
 #include <vector>
 
+#include "infer/streaming.h"
 #include "infer/world_model.h"
 #include "models/keypoint_probe.h"
 
@@ -43,6 +44,9 @@ struct WmEvalOptions {
   models::KeypointProbe* probe = nullptr;  // keypoint error and detection rate, when given
   // Also roll out with shuffled and with zero actions (3x the rollouts).
   bool action_sensitivity = false;
+  // Roll out by streaming this student (one latent frame per step) instead of the teacher's
+  // chunked sampler; the tokenizer and action ranges still come from the model passed in.
+  infer::StreamingEngine* student = nullptr;
 };
 
 // One source's scores on a split: per-video means (each the mean over its frames), then the

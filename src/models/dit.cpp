@@ -1,5 +1,6 @@
 #include "models/dit.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 
@@ -98,7 +99,13 @@ torch::Tensor dit_block_causal_mask(int64_t q_frames, int64_t tokens_per_frame, 
 // ---------------------------------------------------------------------------------------------
 // Modules
 
+int64_t DitKvCache::tokens() const {
+  if (!k.defined()) return 0;
+  return ring() ? std::min(committed_, ring_frames_) * ring_tokens_ : k.size(2);
+}
+
 void DitKvCache::append(const torch::Tensor& k_new, const torch::Tensor& v_new) {
+  DOJO_CHECK(!ring(), "DitKvCache: append() is for the growing layout");
   if (!k.defined()) {
     k = k_new.detach();
     v = v_new.detach();
@@ -109,10 +116,56 @@ void DitKvCache::append(const torch::Tensor& k_new, const torch::Tensor& v_new) 
 }
 
 void DitKvCache::keep_last(int64_t tokens_to_keep) {
+  DOJO_CHECK(!ring(), "DitKvCache: keep_last() is for the growing layout (a ring keeps its window)");
   if (tokens() <= tokens_to_keep) return;
   if (tokens_to_keep <= 0) return clear();
   k = k.slice(2, tokens() - tokens_to_keep).contiguous();
   v = v.slice(2, v.size(2) - tokens_to_keep).contiguous();
+}
+
+void DitKvCache::clear() {
+  committed_ = 0;
+  if (!ring()) k = v = torch::Tensor();  // a ring keeps its buffer: reset is allocation-free
+}
+
+void DitKvCache::set_ring(int64_t window_frames, int64_t tokens_per_frame) {
+  DOJO_CHECK(window_frames >= 0 && tokens_per_frame > 0,
+             "DitKvCache: ring needs a window >= 0 and tokens > 0");
+  k = v = torch::Tensor();
+  ring_frames_ = window_frames;
+  ring_tokens_ = tokens_per_frame;
+  committed_ = 0;
+}
+
+std::pair<torch::Tensor, torch::Tensor> DitKvCache::attend(const torch::Tensor& k_new,
+                                                           const torch::Tensor& v_new, bool store) {
+  if (!ring()) {
+    std::pair<torch::Tensor, torch::Tensor> all{k_new, v_new};
+    if (tokens() > 0) all = {torch::cat({k, k_new}, 2), torch::cat({v, v_new}, 2)};  // [B, h, cached + L, d]
+    if (store) append(k_new, v_new);
+    return all;
+  }
+  DOJO_CHECK(k_new.size(2) == ring_tokens_, "DitKvCache: a ring takes one frame of " +
+                                                std::to_string(ring_tokens_) + " tokens per call, got " +
+                                                std::to_string(k_new.size(2)));
+  const int64_t slots = ring_frames_ + 1;  // the window plus this call's frame
+  if (!k.defined() || k.size(0) != k_new.size(0) || k.scalar_type() != k_new.scalar_type()) {
+    auto shape = k_new.sizes().vec();
+    shape[2] = slots * ring_tokens_;
+    k = torch::empty(shape, k_new.options());  // [B, h, slots · S, d]
+    v = torch::empty(shape, v_new.options());
+  }
+  // The slot after the newest committed frame: empty while filling, then the oldest one, which
+  // falls out of the window now.
+  const int64_t slot = committed_ % slots;
+  DOJO_CHECK(!(torch::GradMode::is_enabled() && k_new.requires_grad()),
+             "DitKvCache: the ring layout is for inference; train through the growing layout");
+  torch::NoGradGuard no_grad;  // entries are stored detached, as in the growing layout
+  k.narrow(2, slot * ring_tokens_, ring_tokens_).copy_(k_new);
+  v.narrow(2, slot * ring_tokens_, ring_tokens_).copy_(v_new);
+  const int64_t used = std::min(committed_ + 1, slots) * ring_tokens_;
+  if (store) ++committed_;
+  return {k.narrow(2, 0, used), v.narrow(2, 0, used)};
 }
 
 DitRmsNormImpl::DitRmsNormImpl(int64_t dim, double eps_) : eps(eps_) {
@@ -145,14 +198,8 @@ torch::Tensor DitAttentionImpl::self_attention(const torch::Tensor& x, const tor
   const auto q = apply_rope(q_norm(q_proj(x).view({B, L, heads, head_dim})), cos, sin).transpose(1, 2);
   auto k = apply_rope(k_norm(k_proj(x).view({B, L, heads, head_dim})), cos, sin).transpose(1, 2);
   auto v = v_proj(x).view({B, L, heads, head_dim}).transpose(1, 2);  // [B, h, L, d]
-  torch::Tensor k_all = k, v_all = v;
-  if (cache != nullptr) {
-    if (cache->tokens() > 0) {
-      k_all = torch::cat({cache->k, k}, 2);  // [B, h, cached + L, d]
-      v_all = torch::cat({cache->v, v}, 2);
-    }
-    if (store_kv) cache->append(k, v);
-  }
+  torch::Tensor k_all = k, v_all = v;                                // [B, h, cached + L, d]
+  if (cache != nullptr) std::tie(k_all, v_all) = cache->attend(k, v, store_kv);
   std::optional<torch::Tensor> m;
   if (mask.defined()) m = mask;
   const auto o = attention(q, k_all, v_all, m);                             // [B, h, L, d]

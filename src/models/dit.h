@@ -20,6 +20,7 @@
 #include <map>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace dojo {
@@ -161,13 +162,33 @@ torch::Tensor dit_block_causal_mask(int64_t q_frames, int64_t tokens_per_frame, 
 // --- modules (names as released) ---------------------------------------------------------------
 
 // Per-block self-attention KV cache (keys after RoPE), [B, heads, L, head_dim]. Entries are
-// stored detached, as the reference does.
+// stored detached, as the reference does. Two layouts:
+//   growing (default)  cached entries are concatenated; keep_last() trims a rolling window. Works
+//                      with any number of frames per call and with autograd through this call's
+//                      keys (training rollouts).
+//   ring (set_ring)    one preallocated buffer of window + 1 frames, one frame per call, for
+//                      streaming inference: this call's frame is written into the slot of the
+//                      oldest frame, every slot in use is attended (attention does not depend on
+//                      key order, and RoPE is already in the keys), and commit advances the ring.
+//                      No allocation after the first call; memory is flat for any horizon.
 struct DitKvCache {
   torch::Tensor k, v;
-  int64_t tokens() const { return k.defined() ? k.size(2) : 0; }
+  int64_t tokens() const;  // tokens that a call attends besides its own
   void append(const torch::Tensor& k_new, const torch::Tensor& v_new);
-  void keep_last(int64_t tokens);  // rolling window: drop the oldest entries
-  void clear() { k = v = torch::Tensor(); }
+  void keep_last(int64_t tokens);  // growing layout: drop the oldest entries
+  void clear();
+  // Switches to the ring layout holding window_frames committed frames of tokens_per_frame each.
+  void set_ring(int64_t window_frames, int64_t tokens_per_frame);
+  bool ring() const { return ring_tokens_ > 0; }
+  int64_t committed_frames() const { return committed_; }
+  // Keys and values to attend for this call's k_new, v_new ([B, h, L, d]); with store, this
+  // call's entries stay in the cache for later calls.
+  std::pair<torch::Tensor, torch::Tensor> attend(const torch::Tensor& k_new, const torch::Tensor& v_new,
+                                                 bool store);
+
+ private:
+  int64_t ring_frames_ = 0, ring_tokens_ = 0;  // ring: committed window, tokens per frame
+  int64_t committed_ = 0;                      // ring: frames committed so far
 };
 
 // x · rsqrt(mean(x²) + eps) · weight over the last dim, in float32 (TransformerEngine RMSNorm).

@@ -41,16 +41,6 @@ std::string to_string(ActionMode mode) {
 
 namespace {
 
-// Identifies a checkpoint's weights without hashing them: a retrained model changes size or time.
-nlohmann::json weights_fingerprint(const fs::path& dir) {
-  if (dir.empty()) return nullptr;
-  const auto file = resolve_checkpoint_dir(dir) / "model.safetensors";
-  DOJO_CHECK(fs::exists(file), file.string() + ": missing (not a checkpoint directory)");
-  return {{"path", fs::absolute(dir).lexically_normal().string()},
-          {"bytes", static_cast<int64_t>(fs::file_size(file))},
-          {"mtime", static_cast<int64_t>(fs::last_write_time(file).time_since_epoch().count())}};
-}
-
 // Ground-truth motion rows in the clip-action convention: row j (transition j -> j+1) is the
 // motion at frame j+1 relative to the first frame of its 4-row chunk.
 torch::Tensor chunk_relative_motion(const torch::Tensor& motion /*[T, M]*/, int chunk) {
@@ -62,11 +52,20 @@ torch::Tensor chunk_relative_motion(const torch::Tensor& motion /*[T, M]*/, int 
 
 }  // namespace
 
+nlohmann::json checkpoint_fingerprint(const fs::path& dir) {
+  if (dir.empty()) return nullptr;
+  const auto file = resolve_checkpoint_dir(dir) / "model.safetensors";
+  DOJO_CHECK(fs::exists(file), file.string() + ": missing (not a checkpoint directory)");
+  return {{"path", fs::absolute(dir).lexically_normal().string()},
+          {"bytes", static_cast<int64_t>(fs::file_size(file))},
+          {"mtime", static_cast<int64_t>(fs::last_write_time(file).time_since_epoch().count())}};
+}
+
 nlohmann::json LatentCacheSpec::to_json() const {
   return {{"dataset", fs::absolute(dataset).lexically_normal().string()},
           {"split", split},
-          {"tokenizer", weights_fingerprint(tokenizer)},
-          {"lam", mode == ActionMode::kLatent ? weights_fingerprint(lam) : nlohmann::json(nullptr)},
+          {"tokenizer", checkpoint_fingerprint(tokenizer)},
+          {"lam", mode == ActionMode::kLatent ? checkpoint_fingerprint(lam) : nlohmann::json(nullptr)},
           {"mode", train::to_string(mode)},
           {"strides", strides},
           {"hop", hop},

@@ -171,22 +171,32 @@ double WmTrainer::lr_at(int64_t step) const {
 
 WmStepStats WmTrainer::step(const torch::Tensor& x0, const torch::Tensor& actions,
                             torch::Generator generator) {
+  torch::Tensor mse;
+  auto s = step_loss([&](models::ActionDitImpl&) {
+    const auto loss = flow_loss(net_, options_, x0.to(device_), actions.to(device_), generator, precision_);
+    mse = loss.mse;
+    return loss.total;
+  });
+  s.mse = mse.item<double>();
+  s.temporal = options_.flow.temporal_weight > 0 ? (s.loss - s.mse) / options_.flow.temporal_weight : 0.0;
+  return s;
+}
+
+WmStepStats WmTrainer::step_loss(const std::function<torch::Tensor(models::ActionDitImpl& net)>& loss_fn) {
   net_->train();
   WmStepStats s;
   s.lr = lr_at(steps_);
   for (auto& group : optimizer_->param_groups())
     static_cast<torch::optim::AdamWOptions&>(group.options()).lr(s.lr);
   optimizer_->zero_grad();
-  const auto loss = flow_loss(net_, options_, x0.to(device_), actions.to(device_), generator, precision_);
-  loss.total.backward();
+  const auto loss = loss_fn(*net_);
+  loss.backward();
   const double clip = options_.grad_clip > 0 ? options_.grad_clip : std::numeric_limits<double>::infinity();
   s.grad_norm = torch::nn::utils::clip_grad_norm_(params_, clip);
   optimizer_->step();
   ++steps_;
   diffusion::ema_update(ema_params_, params_, diffusion::power_ema_beta(steps_, ema_gamma_));
-  s.loss = loss.total.item<double>();
-  s.mse = loss.mse.item<double>();
-  s.temporal = options_.flow.temporal_weight > 0 ? (s.loss - s.mse) / options_.flow.temporal_weight : 0.0;
+  s.loss = s.mse = loss.item<double>();
   return s;
 }
 

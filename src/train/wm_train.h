@@ -13,6 +13,7 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -61,6 +62,10 @@ class WmTrainer {
   // the trainer's). One optimiser step; the noise and time draws come from `generator` (a CPU
   // generator, so a seed gives the same draws on every device).
   WmStepStats step(const torch::Tensor& x0, const torch::Tensor& actions, torch::Generator generator);
+  // One optimiser step on any loss of the network (distillation): loss_fn runs the forward pass
+  // (the caller picks its precision) and returns a scalar. Learning-rate warm-up, clipping and
+  // the EMA update as in step(); WmStepStats::loss and mse are the returned loss.
+  WmStepStats step_loss(const std::function<torch::Tensor(models::ActionDitImpl& net)>& loss_fn);
   // Flow-matching loss of the EMA network on a fixed batch and fixed noise (no update).
   double eval_loss(const torch::Tensor& x0, const torch::Tensor& actions, uint64_t seed);
 

@@ -1,5 +1,6 @@
 #include "data/actions.h"
 
+#include <ATen/CPUGeneratorImpl.h>
 #include <torch/torch.h>
 
 #include "core/error.h"
@@ -98,4 +99,30 @@ TEST(Actions, UnionRangeWidensEachDimension) {
   EXPECT_THROW(union_range(a, b), Error);
 }
 
+}  // namespace dojo::data
+
+namespace dojo::data {
+namespace {
+
+// Chunk by chunk, a live stream of raw commands gives the rows the clip pipeline gives the
+// whole recording.
+TEST(ActionChunker, StreamEqualsTheClipPipeline) {
+  ArrayStats stats;
+  stats.min = {-2, 0, 5};
+  stats.max = {2, 10, 5};  // the last dimension never moves
+  auto g = at::make_generator<at::CPUGeneratorImpl>(3);
+  const auto raw = torch::rand({13, 3}, g) * 4 - 2;  // baseline row + 12 commands
+  const auto expected = place_in_slot(chunk_relative(normalize_min_max(raw, stats), 4), slots::kDojoSimRobot);
+  ActionChunker chunker(slots::kDojoSimRobot, stats);
+  chunker.set_baseline(raw[0]);
+  for (int64_t k = 0; k < 3; ++k)
+    EXPECT_TRUE(torch::allclose(chunker.push(raw.narrow(0, 1 + 4 * k, 4)), expected.narrow(0, 4 * k, 4)));
+  EXPECT_THROW(chunker.push(torch::zeros({4, 2})), Error);
+  EXPECT_THROW(chunker.push(torch::zeros({3, 3})), Error);
+  // No baseline: the first row is its own.
+  chunker.reset();
+  EXPECT_EQ(chunker.push(raw.narrow(0, 1, 4))[0].abs().sum().item<double>(), 0);
+}
+
+}  // namespace
 }  // namespace dojo::data

@@ -1,0 +1,109 @@
+// `dojo distill`: the post-trained teacher into the causal few-step student (teacher
+// trajectories, then the warm-up regression; train/distill.h).
+#include <CLI/CLI.hpp>
+
+#include <cstdio>
+#include <filesystem>
+#include <memory>
+
+#include "cli/commands.h"
+#include "cli/model_args.h"
+#include "cli/options.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/runtime.h"
+#include "train/distill.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::cli {
+namespace {
+
+struct DistillArgs {
+  std::string teacher, tokenizer, split = "train", out;
+  std::vector<std::string> data;
+  int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 3;
+  int batch = 8, student_steps = 4, teacher_steps = 35;
+  double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1;
+  bool fp32_times = false;
+  uint64_t seed = 0;
+};
+
+int run_distill(DistillArgs a) {
+  if (a.teacher.empty()) LOG_INFO("no --teacher: distilling the reference set's post-trained world model");
+  resolve_models(a.teacher, a.tokenizer, nullptr);
+  train::DistillJob job;
+  for (const auto& d : a.data) {
+    train::LatentCacheSpec spec;
+    spec.dataset = d;
+    spec.split = a.split;
+    spec.tokenizer = a.tokenizer;
+    spec.hop = a.hop;
+    spec.max_clips = a.max_clips;
+    job.data.push_back(spec);
+  }
+  job.teacher = a.teacher;
+  job.out = a.out;
+  job.student.window_frames = a.window;
+  job.student.steps = a.student_steps;
+  job.student.bf16_times = !a.fp32_times;
+  job.student.schedule();  // validates the steps before any work
+  job.trajectories.teacher_steps = a.teacher_steps;
+  job.trajectories.query_steps = train::TrajectorySpec::query_steps_for(a.teacher_steps);
+  job.trajectories.seed = a.seed;
+  job.options.lr = a.lr;
+  job.options.weight_decay = a.weight_decay;
+  job.options.grad_clip = a.grad_clip;
+  job.options.warmup_steps = 0;  // constant learning rate, as released
+  job.batch_size = a.batch;
+  job.steps = a.steps;
+  job.time_budget_s = a.minutes * 60;
+  job.save_every = a.save_every;
+  job.seed = a.seed;
+  const auto r = [&] {
+    ScopedThreads matmul_bound(matmul_bound_command_threads("distill", false));
+    return train::run_distillation(job);
+  }();
+  std::printf(
+      "distill warm-up: %lld steps on %lld teacher trajectories, loss %.4f -> %.4f, fixed-batch loss "
+      "%.4f -> %.4f\nstudent %s/checkpoint (stream it with `dojo wm stream -c %s/checkpoint`)\n",
+      static_cast<long long>(r.steps), static_cast<long long>(r.clips), r.first_loss, r.last_loss,
+      r.fixed_batch_loss_start, r.fixed_batch_loss_end, a.out.c_str(), a.out.c_str());
+  return 0;
+}
+
+}  // namespace
+
+void register_distill(CLI::App& app) {
+  auto a = std::make_shared<DistillArgs>();
+  auto* cmd = app.add_subcommand(
+      "distill",
+      "Distill a post-trained world model into the causal 4-step student (trajectories + warm-up)");
+  cmd->add_option("--teacher", a->teacher, "Post-trained world model (default: the reference set's)");
+  cmd->add_option("--tokenizer", a->tokenizer, "Its tokenizer (default with the reference set: its own)");
+  add_data_option(cmd, a->data)->required();
+  add_split_option(cmd, a->split);
+  add_out_option(cmd, a->out, "directory: checkpoint/, trajectories/, loss.csv")->required();
+  cmd->add_option("--steps", a->steps, "Warm-up steps (a resumed run continues up to this)")
+      ->capture_default_str();
+  cmd->add_option("--minutes", a->minutes, "Wall-clock budget, trajectories included (0: none)");
+  cmd->add_option("--batch,-b", a->batch, "Trajectories per step")->capture_default_str();
+  cmd->add_option("--lr", a->lr, "AdamW learning rate (constant; released: 3e-5 for a 2B net)")
+      ->capture_default_str();
+  cmd->add_option("--weight-decay", a->weight_decay, "AdamW weight decay")->capture_default_str();
+  cmd->add_option("--grad-clip", a->grad_clip, "Global gradient-norm clip")->capture_default_str();
+  cmd->add_option("--window", a->window, "Earlier latent frames a new frame attends to (released: 3)")
+      ->capture_default_str();
+  cmd->add_option("--student-steps", a->student_steps, "Student hops per latent frame, 1-4")
+      ->capture_default_str();
+  cmd->add_flag("--fp32-times", a->fp32_times, "Exact student times instead of the released bf16 rounding");
+  cmd->add_option("--teacher-steps", a->teacher_steps, "Teacher UniPC steps for the trajectories")
+      ->capture_default_str();
+  cmd->add_option("--hop", a->hop, "Clip start stride in frames")->capture_default_str();
+  cmd->add_option("--max-clips", a->max_clips, "Clips per dataset (0: all)")->capture_default_str();
+  cmd->add_option("--save-every", a->save_every, "Checkpoint every N steps")->capture_default_str();
+  add_seed_option(cmd, a->seed);
+  cmd->callback([a] { set_action([a] { return run_distill(*a); }); });
+}
+
+}  // namespace dojo::cli

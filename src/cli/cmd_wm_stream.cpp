@@ -1,0 +1,272 @@
+// `dojo wm stream`: the real-time student, one latent frame (4 video frames) per step, from a
+// start frame and a stream of actions (a file, stdin, or an episode's recording) to an mp4 or raw
+// frames on stdout, with per-step timings and memory.
+#include <CLI/CLI.hpp>
+
+#include <algorithm>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <optional>
+
+#include "cli/commands.h"
+#include "cli/model_args.h"
+#include "cli/options.h"
+#include "core/autocast.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/runtime.h"
+#include "data/actions.h"
+#include "eval/wm_eval.h"
+#include "infer/streaming.h"
+#include "io/video.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::cli {
+namespace {
+
+// Action chunks from JSON lines, one chunk per line, read as they arrive (stdin works live):
+//   [[...], [...], [...], [...]]        4 rows: 384 values (the model's layout, used as given) or
+//   {"actions": [[...], ...]}           the embodiment's width (raw commands: normalised with the
+//                                       model's range, made chunk-relative, placed in its slot)
+//   {"baseline": [...]}                 the raw command in force at the start frame
+class ActionLines {
+ public:
+  ActionLines(std::istream& in, std::string name, std::optional<data::ActionChunker> chunker)
+      : in_(in), name_(std::move(name)), chunker_(std::move(chunker)) {}
+
+  // The next chunk [4, 384], or nothing at the end of the input.
+  std::optional<torch::Tensor> next() {
+    std::string line;
+    while (std::getline(in_, line)) {
+      ++line_no_;
+      if (line.find_first_not_of(" \t\r") == std::string::npos) continue;
+      const auto where = name_ + " line " + std::to_string(line_no_);
+      const auto j = nlohmann::json::parse(line, nullptr, /*allow_exceptions=*/false);
+      DOJO_CHECK(!j.is_discarded(), where + ": not valid JSON");
+      if (j.is_object() && j.contains("baseline")) {
+        DOJO_CHECK(chunker_.has_value(), where + ": a baseline needs a model with an action range");
+        chunker_->set_baseline(row_tensor(j["baseline"], chunker_->width(), where + ": 'baseline'"));
+        continue;
+      }
+      const auto& rows = j.is_object() ? j.value("actions", nlohmann::json()) : j;
+      DOJO_CHECK(rows.is_array() && rows.size() == 4, where + ": expected 4 action rows");
+      const auto width = rows[0].is_array() ? rows[0].size() : 0;
+      std::vector<torch::Tensor> parsed;
+      for (const auto& r : rows) parsed.push_back(row_tensor(r, width, where));
+      const auto chunk = torch::stack(parsed);  // [4, w]
+      if (static_cast<int>(width) == data::kUnifiedActionDim) return chunk;
+      DOJO_CHECK(
+          chunker_.has_value() && static_cast<int>(width) == chunker_->width(),
+          where + ": rows must have 384 values" +
+              (chunker_ ? " or " + std::to_string(chunker_->width()) + " (raw commands)" : std::string()));
+      return chunker_->push(chunk);  // [4, 384]
+    }
+    return std::nullopt;
+  }
+
+ private:
+  static torch::Tensor row_tensor(const nlohmann::json& r, size_t width, const std::string& where) {
+    DOJO_CHECK(r.is_array() && r.size() == width && width > 0,
+               where + ": every row must be an array of " + std::to_string(width) + " numbers");
+    std::vector<float> v;
+    for (const auto& x : r) {
+      DOJO_CHECK(x.is_number(), where + ": action values must be numbers");
+      v.push_back(x.get<float>());
+    }
+    return torch::tensor(v);
+  }
+
+  std::istream& in_;
+  std::string name_;
+  std::optional<data::ActionChunker> chunker_;
+  int64_t line_no_ = 0;
+};
+
+struct StreamArgs {
+  ModelArgs model;
+  std::string split = "val", episode, image, actions, out, device = "cpu", precision = "fp32";
+  int64_t frames = 48;
+  int window = -1, student_steps = 0, size = 64;
+  bool raw = false, no_cache = false, no_decode = false, json = false;
+  uint64_t seed = 0;
+};
+
+double percentile(std::vector<double> v, double q) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  return v[static_cast<size_t>(std::min<double>(v.size() - 1, q * (v.size() - 1) + 0.5))];
+}
+
+int run_stream(StreamArgs a) {
+  DOJO_CHECK(a.frames > 0 && a.frames % 4 == 0, "--frames must be a positive multiple of 4");
+  if (!a.no_decode && a.out.empty() && !a.raw)
+    throw UsageError("give --out FILE.mp4 or --raw (frames on stdout)");
+  const auto reference = default_reference_dir();
+  if (a.model.checkpoint.empty() && fs::exists(reference / "student" / "config.json")) {
+    a.model.checkpoint = (reference / "student").string();
+    if (a.model.tokenizer.empty()) a.model.tokenizer = (reference / "tokenizer").string();
+  }
+  a.model.resolve(nullptr);
+  ScopedThreads matmul_bound(matmul_bound_command_threads("wm stream", parse_device(a.device).is_cuda()));
+  infer::StreamingEngine::Options o;
+  o.use_cache = !a.no_cache;
+  o.decode = !a.no_decode;
+  o.device = parse_device(a.device);
+  o.precision = parse_precision(a.precision);
+  auto engine = infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, o);
+  auto student = engine.options().student;
+  if (a.window >= 0) student.window_frames = a.window;
+  if (a.student_steps > 0) student.steps = a.student_steps;
+  engine.set_student(student);
+
+  // The start frame and, without --actions, the recorded actions (looped past their end).
+  torch::Tensor first, recorded;
+  std::optional<data::ActionChunker> chunker;
+  if (!a.image.empty()) {
+    first = io::resize_center_crop(io::VideoReader(a.image).read_frame(0).unsqueeze(0), a.size, a.size);
+  } else {
+    // With an actions file only the first frame is needed, so any episode of 13+ frames will do.
+    const int chunks = a.actions.empty() ? 4 : 1;
+    const auto clip =
+        eval::read_episode_clip(a.model.data, a.split, a.episode, chunks, engine.action_ranges());
+    first = clip.video.narrow(0, 0, 1);  // [1, H, W, 3]
+    recorded = clip.actions;             // [48, 384]
+  }
+  if (engine.action_ranges().size() == 1) {
+    const auto& [slot, stats] = *engine.action_ranges().items().begin();
+    chunker.emplace(data::slot_by_name(slot),
+                    data::ArrayStats::from_json(stats, "world model actions." + slot));
+  }
+  std::ifstream file;
+  std::unique_ptr<ActionLines> lines;
+  if (a.actions == "-") {
+    lines = std::make_unique<ActionLines>(std::cin, "stdin", chunker);
+  } else if (!a.actions.empty()) {
+    file.open(a.actions);
+    DOJO_CHECK(file.good(), a.actions + ": cannot open the actions file");
+    lines = std::make_unique<ActionLines>(file, a.actions, chunker);
+  }
+
+  std::unique_ptr<io::VideoWriter> writer;
+  if (!a.out.empty()) {
+    io::VideoWriterOptions w;
+    w.fps = 10;  // the student's rate in the release
+    writer = std::make_unique<io::VideoWriter>(a.out, w);
+  }
+  const auto emit = [&](const torch::Tensor& frames) {  // [n, H, W, 3] uint8
+    if (writer) writer->write_many(frames);
+    if (a.raw) {
+      const auto c = frames.contiguous();
+      std::fwrite(c.data_ptr<uint8_t>(), 1, static_cast<size_t>(c.numel()), stdout);
+      std::fflush(stdout);
+    }
+  };
+  const auto frame0 = engine.reset(first, a.seed);
+  if (frame0.defined()) emit(frame0[0]);
+
+  std::vector<double> total_ms, denoise_ms, recache_ms, decode_ms;
+  int64_t generated = 0, rss_at_100 = 0;
+  while (generated < a.frames) {
+    torch::Tensor chunk;  // [4, 384]
+    if (lines) {
+      auto next = lines->next();
+      if (!next) break;
+      chunk = *next;
+    } else {
+      const int64_t steps = recorded.size(0) / 4, s = (generated / 4) % steps;
+      chunk = recorded.narrow(0, 4 * s, 4);
+    }
+    const auto out = engine.step(chunk.unsqueeze(0));
+    if (o.decode) emit(out[0]);
+    generated += 4;
+    const auto& t = engine.last_timings();
+    total_ms.push_back(t.total_ms);
+    denoise_ms.push_back(t.denoise_ms);
+    recache_ms.push_back(t.recache_ms);
+    decode_ms.push_back(t.decode_ms);
+    if (generated == 100) rss_at_100 = resident_memory_bytes();
+  }
+  if (writer) writer->close();
+  double seconds = 0;
+  for (double ms : total_ms) seconds += ms / 1000;
+  // The first steps warm allocators up; the steady state leaves out the first two.
+  std::vector<double> steady(total_ms.begin() + std::min<size_t>(2, total_ms.size()), total_ms.end());
+  double steady_s = 0;
+  for (double ms : steady) steady_s += ms / 1000;
+  const auto avg = [](const std::vector<double>& v) {
+    double s = 0;
+    for (double x : v) s += x;
+    return v.empty() ? 0.0 : s / v.size();
+  };
+  nlohmann::json summary = {
+      {"checkpoint", a.model.checkpoint},
+      {"frames", generated},
+      {"window_frames", student.window_frames},
+      {"student_steps", student.steps},
+      {"kv_cache", o.use_cache},
+      {"decode", o.decode},
+      {"frames_per_second", seconds > 0 ? generated / seconds : 0},
+      {"steady_frames_per_second", steady_s > 0 ? 4.0 * steady.size() / steady_s : 0},
+      {"step_ms_p50", percentile(total_ms, 0.5)},
+      {"step_ms_p95", percentile(total_ms, 0.95)},
+      {"denoise_ms_mean", avg(denoise_ms)},
+      {"recache_ms_mean", avg(recache_ms)},
+      {"decode_ms_mean", avg(decode_ms)},
+      {"rss_mib_at_frame_100", rss_at_100 / 1048576.0},
+      {"rss_mib_at_end", resident_memory_bytes() / 1048576.0},
+      {"kv_cache_mib", engine.cache_bytes() / 1048576.0},
+  };
+  if (a.json && !a.raw) {
+    std::printf("%s\n", summary.dump(2).c_str());
+  } else {
+    std::fprintf(
+        stderr,
+        "streamed %lld frames: %.1f frames/s (steady %.1f), step p50 %.1f ms p95 %.1f ms "
+        "(denoise %.1f, re-cache %.1f, decode %.1f), RSS %.0f MiB at frame 100, %.0f MiB at the end%s%s\n",
+        static_cast<long long>(generated), summary["frames_per_second"].get<double>(),
+        summary["steady_frames_per_second"].get<double>(), summary["step_ms_p50"].get<double>(),
+        summary["step_ms_p95"].get<double>(), avg(denoise_ms), avg(recache_ms), avg(decode_ms),
+        rss_at_100 / 1048576.0, resident_memory_bytes() / 1048576.0, a.out.empty() ? "" : " -> ",
+        a.out.c_str());
+  }
+  return 0;
+}
+
+}  // namespace
+
+void register_wm_stream(CLI::App& wm) {
+  auto a = std::make_shared<StreamArgs>();
+  auto* cmd = wm.add_subcommand(
+      "stream", "Stream the real-time student: a start frame and actions in, 4 frames per step out");
+  a->model.add_options(cmd, "the student (default: the reference set's student, else its world model)");
+  add_split_option(cmd, a->split);
+  cmd->add_option("--episode", a->episode,
+                  "Start at this episode's first frame (default: the split's first)");
+  cmd->add_option("--image", a->image, "Start at this image instead of an episode (resized to --size)");
+  cmd->add_option("--size", a->size, "Frame size for --image")->capture_default_str();
+  cmd->add_option(
+      "--actions", a->actions,
+      "JSON lines of action chunks, a file or - for stdin: 4 rows of 384 values, or of the robot's "
+      "own commands (normalised and made relative here; {\"baseline\": [...]} sets the start "
+      "command). Default: the episode's recorded actions, looped");
+  cmd->add_option("--frames", a->frames, "Frames to generate (a multiple of 4)")->capture_default_str();
+  cmd->add_option("--window", a->window, "Earlier latent frames attended (default: the student's)");
+  cmd->add_option("--student-steps", a->student_steps,
+                  "Denoising hops per latent frame, 1-4 (default: the student's)");
+  cmd->add_flag("--raw", a->raw, "Write raw RGB frames (H x W x 3 bytes each) to stdout");
+  cmd->add_flag("--no-cache", a->no_cache,
+                "Recompute the whole history every hop (the plain reference path)");
+  cmd->add_flag("--no-decode", a->no_decode, "Generate latents only (times the DiT alone)");
+  add_seed_option(cmd, a->seed);
+  add_out_option(cmd, a->out, "mp4 file");
+  add_json_option(cmd, a->json);
+  add_device_option(cmd, a->device);
+  add_precision_option(cmd, a->precision);
+  cmd->callback([a] { set_action([a] { return run_stream(*a); }); });
+}
+
+}  // namespace dojo::cli

@@ -1,0 +1,82 @@
+#include "cli/model_args.h"
+
+#include <CLI/CLI.hpp>
+
+#include <filesystem>
+
+#include "cli/commands.h"
+#include "cli/options.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "infer/world_model.h"
+#ifdef DOJO_WITH_SIM
+#include "sim/generate.h"
+#endif
+
+namespace fs = std::filesystem;
+
+namespace dojo::cli {
+
+void resolve_models(std::string& checkpoint, std::string& tokenizer, std::string* probe) {
+  const auto reference = default_reference_dir();
+  if (checkpoint.empty()) {
+    DOJO_CHECK(fs::exists(reference / "wm_posttrain" / "config.json"),
+               "no --checkpoint given and no reference model set at " + reference.string() +
+                   " (train one with `dojo demo`, or set DOJO_REFERENCE)");
+    checkpoint = (reference / "wm_posttrain").string();
+    if (tokenizer.empty()) tokenizer = (reference / "tokenizer").string();
+    LOG_INFO("using the reference world model ", checkpoint);
+  }
+  if (tokenizer.empty()) throw UsageError("--tokenizer is required with --checkpoint");
+  if (probe != nullptr && probe->empty() && fs::exists(reference / "probe" / "config.json"))
+    *probe = (reference / "probe").string();
+}
+
+std::string default_eval_data() {
+#ifdef DOJO_WITH_SIM
+  const auto dir = fs::temp_directory_path() / "dojo-heldout-robot";
+  sim::GenerateOptions g;
+  g.episodes = 8;
+  g.val_fraction = 1.0;  // all "val"
+  g.seed = 1001;
+  sim::generate_dataset(dir, g);
+  LOG_INFO("no --data: held-out DojoSim episodes in ", dir.string());
+  return dir.string();
+#else
+  throw UsageError("--data is required (this build has no DojoSim to make episodes)");
+#endif
+}
+
+void ModelArgs::add_options(CLI::App* cmd, const std::string& what) {
+  add_checkpoint_option(cmd, checkpoint, what + " (default: the reference set, models/reference)");
+  cmd->add_option("--tokenizer", tokenizer, "Tokenizer checkpoint (default with the reference set: its own)");
+  add_data_option(cmd, data)->description(
+      "Dataset directory (episode store, LeRobot, EgoDex or video folder); default: 8 held-out DojoSim robot "
+      "episodes made on the spot");
+}
+
+void ModelArgs::add_sampler_options(CLI::App* cmd) {
+  cmd->add_option("--steps", steps, "Sampler steps")->capture_default_str();
+  cmd->add_option("--solver", solver, "unipc | euler")->capture_default_str();
+  cmd->add_option("--shift", shift, "Sampler time shift (default: the one the checkpoint was trained with)");
+  cmd->add_option("--action-guidance", action_guidance,
+                  "Action guidance scale (1 = off; > 1 needs a model trained with --action-dropout)")
+      ->capture_default_str();
+  cmd->add_option("--concat", concat, "aligned | released (chunk joining)")->capture_default_str();
+}
+
+void ModelArgs::resolve(std::string* probe) {
+  resolve_models(checkpoint, tokenizer, probe);
+  if (data.empty()) data = default_eval_data();
+}
+
+infer::SamplerOptions ModelArgs::sampler(const infer::WorldModel& model) const {
+  auto s = model.trained_sampler();
+  s.steps = steps;
+  if (shift > 0) s.shift = shift;
+  s.action_guidance = action_guidance;
+  s.solver = infer::parse_solver(solver);
+  return s;
+}
+
+}  // namespace dojo::cli

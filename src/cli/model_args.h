@@ -1,0 +1,40 @@
+// What the world-model commands (`wm rollout`, `wm stream`, `eval`) share: the model (the reference
+// set by default), the data (held-out DojoSim episodes by default) and the teacher's sampler.
+#pragma once
+
+#include <string>
+
+namespace CLI {
+class App;
+}
+namespace dojo::infer {
+class WorldModel;
+struct SamplerOptions;
+}  // namespace dojo::infer
+
+namespace dojo::cli {
+
+// The given checkpoint and tokenizer, or the reference model set shipped in models/reference when
+// no checkpoint is given (and its probe, when one is wanted and none given).
+void resolve_models(std::string& checkpoint, std::string& tokenizer, std::string* probe);
+
+// Without --data: held-out DojoSim robot episodes (seed 1001, never a training seed), generated
+// once into the temporary directory and re-used.
+std::string default_eval_data();
+
+struct ModelArgs {
+  std::string checkpoint, tokenizer, data;
+  int steps = 35;
+  std::string solver = "unipc", concat = "aligned";
+  double shift = 0;  // 0: the checkpoint's
+  double action_guidance = 1;
+
+  void add_options(CLI::App* cmd, const std::string& what = "the world model");
+  void add_sampler_options(CLI::App* cmd);
+  // The defaults filled in.
+  void resolve(std::string* probe);
+  // The model's trained sampler with the options given on the command line.
+  infer::SamplerOptions sampler(const infer::WorldModel& model) const;
+};
+
+}  // namespace dojo::cli

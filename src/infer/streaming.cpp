@@ -1,0 +1,269 @@
+#include "infer/streaming.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+
+#include <chrono>
+#include <cmath>
+
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/log.h"
+
+namespace dojo::infer {
+
+namespace {
+
+double ms_since(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+}  // namespace
+
+nlohmann::json StudentConfig::to_json() const {
+  return {{"window_frames", window_frames}, {"steps", steps}, {"bf16_times", bf16_times}};
+}
+
+StudentConfig StudentConfig::from_json(const nlohmann::json& j, const std::string& where) {
+  StudentConfig c;
+  DOJO_CHECK(j.is_object(), where + ": field 'student' must be an object");
+  const auto field = [&](const char* name) { return where + ": field 'student." + name + "'"; };
+  if (j.contains("window_frames")) {
+    DOJO_CHECK(j["window_frames"].is_number_integer() && j["window_frames"].get<int64_t>() >= 0,
+               field("window_frames") + " must be an integer >= 0");
+    c.window_frames = j["window_frames"].get<int64_t>();
+  }
+  if (j.contains("steps")) {
+    DOJO_CHECK(j["steps"].is_number_integer() && j["steps"].get<int>() >= 1 && j["steps"].get<int>() <= 4,
+               field("steps") + " must be an integer in [1, 4]");
+    c.steps = j["steps"].get<int>();
+  }
+  if (j.contains("bf16_times")) {
+    DOJO_CHECK(j["bf16_times"].is_boolean(), field("bf16_times") + " must be true or false");
+    c.bf16_times = j["bf16_times"].get<bool>();
+  }
+  return c;
+}
+
+std::vector<diffusion::StudentStep> StudentConfig::schedule() const {
+  DOJO_CHECK(steps >= 1 && steps <= 4, "student steps must be in [1, 4] (got " + std::to_string(steps) + ")");
+  auto s = diffusion::student_schedule(bf16_times);
+  s.resize(static_cast<size_t>(steps));
+  return s;
+}
+
+torch::Tensor student_x0(models::ActionDitImpl& net, const models::DitInputs& base,
+                         const torch::Tensor& x_trig, const diffusion::StudentStep& step) {
+  models::DitInputs in = base;
+  in.x = x_trig * step.c_in;  // the rectified-flow state at σ = c_noise
+  if (!in.condition_mask.defined())
+    in.condition_mask = torch::zeros_like(x_trig.narrow(1, 0, 1));  // student: none
+  in.timesteps = torch::full({x_trig.size(0), 1}, 1000.0 * step.c_noise, x_trig.options());
+  const auto v = net.forward(in).to(x_trig.scalar_type());  // [B, 16, T, h, w]
+  return x_trig * step.c_skip + v * step.c_out;
+}
+
+torch::Tensor student_x0_rf(models::ActionDitImpl& net, const models::DitInputs& base,
+                            const torch::Tensor& x_rf, const torch::Tensor& sigma) {
+  models::DitInputs in = base;
+  in.x = x_rf;
+  in.timesteps = sigma * 1000.0;  // [B, T]
+  if (!in.condition_mask.defined()) in.condition_mask = torch::zeros_like(x_rf.narrow(1, 0, 1));
+  const auto v = net.forward(in).to(x_rf.scalar_type());  // [B, 16, T, h, w]
+  return x_rf - sigma.view({sigma.size(0), 1, sigma.size(1), 1, 1}) * v;
+}
+
+StreamingEngine::StreamingEngine(models::ActionDit student, models::WanVae tokenizer, Options options)
+    : net_(std::move(student)),
+      tokenizer_(std::move(tokenizer)),
+      options_(options),
+      schedule_(options.student.schedule()),
+      cache_(static_cast<size_t>(net_->config.num_blocks)) {
+  check_precision_supported(options_.precision, options_.device.type());
+  DOJO_CHECK(net_->config.whole_clip_actions == 0,
+             "streaming: a whole-clip-action network (ablation) cannot generate frame by frame");
+  net_->to(options_.device);
+  tokenizer_->to(options_.device);
+  net_->eval();
+  tokenizer_->eval();
+  torch::NoGradGuard no_grad;
+  projected_context_ = net_->project_context(
+      torch::zeros({1, 1, net_->config.crossattn_emb_channels}, torch::TensorOptions(options_.device)));
+}
+
+StreamingEngine StreamingEngine::load(const std::filesystem::path& checkpoint,
+                                      const std::filesystem::path& tokenizer, Options options) {
+  const auto dir = resolve_checkpoint_dir(checkpoint);
+  const auto config = Checkpoint::open(dir).config();
+  if (config.contains("student"))
+    options.student = StudentConfig::from_json(config["student"], (dir / "config.json").string());
+  else
+    LOG_WARN(checkpoint.string(),
+             " is not a distilled student: streaming it with the default student settings");
+  StreamingEngine engine(models::load_world_model(checkpoint), models::load_tokenizer(tokenizer), options);
+  engine.action_ranges_ = config.value("actions", nlohmann::json::object());
+  return engine;
+}
+
+void StreamingEngine::set_student(const StudentConfig& student) {
+  schedule_ = student.schedule();
+  options_.student = student;
+  frames_ = 0;  // the cache was built for the old window
+}
+
+int64_t StreamingEngine::cache_bytes() const {
+  int64_t bytes = 0;
+  for (const auto& c : cache_)
+    if (c.k.defined()) bytes += (c.k.numel() + c.v.numel()) * static_cast<int64_t>(c.k.element_size());
+  return bytes;
+}
+
+models::DitInputs StreamingEngine::inputs(const torch::Tensor& actions) const {
+  models::DitInputs in;
+  in.projected_context = projected_context_.expand({latent_shape_[0], -1, -1});
+  in.actions = actions;
+  return in;
+}
+
+torch::Tensor StreamingEngine::reset(const torch::Tensor& first, uint64_t seed) {
+  DOJO_CHECK(first.dim() == 4 && first.size(3) == 3 && first.scalar_type() == torch::kUInt8,
+             "streaming: the first frame must be [B, H, W, 3] uint8");
+  torch::NoGradGuard no_grad;
+  generator_ = at::make_generator<at::CPUGeneratorImpl>(seed);
+  const auto video = models::video_to_model(first.to(options_.device).unsqueeze(1));  // [B, 3, 1, H, W]
+  const auto z0 = tokenizer_->encode_latents(video);                                  // [B, 16, 1, h, w]
+  latent_shape_ = z0.sizes().vec();
+  const int64_t tokens =
+      (z0.size(3) / net_->config.patch_spatial) * (z0.size(4) / net_->config.patch_spatial);
+  for (auto& c : cache_) {
+    c.set_ring(options_.student.window_frames, tokens);
+    c.clear();
+  }
+  history_latents_.clear();
+  history_actions_.clear();
+  frames_ = 0;
+  recache(z0, torch::Tensor());  // frame 0: clean, no action term
+  if (options_.decode) {
+    decoder_ = std::make_unique<models::WanVaeStreamDecoder>(tokenizer_);
+    const auto pixels = decoder_->push(tokenizer_->denormalize(z0)).clamp(-1, 1);  // [B, 3, 1, H, W]
+    return models::model_to_video(pixels).to(torch::kCPU);                         // [B, 1, H, W, 3]
+  }
+  return torch::Tensor();
+}
+
+void StreamingEngine::recache(const torch::Tensor& x0, const torch::Tensor& actions) {
+  AutocastGuard autocast(options_.device.type(), options_.precision);
+  if (options_.use_cache) {
+    auto in = inputs(actions);
+    in.x = x0;
+    in.condition_mask = torch::zeros_like(x0.narrow(1, 0, 1));
+    in.timesteps = torch::zeros({x0.size(0), 1}, x0.options());
+    in.frame_offset = frames_;
+    in.kv_cache = &cache_;
+    in.store_kv = true;
+    net_->forward(in);  // only the stored keys and values matter
+  } else {
+    history_latents_.push_back(x0);
+    if (actions.defined()) history_actions_.push_back(actions);
+  }
+  ++frames_;
+}
+
+torch::Tensor StreamingEngine::denoise_cached(const torch::Tensor& noise, const torch::Tensor& actions) {
+  auto base = inputs(actions);
+  base.frame_offset = frames_;  // absolute RoPE index of the new frame
+  base.kv_cache = &cache_;
+  base.store_kv = false;  // hops read the cache; the clean pass writes it
+  auto x = noise;         // TrigFlow state at t = π/2
+  torch::Tensor x0;
+  for (size_t s = 0; s < schedule_.size(); ++s) {
+    {
+      AutocastGuard autocast(options_.device.type(), options_.precision);
+      x0 = student_x0(*net_, base, x, schedule_[s]).to(torch::kFloat32);  // [B, 16, 1, h, w]
+    }
+    if (s + 1 < schedule_.size()) {
+      const double t = schedule_[s + 1].trigflow_t;
+      x = x0 * std::cos(t) + noise * std::sin(t);  // the same noise at every hop, as released
+    }
+  }
+  return x0;
+}
+
+torch::Tensor StreamingEngine::denoise_reference(const torch::Tensor& noise, const torch::Tensor& actions) {
+  // The whole history, clean, then the new frame; frame i attends to frames i - window ... i.
+  const int64_t T = frames_ + 1, B = noise.size(0);
+  const auto context = torch::cat(history_latents_, 2);  // [B, 16, T - 1, h, w]
+  auto all_actions = history_actions_;
+  all_actions.push_back(actions);
+  const int64_t tokens =
+      (noise.size(3) / net_->config.patch_spatial) * (noise.size(4) / net_->config.patch_spatial);
+  auto base = inputs(torch::cat(all_actions, 1));  // [B, 4 (T - 1), 384]
+  base.self_attn_mask = models::dit_block_causal_mask(T, tokens, 0, options_.student.window_frames + 1);
+  auto x = noise;
+  torch::Tensor x0;
+  for (size_t s = 0; s < schedule_.size(); ++s) {
+    const auto& step = schedule_[s];
+    // Per-frame TrigFlow-equivalent inputs: clean frames at σ = 0 (c_in = 1), the new one at c_noise.
+    auto sigma = torch::zeros({B, T}, noise.options());
+    sigma.select(1, T - 1).fill_(step.c_noise);
+    {
+      AutocastGuard autocast(options_.device.type(), options_.precision);
+      const auto x_rf = torch::cat({context, x * step.c_in}, 2);  // [B, 16, T, h, w]
+      auto in = base;
+      in.x = x_rf;
+      in.condition_mask = torch::zeros_like(x_rf.narrow(1, 0, 1));
+      in.timesteps = sigma * 1000.0;
+      const auto v = net_->forward(in).to(torch::kFloat32).narrow(2, T - 1, 1);  // [B, 16, 1, h, w]
+      x0 = x * step.c_skip + v * step.c_out;
+    }
+    if (s + 1 < schedule_.size()) {
+      const double t = schedule_[s + 1].trigflow_t;
+      x = x0 * std::cos(t) + noise * std::sin(t);
+    }
+  }
+  return x0;
+}
+
+torch::Tensor StreamingEngine::step(const torch::Tensor& actions) {
+  DOJO_CHECK(frames_ > 0, "streaming: reset() must come before step()");
+  DOJO_CHECK(
+      actions.dim() == 3 && actions.size(1) == kActionsPerStep && actions.size(2) == net_->config.action_dim,
+      "streaming: actions must be [B, 4, " + std::to_string(net_->config.action_dim) + "]");
+  torch::NoGradGuard no_grad;
+  const auto start = std::chrono::steady_clock::now();
+  const auto acts = actions.to(options_.device, torch::kFloat32);
+  DOJO_CHECK(acts.size(0) == latent_shape_[0], "streaming: actions for batch " +
+                                                   std::to_string(acts.size(0)) + ", the stream has " +
+                                                   std::to_string(latent_shape_[0]));
+  const auto noise = torch::randn(latent_shape_, generator_).to(options_.device);  // ε [B, 16, 1, h, w]
+
+  const auto x0 = options_.use_cache ? denoise_cached(noise, acts) : denoise_reference(noise, acts);
+  timings_.denoise_ms = ms_since(start);
+  const auto recache_start = std::chrono::steady_clock::now();
+  recache(x0, acts);
+  timings_.recache_ms = ms_since(recache_start);
+
+  torch::Tensor out = x0;
+  const auto decode_start = std::chrono::steady_clock::now();
+  if (options_.decode) {
+    const auto pixels = decoder_->push(tokenizer_->denormalize(x0)).clamp(-1, 1);  // [B, 3, 4, H, W]
+    out = models::model_to_video(pixels).to(torch::kCPU);                          // [B, 4, H, W, 3]
+  }
+  timings_.decode_ms = ms_since(decode_start);
+  timings_.total_ms = ms_since(start);
+  return out;
+}
+
+torch::Tensor StreamingEngine::rollout(const torch::Tensor& first, const torch::Tensor& actions,
+                                       uint64_t seed, const std::function<void(int64_t)>& on_step) {
+  DOJO_CHECK(options_.decode, "streaming: rollout() needs decoding on");
+  DOJO_CHECK(actions.dim() == 3 && actions.size(1) % kActionsPerStep == 0 && actions.size(1) > 0,
+             "streaming: the action count must be a positive multiple of 4");
+  std::vector<torch::Tensor> frames = {reset(first, seed)};  // [B, 1, H, W, 3]
+  for (int64_t k = 0; k < actions.size(1) / kActionsPerStep; ++k) {
+    frames.push_back(step(actions.narrow(1, k * kActionsPerStep, kActionsPerStep)));  // [B, 4, H, W, 3]
+    if (on_step) on_step(k);
+  }
+  return torch::cat(frames, 1);  // [B, 1 + 4 K, H, W, 3]
+}
+
+}  // namespace dojo::infer

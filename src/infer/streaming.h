@@ -1,0 +1,128 @@
+// The real-time student: a causal, few-step DiT that generates one latent frame (4 video frames)
+// per step from the 4 actions of its transitions, attending to a bounded window of earlier frames
+// through a KV cache, and a streaming decoder that turns each latent into pixels as it comes.
+// Facts: ../shared/reference/self_forcing.md §3.3 and §4, dreamdojo.md §0 (rows 4 and 6) and §11.
+//
+// One step (self_forcing.md §3.3, the training rollout):
+//   x ← ε                                   fresh noise for the new latent frame, kept for all hops
+//   for each student time t_s:  x̂0 = D(x, t_s) reading the cache;  x ← cos t_{s+1}·x̂0 + sin t_{s+1}·ε
+//   re-cache: one clean pass on x̂0 at t = 0 stores the frame's keys and values
+//   decode x̂0 → 4 frames with the tokenizer's causal feature caches
+// Actions follow the training alignment: the new latent frame uses the 4 actions of its own
+// transitions, and cached frames keep the actions they were generated with.
+#pragma once
+
+#include <torch/torch.h>
+
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "core/autocast.h"
+#include "diffusion/samplers.h"
+#include "models/dit.h"
+#include "models/wan_vae.h"
+
+namespace dojo::infer {
+
+// What makes a DiT a student: stored as the "student" entry of its checkpoint's config.json.
+struct StudentConfig {
+  int64_t window_frames = 3;  // earlier latent frames a new one attends to (released: 3)
+  int steps = 4;              // hops per latent frame, the first `steps` of the 4 student times
+  bool bf16_times = true;     // the released streaming code's bf16 time rounding (self_forcing.md §3.1)
+  nlohmann::json to_json() const;
+  // Missing fields keep the defaults; a bad value throws dojo::Error naming `where` and the field.
+  static StudentConfig from_json(const nlohmann::json& j, const std::string& where);
+  std::vector<diffusion::StudentStep> schedule() const;  // the hops this config runs
+};
+
+// x̂0 of one student hop on TrigFlow-state latents: the net sees c_in·x at time c_noise (as
+// timesteps 1000·c_noise with the DiT's scale 0.001), x̂0 = c_skip·x + c_out·v̂.
+// base supplies everything but x and timesteps; x_trig: [B, 16, T, h, w].
+torch::Tensor student_x0(models::ActionDitImpl& net, const models::DitInputs& base,
+                         const torch::Tensor& x_trig, const diffusion::StudentStep& step);
+// The same with per-frame times: x_rf [B, 16, T, h, w] (rectified-flow state), sigma [B, T]
+// (0 = clean): x̂0 = x − σ·v̂(x, 1000·σ). Used by the warm-up regression and the re-cache pass.
+torch::Tensor student_x0_rf(models::ActionDitImpl& net, const models::DitInputs& base,
+                            const torch::Tensor& x_rf, const torch::Tensor& sigma);
+
+// Wall time of one engine step, in milliseconds.
+struct StreamTimings {
+  double denoise_ms = 0;  // the student hops
+  double recache_ms = 0;  // the clean pass that stores the new frame's keys and values
+  double decode_ms = 0;   // latent -> pixels
+  double total_ms = 0;
+};
+
+class StreamingEngine {
+ public:
+  struct Options {
+    StudentConfig student;
+    // false: no KV cache; every hop recomputes the whole history under the block-causal window
+    // mask. The plain reference the cached path is tested against (cost grows with the horizon).
+    bool use_cache = true;
+    bool decode = true;  // false: step() returns latents only (benchmarks of the DiT alone)
+    torch::Device device = torch::kCPU;
+    Precision precision = Precision::kFloat32;
+  };
+
+  StreamingEngine(models::ActionDit student, models::WanVae tokenizer, Options options);
+  // A student checkpoint (its config's "student" entry; a plain world-model checkpoint streams
+  // with the defaults, e.g. to time an undistilled network) and its tokenizer.
+  static StreamingEngine load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer,
+                              Options options);
+
+  // Replaces the student settings (window, hops, time rounding); takes effect at the next reset().
+  void set_student(const StudentConfig& student);
+
+  // Starts a stream at `first` [B, H, W, 3] uint8: encodes it as latent frame 0 and caches it.
+  // Noise for every later frame comes from `seed`. Returns frame 0 as the tokenizer shows it,
+  // [B, 1, H, W, 3] uint8 (undefined with decode off).
+  torch::Tensor reset(const torch::Tensor& first, uint64_t seed);
+  // actions [B, 4, 384] (the unified layout, chunk-relative as in training) -> the next 4 frames
+  // [B, 4, H, W, 3] uint8, or with decode off the new latent [B, 16, 1, h, w].
+  torch::Tensor step(const torch::Tensor& actions);
+
+  // A whole rollout: reset at first [B, H, W, 3], then one step per 4 actions of [B, 4 K, 384]
+  // -> [B, 1 + 4 K, H, W, 3] uint8. on_step(k) after step k.
+  torch::Tensor rollout(const torch::Tensor& first, const torch::Tensor& actions, uint64_t seed,
+                        const std::function<void(int64_t)>& on_step = {});
+
+  const StreamTimings& last_timings() const { return timings_; }
+  int64_t latent_frames() const { return frames_; }  // latent frames so far, frame 0 included
+  const Options& options() const { return options_; }
+  models::ActionDit& net() { return net_; }
+  models::WanVae& tokenizer() { return tokenizer_; }
+  // The network's action normalisation {slot: statistics} (its checkpoint's "actions" entry).
+  const nlohmann::json& action_ranges() const { return action_ranges_; }
+  // Keys and values held by the cache (bytes over all blocks): flat once the window is full.
+  int64_t cache_bytes() const;
+  static constexpr int64_t kActionsPerStep = 4;
+
+ private:
+  torch::Tensor denoise_cached(const torch::Tensor& noise, const torch::Tensor& actions);
+  torch::Tensor denoise_reference(const torch::Tensor& noise, const torch::Tensor& actions);
+  void recache(const torch::Tensor& x0, const torch::Tensor& actions);
+  models::DitInputs inputs(const torch::Tensor& actions) const;
+
+  models::ActionDit net_;
+  models::WanVae tokenizer_;
+  Options options_;
+  std::vector<diffusion::StudentStep> schedule_;
+  std::vector<models::DitKvCache> cache_;
+  std::unique_ptr<models::WanVaeStreamDecoder> decoder_;
+  torch::Tensor projected_context_;  // the zero text context through crossattn_proj, once
+  torch::Generator generator_;
+  std::vector<int64_t> latent_shape_;  // [B, 16, 1, h, w] of the stream
+  int64_t frames_ = 0;
+  // Reference path: every clean latent and action chunk so far.
+  std::vector<torch::Tensor> history_latents_, history_actions_;
+  StreamTimings timings_;
+  nlohmann::json action_ranges_ = nlohmann::json::object();
+};
+
+}  // namespace dojo::infer

@@ -1,0 +1,270 @@
+#include "train/distill.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+
+#include <algorithm>
+#include <cmath>
+#include <deque>
+#include <sstream>
+
+#include "core/atomic_file.h"
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/progress.h"
+#include "core/safetensors.h"
+#include "data/episode_source.h"
+#include "diffusion/samplers.h"
+#include "train/train_loop.h"
+#include "train/train_util.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::train {
+
+namespace {
+
+torch::Generator cpu_generator(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
+
+// The teacher's ODE solution for clips [n, 16, 4, h, w] from per-clip noise; the samples before
+// the query steps and the final x0, frame 0 the clean conditioning latent: [n, P, 16, 4, h, w].
+torch::Tensor teacher_points(models::ActionDitImpl& teacher, const diffusion::SigmaSchedule& schedule,
+                             const torch::Tensor& x0, const torch::Tensor& actions,
+                             const torch::Tensor& noise, const std::vector<int>& query_steps) {
+  torch::NoGradGuard no_grad;
+  auto mask = torch::zeros_like(x0.narrow(1, 0, 1));  // [n, 1, 4, h, w]
+  mask.narrow(2, 0, 1).fill_(1);
+  const diffusion::VelocityFn velocity = [&](const torch::Tensor& x, double, int64_t timestep) {
+    models::DitInputs in;
+    in.timesteps = torch::full({x.size(0), 1}, static_cast<double>(timestep));
+    in.actions = actions;
+    return models::denoise_velocity(teacher, in, x, x0, noise, mask);
+  };
+  std::vector<torch::Tensor> trajectory;
+  diffusion::sample_flow(velocity, noise, schedule, diffusion::Solver::kUniPC, &trajectory);
+  std::vector<torch::Tensor> points;
+  for (int q : query_steps) points.push_back(trajectory.at(static_cast<size_t>(q)));
+  points.push_back(trajectory.back());
+  auto out = torch::stack(points, 1);                                                // [n, P, 16, 4, h, w]
+  out.select(3, 0).copy_(x0.select(2, 0).unsqueeze(1).expand_as(out.select(3, 0)));  // frame 0 clean
+  return out;
+}
+
+}  // namespace
+
+std::vector<int> TrajectorySpec::query_steps_for(int teacher_steps) {
+  DOJO_CHECK(teacher_steps >= 4,
+             "distill: the teacher needs at least 4 steps (got " + std::to_string(teacher_steps) + ")");
+  std::vector<int> q;
+  for (int i = 0; i < 4; ++i) q.push_back(static_cast<int>(std::lround(9.0 * i * teacher_steps / 35.0)));
+  return q;
+}
+
+TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, double shift,
+                                               const LatentClips& clips, const TrajectorySpec& spec,
+                                               const nlohmann::json& fingerprint, const fs::path& dir) {
+  DOJO_CHECK(clips.latents.dim() == 5 && clips.latents.size(2) == 4,
+             "distill: trajectories need 13-frame clips (4 latent frames)");
+  const auto schedule = diffusion::flow_sigma_schedule(spec.teacher_steps, shift);
+  for (int q : spec.query_steps)
+    DOJO_CHECK(q >= 0 && q < spec.teacher_steps, "distill: query step " + std::to_string(q) +
+                                                     " outside the " + std::to_string(spec.teacher_steps) +
+                                                     " teacher steps");
+  TeacherTrajectories out;
+  for (int q : spec.query_steps) out.timesteps.push_back(schedule.timesteps.at(static_cast<size_t>(q)));
+  out.timesteps.push_back(0);
+  const nlohmann::json meta = {{"fingerprint", fingerprint},
+                               {"teacher_steps", spec.teacher_steps},
+                               {"shift", shift},
+                               {"query_steps", spec.query_steps},
+                               {"seed", spec.seed}};
+  fs::create_directories(dir);
+  const int64_t n = clips.size(), shards = (n + spec.shard_clips - 1) / spec.shard_clips;
+  std::vector<torch::Tensor> points, actions;
+  Progress progress("teacher trajectories", n, "clips");
+  teacher.eval();
+  for (int64_t k = 0; k < shards; ++k) {
+    const int64_t begin = k * spec.shard_clips, count = std::min(spec.shard_clips, n - begin);
+    char name[32];
+    std::snprintf(name, sizeof(name), "shard-%05lld.safetensors", static_cast<long long>(k));
+    const auto file = dir / name;
+    nlohmann::json shard_meta = meta;
+    shard_meta["clips"] = {begin, begin + count};
+    if (fs::exists(file)) {
+      auto f = SafetensorsFile::open(file);
+      const auto it = f.metadata().find("trajectories");
+      if (it != f.metadata().end() && nlohmann::json::parse(it->second) == shard_meta) {
+        points.push_back(f.tensor("points", true));
+        actions.push_back(clips.actions.narrow(0, begin, count));
+        progress.advance(count);
+        continue;
+      }
+    }
+    std::vector<torch::Tensor> shard;
+    for (int64_t b = begin; b < begin + count; b += spec.batch) {
+      const int64_t m = std::min<int64_t>(spec.batch, begin + count - b);
+      std::vector<torch::Tensor> noise;  // per clip, so the batching does not change the draws
+      for (int64_t i = b; i < b + m; ++i) {
+        auto g = cpu_generator(spec.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(i) + 1);
+        noise.push_back(torch::randn(clips.latents[i].sizes(), g));
+      }
+      shard.push_back(teacher_points(teacher, schedule, clips.latents.narrow(0, b, m),
+                                     clips.actions.narrow(0, b, m), torch::stack(noise), spec.query_steps));
+      progress.advance(m);
+    }
+    auto shard_points = torch::cat(shard).contiguous();
+    save_safetensors(file, {{"points", shard_points}}, {{"trajectories", shard_meta.dump()}});
+    points.push_back(shard_points);
+    actions.push_back(clips.actions.narrow(0, begin, count));
+  }
+  progress.finish();
+  out.points = torch::cat(points);
+  out.actions = torch::cat(actions);
+  return out;
+}
+
+torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& points,
+                          const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
+                          int64_t window_frames, torch::Generator generator) {
+  const int64_t B = points.size(0), P = points.size(1), T = points.size(3);
+  DOJO_CHECK(static_cast<int64_t>(timesteps.size()) == P, "warmup: one timestep per trajectory point");
+  auto index = torch::randint(P, {B, T}, generator, torch::kLong);  // the point of every frame
+  index.select(1, 0).fill_(P - 1);                                  // frame 0: clean
+  const auto b = torch::arange(B).unsqueeze(1), f = torch::arange(T).unsqueeze(0);
+  const auto x = points.permute({0, 3, 1, 2, 4, 5})
+                     .index({b, f, index})       // [B, T, 16, h, w]
+                     .permute({0, 2, 1, 3, 4});  // [B, 16, T, h, w]
+  const auto sigma = (torch::tensor(timesteps, torch::kFloat64).to(torch::kFloat32) / 1000.0)
+                         .index({index})
+                         .to(x.device());       // [B, T]
+  const auto target = points.select(1, P - 1);  // [B, 16, T, h, w]
+  const auto& c = student.config;
+  const int64_t tokens = (x.size(3) / c.patch_spatial) * (x.size(4) / c.patch_spatial);
+  models::DitInputs base;
+  base.actions = actions;
+  base.self_attn_mask = models::dit_block_causal_mask(T, tokens, 0, window_frames + 1);
+  const auto x0 = infer::student_x0_rf(student, base, x, sigma);  // [B, 16, T, h, w]
+  return (x0 - target).narrow(2, 1, T - 1).pow(2).mean();
+}
+
+DistillResult run_distillation(const DistillJob& job) {
+  DOJO_CHECK(!job.data.empty(), "distill: no dataset given");
+  DOJO_CHECK(!job.teacher.empty(), "distill: --teacher is required");
+  TimeBudget budget(job.time_budget_s);
+  fs::create_directories(job.out);
+  const auto ckpt_dir = job.out / "checkpoint";
+  const auto teacher_config = Checkpoint::open(resolve_checkpoint_dir(job.teacher)).config();
+  const double shift =
+      teacher_config.contains("sampler") ? teacher_config["sampler"].value("shift", 5.0) : 5.0;
+  const auto action_ranges = teacher_config.value("actions", nlohmann::json::object());
+
+  // Clips normalised with the teacher's own action ranges, as its rollouts are.
+  std::vector<LatentClips> sets;
+  nlohmann::json data_json = nlohmann::json::array();
+  for (size_t i = 0; i < job.data.size(); ++i) {
+    auto spec = job.data[i];
+    const auto slot = data::open_dataset(spec.dataset)->info().action_slot;
+    if (!slot.empty() && action_ranges.contains(slot))
+      spec.action_stats =
+          data::ArrayStats::from_json(action_ranges[slot], job.teacher.string() + ": actions." + slot);
+    sets.push_back(
+        load_or_build_latent_clips(spec, job.out / ("latents-" + std::to_string(i) + ".safetensors")));
+    data_json.push_back(spec.to_json());
+  }
+  const auto clips = concat_latent_clips(sets);
+  const nlohmann::json fingerprint = {{"teacher", checkpoint_fingerprint(job.teacher)}, {"data", data_json}};
+
+  auto teacher = models::load_world_model(job.teacher);
+  const auto trajectories = load_or_build_trajectories(*teacher, shift, clips, job.trajectories, fingerprint,
+                                                       job.out / "trajectories");
+  const int64_t n = trajectories.size();
+
+  // The student starts as the teacher (its weights, its architecture); a resumed run from its own.
+  const bool resuming = checkpoint_exists(ckpt_dir);
+  torch::manual_seed(job.seed);
+  models::ActionDit student =
+      resuming ? models::ActionDit(models::DitConfig::from_json(
+                     Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config().at("config")))
+               : teacher;
+  WmTrainer trainer(student, job.options);
+  trainer.set_config_extras(
+      {{"actions", action_ranges}, {"student", job.student.to_json()}, {"teacher", fingerprint["teacher"]}});
+  if (resuming) {
+    trainer.resume(ckpt_dir);
+    LOG_INFO("distill: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
+  }
+
+  // A fixed batch of points and frame draws tracks the EMA student without batch noise.
+  const int64_t probe = std::min<int64_t>(n, 16);
+  const auto probe_idx = torch::linspace(0, static_cast<double>(n - 1), probe).to(torch::kLong);
+  const auto probe_points = trajectories.points.index_select(0, probe_idx);
+  const auto probe_actions = trajectories.actions.index_select(0, probe_idx);
+  const auto fixed_batch_loss = [&] {
+    torch::NoGradGuard no_grad;
+    return warmup_loss(*trainer.ema(), probe_points, probe_actions, trajectories.timesteps,
+                       job.student.window_frames, cpu_generator(job.seed + 777))
+        .item<double>();
+  };
+  DistillResult result;
+  result.clips = n;
+  result.fixed_batch_loss_start = fixed_batch_loss();
+
+  LoopOptions loop;
+  loop.name = "distill warm-up";
+  loop.steps = job.steps;
+  if (job.time_budget_s > 0) loop.time_budget_s = std::max(1e-3, job.time_budget_s - budget.elapsed());
+  loop.save_every = job.save_every;
+  loop.loss_curve = job.out / "loss.csv";
+  loop.columns = {"loss", "grad_norm", "lr", "fixed_batch_loss"};
+  const int64_t start_step = trainer.steps_done();
+  std::deque<double> recent;
+  const auto recent_mean = [&] {
+    double sum = 0;
+    for (double v : recent) sum += v;
+    return recent.empty() ? 0.0 : sum / static_cast<double>(recent.size());
+  };
+  const auto run = run_training_loop(
+      loop, start_step,
+      [&](const LoopStep& info) {
+        auto gen = cpu_generator(job.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(info.index) + 1);
+        const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
+        const auto pts = trajectories.points.index_select(0, idx),
+                   acts = trajectories.actions.index_select(0, idx);
+        const auto s = trainer.step_loss([&](models::ActionDitImpl& net) {
+          return warmup_loss(net, pts, acts, trajectories.timesteps, job.student.window_frames, gen);
+        });
+        recent.push_back(s.loss);
+        if (recent.size() > 20) recent.pop_front();
+        if (info.index + 1 - start_step == std::min<int64_t>(20, job.steps - start_step))
+          result.first_loss = recent_mean();
+        std::ostringstream note;
+        note << "loss " << s.loss;
+        return StepRecord{{s.loss, s.grad_norm, s.lr, info.saves ? fixed_batch_loss() : std::nan("")},
+                          job.batch_size,
+                          note.str()};
+      },
+      [&](int64_t, bool) {
+        trainer.save(ckpt_dir, {{"stage", "warmup"}, {"clips", n}});
+      });
+  if (run.end_step == run.start_step && !resuming)
+    trainer.save(ckpt_dir, {{"stage", "warmup"}, {"clips", n}});
+  result.steps = trainer.steps_done();
+  result.last_loss = recent_mean();
+  if (result.first_loss == 0) result.first_loss = result.last_loss;
+  result.fixed_batch_loss_end = fixed_batch_loss();
+  result.seconds = run.seconds;
+  const nlohmann::json summary = {{"stage", "warmup"},
+                                  {"steps", result.steps},
+                                  {"clips", n},
+                                  {"first_loss", result.first_loss},
+                                  {"last_loss", result.last_loss},
+                                  {"fixed_batch_loss_start", result.fixed_batch_loss_start},
+                                  {"fixed_batch_loss_end", result.fixed_batch_loss_end},
+                                  {"seconds", result.seconds},
+                                  {"student", job.student.to_json()},
+                                  {"options", job.options.to_json()}};
+  write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
+  return result;
+}
+
+}  // namespace dojo::train

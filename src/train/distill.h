@@ -1,0 +1,85 @@
+// Distillation of the post-trained teacher into the causal few-step student (`dojo distill`).
+// Facts: ../shared/reference/self_forcing.md §1-§2.
+//
+//   trajectories  the teacher's ODE solutions (35 UniPC steps at its trained shift) on training
+//                 clips, kept at the student's points: the samples before steps 0, 9, 18, 27
+//                 and the final x0, with frame 0 the clip's clean conditioning latent. Written
+//                 in shards fingerprinted by teacher, data and sampler, so an interrupted run
+//                 keeps what it finished and a changed teacher or dataset rebuilds them.
+//   warm-up       the student starts as a copy of the teacher and regresses the teacher's x0 from
+//                 those points under the block-causal window mask (a new frame sees itself and
+//                 the student's window of earlier frames), each frame at its own random point,
+//                 frame 0 clean: x̂0 = x − (t/1000)·v̂, loss mean((x̂0 − x0_teacher)²) over frames ≥ 1.
+#pragma once
+
+#include <torch/torch.h>
+
+#include <cstdint>
+#include <filesystem>
+#include <vector>
+
+#include "infer/streaming.h"
+#include "models/dit.h"
+#include "train/latent_cache.h"
+#include "train/wm_train.h"
+
+namespace dojo::train {
+
+struct TeacherTrajectories {
+  torch::Tensor points;            // [N, P, 16, 4, h, w]: the samples at the query steps, then the final x0
+  torch::Tensor actions;           // [N, 12, 384]
+  std::vector<int64_t> timesteps;  // [P] the teacher's integer timesteps of the points (the last: 0)
+  int64_t size() const { return points.defined() ? points.size(0) : 0; }
+};
+
+struct TrajectorySpec {
+  int teacher_steps = 35;                         // UniPC steps, as released
+  std::vector<int> query_steps = {0, 9, 18, 27};  // samples kept before these steps
+  // The released query steps scaled to another step count: round(9 i N / 35), i = 0..3.
+  static std::vector<int> query_steps_for(int teacher_steps);
+  int64_t shard_clips = 64;
+  int batch = 16;  // clips through the teacher together
+  uint64_t seed = 0;
+};
+
+// The teacher's trajectories on `clips` (latents [N, 16, 4, h, w], actions [N, 12, 384]),
+// written to / read from dir/shard-<k>.safetensors. `fingerprint` identifies teacher and data;
+// shards made from anything else are rebuilt.
+TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, double shift,
+                                               const LatentClips& clips, const TrajectorySpec& spec,
+                                               const nlohmann::json& fingerprint,
+                                               const std::filesystem::path& dir);
+
+// The warm-up regression loss of `student` on a batch of trajectory points: frames ≥ 1 each at a
+// random point (drawn from `generator`), frame 0 clean. points [B, P, 16, 4, h, w].
+torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& points,
+                          const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
+                          int64_t window_frames, torch::Generator generator);
+
+struct DistillJob {
+  std::vector<LatentCacheSpec> data;  // robot clips, encoded by the teacher's tokenizer
+  std::filesystem::path teacher;      // the post-trained teacher checkpoint
+  std::filesystem::path out;          // out/latents-<i>, out/trajectories/, out/checkpoint, out/loss.csv
+  infer::StudentConfig student;
+  TrajectorySpec trajectories;
+  WmTrainOptions options;  // lr, weight decay, clipping, EMA (flow-matching fields unused)
+  int batch_size = 8;
+  int64_t steps = 1000;
+  double time_budget_s = 0;
+  int64_t save_every = 200;
+  uint64_t seed = 0;
+};
+
+struct DistillResult {
+  int64_t steps = 0, clips = 0;
+  double first_loss = 0, last_loss = 0;
+  double fixed_batch_loss_start = 0, fixed_batch_loss_end = 0;  // EMA student, fixed points
+  double seconds = 0;
+};
+
+// Trajectories, then the warm-up, resuming from out/checkpoint. The checkpoint is a world-model
+// checkpoint (the EMA student) whose config carries the "student" entry and the teacher's action
+// ranges.
+DistillResult run_distillation(const DistillJob& job);
+
+}  // namespace dojo::train

@@ -1,0 +1,74 @@
+// `dojo distill` and `dojo wm stream` end to end on the reference teacher: a short warm-up makes a
+// student checkpoint that `wm stream` and `eval --student` run; bad action lines get one-line
+// errors naming the line.
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "synthetic_data.h"
+#include "test_util.h"
+
+namespace dojo {
+namespace {
+
+void write_lines(const std::filesystem::path& file, const std::vector<std::string>& lines) {
+  std::ofstream out(file);
+  for (const auto& l : lines) out << l << "\n";
+}
+
+std::string rows(int n, int width, double value) {
+  nlohmann::json chunk = nlohmann::json::array();
+  for (int r = 0; r < n; ++r)
+    chunk.push_back(std::vector<double>(static_cast<size_t>(width), value * (r + 1)));
+  return chunk.dump();
+}
+
+TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
+  test::OneThread one;
+  test::TempDir tmp;
+  test::SyntheticOptions g;
+  g.episodes = 2;
+  g.frames = 52;
+  g.size = 64;
+  test::write_synthetic_dataset(tmp / "robot", g);
+  const auto data = (tmp / "robot").string();
+  const auto out = tmp / "distill";
+  auto r = test::run_dojo("--threads 1 distill --data " + data +
+                          " --split all --max-clips 4 --teacher-steps 4 --steps 3 "
+                          "--batch 2 --out " +
+                          out.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto config = nlohmann::json::parse(test::read_file(out / "checkpoint" / "config.json"));
+  EXPECT_EQ(config.at("student").at("window_frames"), 3);
+  EXPECT_TRUE(config.at("actions").contains("dojosim_robot")) << "the teacher's action ranges travel on";
+  EXPECT_TRUE(std::filesystem::exists(out / "trajectories" / "shard-00000.safetensors"));
+
+  // Raw robot commands (6 joints, after a baseline) and rows in the 384-d layout, from a file.
+  const auto actions = tmp / "actions.jsonl";
+  write_lines(actions,
+              {R"({"baseline": [1, 0.5, 1.8, 0.8, 0, 0.5]})", rows(4, 6, 0.1), "", rows(4, 384, 0.0)});
+  const auto tok = (std::filesystem::path(DOJO_SOURCE_DIR) / "models" / "reference" / "tokenizer").string();
+  r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
+                     " --data " + data + " --split all --actions " + actions.string() +
+                     " --frames 40 --out " + (tmp / "s.mp4").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("streamed 8 frames"), std::string::npos)
+      << "the file's two chunks, then its end: " << r.output;
+  EXPECT_TRUE(std::filesystem::exists(tmp / "s.mp4"));
+
+  write_lines(actions, {rows(4, 384, 0.0), "[[1, 2], [3]]"});
+  r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
+                     " --data " + data + " --split all --actions " + actions.string() + " --no-decode");
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("actions.jsonl line 2"), std::string::npos) << r.output;
+
+  r = test::run_dojo("--threads 1 eval --student -c " + (out / "checkpoint").string() + " --tokenizer " +
+                     tok + " --data " + data + " --split all -n 1 --chunks 1 --json");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("\"student\""), std::string::npos);
+}
+
+}  // namespace
+}  // namespace dojo

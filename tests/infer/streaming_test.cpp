@@ -1,0 +1,116 @@
+#include "infer/streaming.h"
+
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include "core/error.h"
+#include "test_util.h"
+#include "train/wm_test_fixtures.h"
+
+namespace dojo::infer {
+namespace {
+
+// A random student (live action MLPs, so actions matter) and tiny tokenizer, shared weights
+// across engines built from the same seed.
+StreamingEngine engine(StreamingEngine::Options o, uint64_t seed = 0) {
+  torch::manual_seed(seed);
+  models::ActionDit net(train::test_fixtures::tiny_dit(/*live_actions=*/true, /*width=*/64));
+  models::WanVae vae(models::WanVaeConfig::tiny());
+  return StreamingEngine(net, vae, o);
+}
+
+torch::Tensor actions_for(int64_t steps, int64_t batch, uint64_t seed) {
+  auto g = train::test_fixtures::gen(seed);
+  return torch::rand({batch, 4 * steps, 384}, g) * 2 - 1;  // [B, 4 steps, 384]
+}
+
+std::vector<torch::Tensor> run(StreamingEngine& e, const torch::Tensor& first, const torch::Tensor& actions,
+                               uint64_t seed) {
+  e.reset(first, seed);
+  std::vector<torch::Tensor> out;
+  for (int64_t s = 0; s < actions.size(1) / 4; ++s) out.push_back(e.step(actions.narrow(1, 4 * s, 4)));
+  return out;
+}
+
+// The ring-buffer KV cache against recomputing the whole history under the block-causal window
+// mask, past the point where the ring wraps (window 2, 7 new frames).
+TEST(Streaming, CachedEqualsBlockCausalRecomputation) {
+  test::OneThread one;
+  StreamingEngine::Options o;
+  o.decode = false;
+  o.student.window_frames = 2;
+  auto cached = engine(o);
+  o.use_cache = false;
+  auto reference = engine(o);
+  const auto first = torch::randint(0, 255, {2, 32, 32, 3}, torch::kByte);
+  const auto actions = actions_for(7, 2, 3);
+  const auto a = run(cached, first, actions, 5);
+  const auto b = run(reference, first, actions, 5);
+  ASSERT_EQ(a.size(), b.size());
+  double worst = 0;
+  for (size_t i = 0; i < a.size(); ++i) {
+    EXPECT_EQ(a[i].sizes(), (std::vector<int64_t>{2, 16, 1, 4, 4}));
+    worst = std::max(worst, (a[i] - b[i]).abs().max().item<double>());
+  }
+  EXPECT_LT(worst, 1e-4);
+  std::printf("cached vs recomputed, 7 frames, window 2: max abs %.2g\n", worst);
+  EXPECT_EQ(cached.latent_frames(), 8);
+
+  // The window matters (so the comparison above can fail): a longer window changes frame 4 on.
+  o.use_cache = true;
+  o.student.window_frames = 6;
+  auto wide = engine(o);
+  const auto c = run(wide, first, actions, 5);
+  EXPECT_LT((c[1] - a[1]).abs().max().item<double>(), 1e-4) << "frames within both windows agree";
+  EXPECT_GT((c[5] - a[5]).abs().max().item<double>(), 1e-3);
+}
+
+TEST(Streaming, FramesFollowSeedAndActionsWithFlatMemory) {
+  test::OneThread one;
+  StreamingEngine::Options o;
+  o.student.window_frames = 2;
+  auto e = engine(o);
+  const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
+  const auto frame0 = e.reset(first, 1);
+  ASSERT_EQ(frame0.sizes(), (std::vector<int64_t>{1, 1, 32, 32, 3}));
+  const auto round_trip = models::reconstruct_frames(e.tokenizer(), first.unsqueeze(1));  // [1, 1, H, W, 3]
+  EXPECT_LE((frame0.to(torch::kInt) - round_trip.to(torch::kInt)).abs().max().item<int>(), 1);
+
+  const auto actions = actions_for(12, 1, 4);
+  const auto a = run(e, first, actions, 9);
+  ASSERT_EQ(a[0].sizes(), (std::vector<int64_t>{1, 4, 32, 32, 3}));
+  EXPECT_EQ(a[0].scalar_type(), torch::kUInt8);
+  const auto b = run(e, first, actions, 9);
+  for (size_t i = 0; i < a.size(); ++i)
+    EXPECT_TRUE(a[i].equal(b[i])) << "reset + same seed = same video, step " << i;
+  const auto other = run(e, first, actions_for(12, 1, 5), 9);
+  EXPECT_FALSE(other[3].equal(a[3])) << "other actions, other frames";
+
+  // The ring holds window + 1 frames from the moment it fills: the same bytes at every later step.
+  e.reset(first, 9);
+  std::vector<int64_t> bytes;
+  for (int64_t s = 0; s < 12; ++s) {
+    e.step(actions.narrow(1, 4 * s, 4));
+    bytes.push_back(e.cache_bytes());
+    EXPECT_GT(e.last_timings().total_ms, 0);
+  }
+  EXPECT_GT(bytes.front(), 0);
+  for (auto b : bytes) EXPECT_EQ(b, bytes.front());
+  EXPECT_THROW(e.step(torch::zeros({1, 3, 384})), Error);
+}
+
+TEST(StudentConfig, BadFieldsNameTheFile) {
+  EXPECT_THROW(StudentConfig::from_json({{"steps", 5}}, "ck/config.json"), Error);
+  try {
+    StudentConfig::from_json({{"window_frames", -1}}, "ck/config.json");
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("ck/config.json: field 'student.window_frames'"), std::string::npos);
+  }
+  const auto c = StudentConfig::from_json({{"steps", 2}, {"bf16_times", false}}, "x");
+  EXPECT_EQ(c.schedule().size(), 2u);
+  EXPECT_EQ(StudentConfig::from_json(c.to_json(), "x").to_json(), c.to_json());
+}
+
+}  // namespace
+}  // namespace dojo::infer

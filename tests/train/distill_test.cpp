@@ -1,0 +1,97 @@
+#include "train/distill.h"
+
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include "diffusion/samplers.h"
+#include "test_util.h"
+#include "wm_test_fixtures.h"
+
+namespace dojo::train {
+namespace {
+
+using test::TempDir;
+using test_fixtures::gen;
+
+LatentClips action_clips(int64_t n, uint64_t seed) {
+  LatentClips clips;
+  test_fixtures::action_driven_latents(n, clips.latents, clips.actions, seed);  // [n, 16, 4, 4, 4]
+  return clips;
+}
+
+TEST(Distill, TrajectoriesAreTheTeachersOdePointsPerClipAndResume) {
+  test::OneThread one;
+  torch::manual_seed(0);
+  models::ActionDit teacher(test_fixtures::tiny_dit(/*live_actions=*/true));
+  teacher->eval();
+  const auto clips = action_clips(5, 1);
+  TempDir dir;
+  TrajectorySpec spec;
+  spec.teacher_steps = 6;
+  spec.query_steps = {0, 2, 4};
+  spec.shard_clips = 2;
+  spec.batch = 2;
+  const nlohmann::json fp = {{"teacher", "a"}};
+  const auto t = load_or_build_trajectories(*teacher, 5.0, clips, spec, fp, dir.path());
+  ASSERT_EQ(t.points.sizes(), (std::vector<int64_t>{5, 4, 16, 4, 4, 4}));
+  const auto schedule = diffusion::flow_sigma_schedule(6, 5.0);
+  EXPECT_EQ(t.timesteps,
+            (std::vector<int64_t>{schedule.timesteps[0], schedule.timesteps[2], schedule.timesteps[4], 0}));
+  // Frame 0 of every point is the clip's clean conditioning latent.
+  for (int64_t p = 0; p < 4; ++p)
+    EXPECT_TRUE(t.points.select(1, p).select(2, 0).equal(clips.latents.select(2, 0)));
+  // Point 0 is the clip's own noise (frames >= 1), so batching does not change the draws.
+  spec.batch = 1;
+  TempDir other;
+  const auto one_by_one = load_or_build_trajectories(*teacher, 5.0, clips, spec, fp, other.path());
+  EXPECT_LT((one_by_one.points - t.points).abs().max().item<double>(), 1e-5);
+  // The points move along the ODE: each differs from the one before on the predicted frames.
+  for (int64_t p = 1; p < 4; ++p)
+    EXPECT_GT((t.points.select(1, p) - t.points.select(1, p - 1)).narrow(2, 1, 3).abs().max().item<double>(),
+              1e-3);
+
+  // A second call reads the shards; another teacher rebuilds them.
+  const auto shard = dir / "shard-00000.safetensors";
+  const auto written = std::filesystem::last_write_time(shard);
+  const auto again = load_or_build_trajectories(*teacher, 5.0, clips, spec, fp, dir.path());
+  EXPECT_TRUE(again.points.equal(t.points));
+  EXPECT_EQ(std::filesystem::last_write_time(shard), written);
+  load_or_build_trajectories(*teacher, 5.0, clips, spec, {{"teacher", "b"}}, dir.path());
+  EXPECT_NE(std::filesystem::last_write_time(shard), written);
+}
+
+TEST(Distill, WarmupRegressionLearnsTheTeachersX0) {
+  test::OneThread one;
+  torch::manual_seed(0);
+  models::ActionDit teacher(test_fixtures::tiny_dit(/*live_actions=*/true));
+  teacher->eval();
+  const auto clips = action_clips(8, 2);
+  TempDir dir;
+  TrajectorySpec spec;
+  spec.teacher_steps = 6;
+  spec.query_steps = {0, 2, 4};
+  const auto t = load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path());
+
+  WmTrainOptions o;
+  o.lr = 1e-3;
+  o.warmup_steps = 0;
+  o.grad_clip = 1;
+  models::ActionDit student(teacher->config);
+  WmTrainer trainer(student, o);
+  const auto fixed = [&] {
+    torch::NoGradGuard no_grad;
+    return warmup_loss(*trainer.net(), t.points, t.actions, t.timesteps, 2, gen(99)).item<double>();
+  };
+  const double before = fixed();
+  for (int step = 0; step < 40; ++step) {
+    auto g = gen(static_cast<uint64_t>(step));
+    trainer.step_loss(
+        [&](models::ActionDitImpl& net) { return warmup_loss(net, t.points, t.actions, t.timesteps, 2, g); });
+  }
+  const double after = fixed();
+  std::printf("warm-up loss %.4f -> %.4f\n", before, after);
+  EXPECT_LT(after, 0.5 * before);
+}
+
+}  // namespace
+}  // namespace dojo::train
