@@ -20,12 +20,13 @@ namespace dojo::cli {
 namespace {
 
 struct DistillArgs {
-  std::string teacher, tokenizer, split = "train", out;
+  std::string stage = "warmup", init, teacher, tokenizer, split = "train", out;
   std::vector<std::string> data;
   int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 3;
   int batch = 8, student_steps = 4, teacher_steps = 35;
   double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1;
   bool fp32_times = false;
+  train::SelfForcingOptions self_forcing;
   uint64_t seed = 0;
 };
 
@@ -33,6 +34,9 @@ int run_distill(DistillArgs a) {
   if (a.teacher.empty()) LOG_INFO("no --teacher: distilling the reference set's post-trained world model");
   resolve_models(a.teacher, a.tokenizer, nullptr);
   train::DistillJob job;
+  job.stage = train::parse_distill_stage(a.stage);
+  job.init = a.init;
+  job.self_forcing = a.self_forcing;
   for (const auto& d : a.data) {
     train::LatentCacheSpec spec;
     spec.dataset = d;
@@ -64,11 +68,18 @@ int run_distill(DistillArgs a) {
     ScopedThreads matmul_bound(matmul_bound_command_threads("distill", false));
     return train::run_distillation(job);
   }();
-  std::printf(
-      "distill warm-up: %lld steps on %lld teacher trajectories, loss %.4f -> %.4f, fixed-batch loss "
-      "%.4f -> %.4f\nstudent %s/checkpoint (stream it with `dojo wm stream -c %s/checkpoint`)\n",
-      static_cast<long long>(r.steps), static_cast<long long>(r.clips), r.first_loss, r.last_loss,
-      r.fixed_batch_loss_start, r.fixed_batch_loss_end, a.out.c_str(), a.out.c_str());
+  if (job.stage == train::DistillStage::kWarmup)
+    std::printf("distill warm-up: %lld steps on %lld teacher trajectories, loss %.4f -> %.4f, fixed-batch loss "
+                "%.4f -> %.4f\n",
+                static_cast<long long>(r.steps), static_cast<long long>(r.clips), r.first_loss, r.last_loss,
+                r.fixed_batch_loss_start, r.fixed_batch_loss_end);
+  else
+    std::printf("distill self-forcing: %lld iterations on %lld clips, generator loss %.4f, fixed-clip rollout latent "
+                "MSE %.4f -> %.4f\n",
+                static_cast<long long>(r.steps), static_cast<long long>(r.clips), r.last_loss,
+                r.fixed_batch_loss_start, r.fixed_batch_loss_end);
+  std::printf("student %s/checkpoint (stream it with `dojo wm stream -c %s/checkpoint`)\n", a.out.c_str(),
+              a.out.c_str());
   return 0;
 }
 
@@ -79,6 +90,9 @@ void register_distill(CLI::App& app) {
   auto* cmd = app.add_subcommand(
       "distill",
       "Distill a post-trained world model into the causal 4-step student (trajectories + warm-up)");
+  cmd->add_option("--stage", a->stage, "warmup (regress the teacher's ODE points) | self-forcing (DMD, needs --init)")
+      ->capture_default_str();
+  cmd->add_option("--init", a->init, "self-forcing: the warmed-up student checkpoint");
   cmd->add_option("--teacher", a->teacher, "Post-trained world model (default: the reference set's)");
   cmd->add_option("--tokenizer", a->tokenizer, "Its tokenizer (default with the reference set: its own)");
   add_data_option(cmd, a->data)->required();
@@ -102,6 +116,15 @@ void register_distill(CLI::App& app) {
   cmd->add_option("--hop", a->hop, "Clip start stride in frames")->capture_default_str();
   cmd->add_option("--max-clips", a->max_clips, "Clips per dataset (0: all)")->capture_default_str();
   cmd->add_option("--save-every", a->save_every, "Checkpoint every N steps")->capture_default_str();
+  auto& sf = a->self_forcing;
+  cmd->add_option("--generator-lr", sf.generator_lr, "self-forcing: student learning rate")->capture_default_str();
+  cmd->add_option("--critic-lr", sf.critic_lr, "self-forcing: critic learning rate")->capture_default_str();
+  cmd->add_option("--critic-steps", sf.critic_steps, "self-forcing: critic updates per student update")
+      ->capture_default_str();
+  cmd->add_option("--min-frames", sf.min_frames, "self-forcing: shortest rollout in latent frames")
+      ->capture_default_str();
+  cmd->add_option("--max-frames", sf.max_frames, "self-forcing: longest rollout in latent frames (clips of 1 + 4 (N - 1))")
+      ->capture_default_str();
   add_seed_option(cmd, a->seed);
   cmd->callback([a] { set_action([a] { return run_distill(*a); }); });
 }

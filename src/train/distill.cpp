@@ -147,32 +147,64 @@ torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& p
   return (x0 - target).narrow(2, 1, T - 1).pow(2).mean();
 }
 
-DistillResult run_distillation(const DistillJob& job) {
+DistillStage parse_distill_stage(const std::string& text) {
+  if (text == "warmup") return DistillStage::kWarmup;
+  if (text == "self-forcing") return DistillStage::kSelfForcing;
+  throw Error("unknown distillation stage '" + text + "' (expected warmup or self-forcing)");
+}
+
+namespace {
+
+struct TeacherData {
+  nlohmann::json config, action_ranges, fingerprint;
+  double shift = 5;
+  LatentClips clips;
+};
+
+// The teacher's config and the job's clips (frames each), normalised with the teacher's own action
+// ranges as its rollouts are; cached as out/<prefix>-<i>.safetensors.
+TeacherData teacher_data(const DistillJob& job, int frames, const std::string& prefix) {
   DOJO_CHECK(!job.data.empty(), "distill: no dataset given");
   DOJO_CHECK(!job.teacher.empty(), "distill: --teacher is required");
-  TimeBudget budget(job.time_budget_s);
-  fs::create_directories(job.out);
-  const auto ckpt_dir = job.out / "checkpoint";
-  const auto teacher_config = Checkpoint::open(resolve_checkpoint_dir(job.teacher)).config();
-  const double shift =
-      teacher_config.contains("sampler") ? teacher_config["sampler"].value("shift", 5.0) : 5.0;
-  const auto action_ranges = teacher_config.value("actions", nlohmann::json::object());
-
-  // Clips normalised with the teacher's own action ranges, as its rollouts are.
+  TeacherData t;
+  t.config = Checkpoint::open(resolve_checkpoint_dir(job.teacher)).config();
+  t.shift = t.config.contains("sampler") ? t.config["sampler"].value("shift", 5.0) : 5.0;
+  t.action_ranges = t.config.value("actions", nlohmann::json::object());
   std::vector<LatentClips> sets;
   nlohmann::json data_json = nlohmann::json::array();
   for (size_t i = 0; i < job.data.size(); ++i) {
     auto spec = job.data[i];
+    spec.frames = frames;
     const auto slot = data::open_dataset(spec.dataset)->info().action_slot;
-    if (!slot.empty() && action_ranges.contains(slot))
+    if (!slot.empty() && t.action_ranges.contains(slot))
       spec.action_stats =
-          data::ArrayStats::from_json(action_ranges[slot], job.teacher.string() + ": actions." + slot);
-    sets.push_back(
-        load_or_build_latent_clips(spec, job.out / ("latents-" + std::to_string(i) + ".safetensors")));
+          data::ArrayStats::from_json(t.action_ranges[slot], job.teacher.string() + ": actions." + slot);
+    sets.push_back(load_or_build_latent_clips(spec, job.out / (prefix + "-" + std::to_string(i) + ".safetensors")));
     data_json.push_back(spec.to_json());
   }
-  const auto clips = concat_latent_clips(sets);
-  const nlohmann::json fingerprint = {{"teacher", checkpoint_fingerprint(job.teacher)}, {"data", data_json}};
+  t.clips = concat_latent_clips(sets);
+  t.fingerprint = {{"teacher", checkpoint_fingerprint(job.teacher)}, {"data", data_json}};
+  return t;
+}
+
+// A network with its own parameters, initialised from a checkpoint (trainers must not share).
+models::ActionDit fresh_copy(const std::filesystem::path& checkpoint) { return models::load_world_model(checkpoint); }
+
+double mean_of(const std::deque<double>& values) {
+  double sum = 0;
+  for (double v : values) sum += v;
+  return values.empty() ? 0.0 : sum / static_cast<double>(values.size());
+}
+
+DistillResult run_warmup(const DistillJob& job) {
+  TimeBudget budget(job.time_budget_s);
+  fs::create_directories(job.out);
+  const auto ckpt_dir = job.out / "checkpoint";
+  const auto data = teacher_data(job, 13, "latents");
+  const auto& clips = data.clips;
+  const auto& action_ranges = data.action_ranges;
+  const auto& fingerprint = data.fingerprint;
+  const double shift = data.shift;
 
   auto teacher = models::load_world_model(job.teacher);
   const auto trajectories = load_or_build_trajectories(*teacher, shift, clips, job.trajectories, fingerprint,
@@ -265,6 +297,151 @@ DistillResult run_distillation(const DistillJob& job) {
                                   {"options", job.options.to_json()}};
   write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
   return result;
+}
+
+
+DistillResult run_self_forcing(const DistillJob& job) {
+  const auto& sf = job.self_forcing;
+  DOJO_CHECK(sf.min_frames > sf.loss_frames && sf.max_frames >= sf.min_frames,
+             "self-forcing: need loss_frames < min_frames <= max_frames");
+  TimeBudget budget(job.time_budget_s);
+  fs::create_directories(job.out);
+  const auto ckpt_dir = job.out / "checkpoint", critic_dir = job.out / "critic";
+  const auto data = teacher_data(job, static_cast<int>(1 + 4 * (sf.max_frames - 1)), "latents-long");
+  const auto& clips = data.clips;  // latents [N, 16, max_frames, h, w], actions [N, 4 (max_frames − 1), 384]
+  const int64_t n = clips.size();
+
+  const bool resuming = checkpoint_exists(ckpt_dir) && checkpoint_exists(critic_dir);
+  DOJO_CHECK(resuming || !job.init.empty(), "distill --stage self-forcing needs --init (the warmed-up student)");
+  const auto student_source = resuming ? ckpt_dir : job.init;
+  const auto student_config_json = Checkpoint::open(resolve_checkpoint_dir(student_source)).config();
+  const auto student =
+      student_config_json.contains("student")
+          ? infer::StudentConfig::from_json(student_config_json["student"], student_source.string() + "/config.json")
+          : job.student;
+  auto teacher = models::load_world_model(job.teacher);
+  for (auto& p : teacher->parameters()) p.set_requires_grad(false);
+  torch::manual_seed(job.seed);
+  WmTrainOptions gen_options, critic_options;
+  gen_options.lr = sf.generator_lr;
+  critic_options.lr = sf.critic_lr;
+  for (auto* o : {&gen_options, &critic_options}) {
+    o->weight_decay = sf.weight_decay;
+    o->grad_clip = sf.grad_clip;
+    o->warmup_steps = 0;  // constant, as released
+    o->flow.shift = data.shift;
+  }
+  WmTrainer generator(fresh_copy(student_source), gen_options);
+  // The critic starts as the teacher (the fake score equals the real one before any student sample).
+  WmTrainer critic(fresh_copy(resuming ? critic_dir : job.teacher), critic_options);
+  generator.set_config_extras(
+      {{"actions", data.action_ranges}, {"student", student.to_json()}, {"teacher", data.fingerprint["teacher"]}});
+  critic.set_config_extras({{"actions", data.action_ranges}});
+  if (resuming) {
+    generator.resume(ckpt_dir);
+    critic.resume(critic_dir);
+    LOG_INFO("distill: resumed self-forcing at iteration ", generator.steps_done() + critic.steps_done());
+  }
+
+  // Fixed clips: the EMA student's full-length rollouts against the clips' own latents.
+  const int64_t probe = std::min<int64_t>(n, 4);
+  const auto probe_idx = torch::linspace(0, static_cast<double>(n - 1), probe).to(torch::kLong);
+  const auto fixed_batch_loss = [&] {
+    torch::NoGradGuard no_grad;
+    const auto x = clips.latents.index_select(0, probe_idx);
+    auto g = cpu_generator(job.seed + 4242);
+    const auto noise = torch::randn(x.sizes(), g);
+    const auto rolled = student_rollout(*generator.ema(), student, x.narrow(2, 0, 1),
+                                        clips.actions.index_select(0, probe_idx), noise, student.steps - 1, x.size(2));
+    return (rolled - x).narrow(2, 1, x.size(2) - 1).pow(2).mean().item<double>();
+  };
+  DistillResult result;
+  result.clips = n;
+  result.fixed_batch_loss_start = fixed_batch_loss();
+
+  LoopOptions loop;
+  loop.name = "distill self-forcing";
+  loop.steps = job.steps;
+  if (job.time_budget_s > 0) loop.time_budget_s = std::max(1e-3, job.time_budget_s - budget.elapsed());
+  loop.save_every = job.save_every;
+  loop.loss_curve = job.out / "loss.csv";
+  loop.columns = {"generator_loss", "critic_loss", "grad_norm", "exit_hop", "frames", "fixed_batch_latent_mse"};
+  const int64_t start = generator.steps_done() + critic.steps_done();
+  std::deque<double> recent_generator, recent_critic;
+  const auto run = run_training_loop(
+      loop, start,
+      [&](const LoopStep& info) {
+        auto g = cpu_generator(job.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(info.index) + 1);
+        const auto idx = torch::randint(n, {job.batch_size}, g, torch::kLong);
+        const int exit_hop = static_cast<int>(torch::randint(student.steps, {1}, g).item<int64_t>());
+        const int64_t frames = torch::randint(sf.min_frames, sf.max_frames + 1, {1}, g).item<int64_t>();
+        const auto x = clips.latents.index_select(0, idx).narrow(2, 0, frames);  // [B, 16, frames, h, w]
+        const auto acts = clips.actions.index_select(0, idx).narrow(1, 0, 4 * (frames - 1));
+        const auto noise = torch::randn(x.sizes(), g);
+        const int64_t L = sf.loss_frames, first_scored = frames - L;
+        const auto u = torch::rand({job.batch_size}, g);
+        const auto sigma = sf.shift * u / (1 + (sf.shift - 1) * u);  // [B]
+        const auto window_noise = torch::randn({x.size(0), x.size(1), 1 + L, x.size(3), x.size(4)}, g);
+        const auto window_actions = acts.narrow(1, 4 * (first_scored - 1), 4 * L);
+        const bool generator_phase = info.index % (sf.critic_steps + 1) == 0;
+        WmStepStats s;
+        if (generator_phase) {
+          s = generator.step_loss([&](models::ActionDitImpl& net) {
+            const auto rolled = student_rollout(net, student, x.narrow(2, 0, 1), acts, noise, exit_hop, first_scored);
+            return dmd_generator_loss(*teacher, *critic.net(), rolled.narrow(2, first_scored - 1, 1 + L),
+                                      window_actions, sigma, window_noise);
+          });
+          recent_generator.push_back(s.loss);
+          if (recent_generator.size() > 10) recent_generator.pop_front();
+        } else {
+          torch::Tensor rolled;
+          {
+            torch::NoGradGuard no_grad;
+            rolled = student_rollout(*generator.net(), student, x.narrow(2, 0, 1), acts, noise, exit_hop, frames);
+          }
+          s = critic.step_loss([&](models::ActionDitImpl& net) {
+            return critic_loss(net, rolled.narrow(2, first_scored - 1, 1 + L), window_actions, sigma, window_noise);
+          });
+          recent_critic.push_back(s.loss);
+          if (recent_critic.size() > 40) recent_critic.pop_front();
+        }
+        std::ostringstream note;
+        note << "generator " << mean_of(recent_generator) << " critic " << mean_of(recent_critic);
+        const double nan = std::nan("");
+        return StepRecord{{generator_phase ? s.loss : nan, generator_phase ? nan : s.loss, s.grad_norm,
+                           static_cast<double>(exit_hop), static_cast<double>(frames),
+                           info.saves ? fixed_batch_loss() : nan},
+                          job.batch_size,
+                          note.str()};
+      },
+      [&](int64_t iterations, bool) {
+        critic.save(critic_dir, {{"stage", "self-forcing critic"}, {"iterations", iterations}});
+        generator.save(ckpt_dir, {{"stage", "self-forcing"}, {"iterations", iterations}, {"clips", n}});
+      });
+  result.steps = generator.steps_done() + critic.steps_done();
+  result.first_loss = result.last_loss = mean_of(recent_generator);
+  result.fixed_batch_loss_end = fixed_batch_loss();
+  result.seconds = run.seconds;
+  const nlohmann::json summary = {{"stage", "self-forcing"},
+                                  {"iterations", result.steps},
+                                  {"generator_updates", generator.steps_done()},
+                                  {"critic_updates", critic.steps_done()},
+                                  {"clips", n},
+                                  {"generator_loss", mean_of(recent_generator)},
+                                  {"critic_loss", mean_of(recent_critic)},
+                                  {"fixed_batch_latent_mse_start", result.fixed_batch_loss_start},
+                                  {"fixed_batch_latent_mse_end", result.fixed_batch_loss_end},
+                                  {"seconds", result.seconds},
+                                  {"student", student.to_json()},
+                                  {"options", sf.to_json()}};
+  write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
+  return result;
+}
+
+}  // namespace
+
+DistillResult run_distillation(const DistillJob& job) {
+  return job.stage == DistillStage::kWarmup ? run_warmup(job) : run_self_forcing(job);
 }
 
 }  // namespace dojo::train

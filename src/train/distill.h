@@ -21,6 +21,7 @@
 #include "infer/streaming.h"
 #include "models/dit.h"
 #include "train/latent_cache.h"
+#include "train/self_forcing.h"
 #include "train/wm_train.h"
 
 namespace dojo::train {
@@ -56,11 +57,17 @@ torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& p
                           const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
                           int64_t window_frames, torch::Generator generator);
 
+enum class DistillStage { kWarmup, kSelfForcing };
+DistillStage parse_distill_stage(const std::string& text);  // warmup | self-forcing
+
 struct DistillJob {
+  DistillStage stage = DistillStage::kWarmup;
   std::vector<LatentCacheSpec> data;  // robot clips, encoded by the teacher's tokenizer
   std::filesystem::path teacher;      // the post-trained teacher checkpoint
   std::filesystem::path out;          // out/latents-<i>, out/trajectories/, out/checkpoint, out/loss.csv
-  infer::StudentConfig student;
+  std::filesystem::path init;         // self-forcing: the warmed-up student
+  infer::StudentConfig student;       // warm-up: the student made; self-forcing: from init's config
+  SelfForcingOptions self_forcing;
   TrajectorySpec trajectories;
   WmTrainOptions options;  // lr, weight decay, clipping, EMA (flow-matching fields unused)
   int batch_size = 8;
@@ -71,15 +78,17 @@ struct DistillJob {
 };
 
 struct DistillResult {
-  int64_t steps = 0, clips = 0;
+  int64_t steps = 0, clips = 0;  // self-forcing: iterations (generator + critic updates)
   double first_loss = 0, last_loss = 0;
   double fixed_batch_loss_start = 0, fixed_batch_loss_end = 0;  // EMA student, fixed points
   double seconds = 0;
 };
 
-// Trajectories, then the warm-up, resuming from out/checkpoint. The checkpoint is a world-model
+// Warm-up: trajectories, then the regression. Self-forcing: DMD from the warmed-up student on
+// 49-frame clips, the critic in out/critic. Both resume from out/checkpoint, a world-model
 // checkpoint (the EMA student) whose config carries the "student" entry and the teacher's action
-// ranges.
+// ranges. Fixed-batch loss: warm-up, the regression loss; self-forcing, the latent MSE of the EMA
+// student's full-length rollouts against the clips.
 DistillResult run_distillation(const DistillJob& job);
 
 }  // namespace dojo::train

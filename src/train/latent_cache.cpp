@@ -62,7 +62,7 @@ nlohmann::json checkpoint_fingerprint(const fs::path& dir) {
 }
 
 nlohmann::json LatentCacheSpec::to_json() const {
-  return {{"dataset", fs::absolute(dataset).lexically_normal().string()},
+  nlohmann::json j = {{"dataset", fs::absolute(dataset).lexically_normal().string()},
           {"split", split},
           {"tokenizer", checkpoint_fingerprint(tokenizer)},
           {"lam", mode == ActionMode::kLatent ? checkpoint_fingerprint(lam) : nlohmann::json(nullptr)},
@@ -73,6 +73,8 @@ nlohmann::json LatentCacheSpec::to_json() const {
           {"max_clips", max_clips},
           {"relative_actions", relative_actions},
           {"action_stats", action_stats ? action_stats->to_json() : nlohmann::json(nullptr)}};
+  if (frames != 13) j["frames"] = frames;  // older caches (all 13 frames) keep their fingerprint
+  return j;
 }
 
 LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::path& cache_file) {
@@ -105,6 +107,9 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
   const auto source = data::open_dataset(spec.dataset);
   const auto& info = source->info();
   data::ClipConfig clip;
+  DOJO_CHECK(spec.frames >= 5 && (spec.frames - 1) % 4 == 0,
+             "latent cache: clips need 1 + 4k frames (got " + std::to_string(spec.frames) + ")");
+  clip.num_frames = spec.frames;
   clip.strides = spec.strides;
   clip.relative_actions = spec.relative_actions;
   clip.action_stats = spec.action_stats;
@@ -136,15 +141,15 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
   std::vector<torch::Tensor> pending_video;
   auto flush = [&] {
     if (pending_video.empty()) return;
-    const auto video = models::video_to_model(torch::stack(pending_video));  // [b, 3, 13, H, W]
-    latents.push_back(vae->encode_latents(video));                           // [b, 16, 4, h, w]
+    const auto video = models::video_to_model(torch::stack(pending_video));  // [b, 3, frames, H, W]
+    latents.push_back(vae->encode_latents(video));  // [b, 16, 1 + (frames - 1) / 4, h, w]
     pending_video.clear();
   };
   Progress progress("latent cache " + spec.dataset.filename().string(), static_cast<int64_t>(windows.size()),
                     "clip");
   for (const auto& [ep, window] : windows) {
     auto c = dataset.read(ep, window);
-    auto a = c.actions.clone();  // [12, 384]
+    auto a = c.actions.clone();  // [frames - 1, 384]
     auto slot = a.slice(1, data::slots::kLatent.begin, data::slots::kLatent.end);
     switch (spec.mode) {
       case ActionMode::kDataset:

@@ -41,6 +41,7 @@ struct LatentCacheSpec {
   int64_t hop = 2;               // window starts advance by this many frames
   int size = 0;                  // frame size fed to the tokenizer (0: the dataset's)
   int64_t max_clips = 0;         // 0: all windows
+  int frames = 13;               // frames per clip, 1 + 4k (distillation rolls out 49)
   bool relative_actions = true;  // false: absolute normalised actions (ablation)
   // Robot actions normalised with these instead of the dataset's statistics (the world model's
   // own, shared by all its robot datasets); unset: the dataset's.

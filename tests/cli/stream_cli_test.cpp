@@ -45,6 +45,23 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_TRUE(config.at("actions").contains("dojosim_robot")) << "the teacher's action ranges travel on";
   EXPECT_TRUE(std::filesystem::exists(out / "trajectories" / "shard-00000.safetensors"));
 
+  // Self-Forcing from the warmed-up student, then resumed for one more iteration.
+  const auto sf = tmp / "self_forcing";
+  const auto sf_args = "--threads 1 distill --stage self-forcing --init " + (out / "checkpoint").string() + " --data " +
+                       data + " --split all --max-clips 2 --min-frames 4 --max-frames 5 --batch 1 --out " + sf.string();
+  r = test::run_dojo(sf_args + " --steps 3");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(sf / "critic" / "config.json"));
+  r = test::run_dojo(sf_args + " --steps 4");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto summary = nlohmann::json::parse(test::read_file(sf / "distill_summary.json"));
+  EXPECT_EQ(summary.at("iterations"), 4);
+  EXPECT_EQ(summary.at("generator_updates"), 1) << "iteration 0 updates the student, 1-3 the critic";
+  EXPECT_EQ(summary.at("critic_updates"), 3);
+  r = test::run_dojo("--threads 1 distill --stage self-forcing --data " + data + " --out " + (tmp / "x").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("--init"), std::string::npos) << r.output;
+
   // Raw robot commands (6 joints, after a baseline) and rows in the 384-d layout, from a file.
   const auto actions = tmp / "actions.jsonl";
   write_lines(actions,
