@@ -69,15 +69,17 @@ int run_distill(DistillArgs a) {
     return train::run_distillation(job);
   }();
   if (job.stage == train::DistillStage::kWarmup)
-    std::printf("distill warm-up: %lld steps on %lld teacher trajectories, loss %.4f -> %.4f, fixed-batch loss "
-                "%.4f -> %.4f\n",
-                static_cast<long long>(r.steps), static_cast<long long>(r.clips), r.first_loss, r.last_loss,
-                r.fixed_batch_loss_start, r.fixed_batch_loss_end);
+    std::printf(
+        "distill warm-up: %lld steps on %lld teacher trajectories, loss %.4f -> %.4f, fixed-batch loss "
+        "%.4f -> %.4f\n",
+        static_cast<long long>(r.steps), static_cast<long long>(r.clips), r.first_loss, r.last_loss,
+        r.fixed_batch_loss_start, r.fixed_batch_loss_end);
   else
-    std::printf("distill self-forcing: %lld iterations on %lld clips, generator loss %.4f, fixed-clip rollout latent "
-                "MSE %.4f -> %.4f\n",
-                static_cast<long long>(r.steps), static_cast<long long>(r.clips), r.last_loss,
-                r.fixed_batch_loss_start, r.fixed_batch_loss_end);
+    std::printf(
+        "distill self-forcing: %lld iterations on %lld clips, generator loss %.4f, fixed-clip rollout latent "
+        "MSE %.4f -> %.4f\n",
+        static_cast<long long>(r.steps), static_cast<long long>(r.clips), r.last_loss,
+        r.fixed_batch_loss_start, r.fixed_batch_loss_end);
   std::printf("student %s/checkpoint (stream it with `dojo wm stream -c %s/checkpoint`)\n", a.out.c_str(),
               a.out.c_str());
   return 0;
@@ -90,7 +92,8 @@ void register_distill(CLI::App& app) {
   auto* cmd = app.add_subcommand(
       "distill",
       "Distill a post-trained world model into the causal 4-step student (trajectories + warm-up)");
-  cmd->add_option("--stage", a->stage, "warmup (regress the teacher's ODE points) | self-forcing (DMD, needs --init)")
+  cmd->add_option("--stage", a->stage,
+                  "warmup (regress the teacher's ODE points) | self-forcing (DMD, needs --init)")
       ->capture_default_str();
   cmd->add_option("--init", a->init, "self-forcing: the warmed-up student checkpoint");
   cmd->add_option("--teacher", a->teacher, "Post-trained world model (default: the reference set's)");
@@ -117,13 +120,15 @@ void register_distill(CLI::App& app) {
   cmd->add_option("--max-clips", a->max_clips, "Clips per dataset (0: all)")->capture_default_str();
   cmd->add_option("--save-every", a->save_every, "Checkpoint every N steps")->capture_default_str();
   auto& sf = a->self_forcing;
-  cmd->add_option("--generator-lr", sf.generator_lr, "self-forcing: student learning rate")->capture_default_str();
+  cmd->add_option("--generator-lr", sf.generator_lr, "self-forcing: student learning rate")
+      ->capture_default_str();
   cmd->add_option("--critic-lr", sf.critic_lr, "self-forcing: critic learning rate")->capture_default_str();
   cmd->add_option("--critic-steps", sf.critic_steps, "self-forcing: critic updates per student update")
       ->capture_default_str();
   cmd->add_option("--min-frames", sf.min_frames, "self-forcing: shortest rollout in latent frames")
       ->capture_default_str();
-  cmd->add_option("--max-frames", sf.max_frames, "self-forcing: longest rollout in latent frames (clips of 1 + 4 (N - 1))")
+  cmd->add_option("--max-frames", sf.max_frames,
+                  "self-forcing: longest rollout in latent frames (clips of 1 + 4 (N - 1))")
       ->capture_default_str();
   add_seed_option(cmd, a->seed);
   cmd->callback([a] { set_action([a] { return run_distill(*a); }); });

@@ -198,6 +198,7 @@ void register_tokenizer(CLI::App& app) {
   auto* tok =
       app.add_subcommand("tokenizer", "Train, evaluate and run the Wan2.1-architecture video tokenizer");
   tok->require_subcommand(1);
+  register_fast_decoder(*tok);
 
   auto* train_cmd =
       tok->add_subcommand("train", "Train a small VAE on DojoSim datasets (resumes from --out)");

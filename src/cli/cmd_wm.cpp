@@ -137,7 +137,7 @@ int run_rollout(RolloutArgs a) {
 
 struct EvalArgs {
   ModelArgs model;
-  std::string out, probe, device = "cpu", precision = "fp32";
+  std::string out, probe, fast_decoder, device = "cpu", precision = "fp32";
   std::vector<std::string> splits = {"val"};
   std::vector<std::string> lpips_weights;
   int chunks = 4, episodes = 16, videos = 4, batch = 4, video_scale = 4;
@@ -169,6 +169,7 @@ int run_eval(EvalArgs a) {
     infer::StreamingEngine::Options so;
     so.device = device;
     so.precision = parse_precision(a.precision);
+    if (!a.fast_decoder.empty()) so.fast_decoder = models::load_fast_decoder(a.fast_decoder);
     student.emplace(infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, so));
     o.student = &*student;
   }
@@ -320,6 +321,8 @@ void register_wm(CLI::App& app) {
   ev->add_flag(
       "--student", e->student,
       "The checkpoint is a distilled student (dojo distill): roll out by streaming it, 4 frames a step");
+  ev->add_option("--fast-decoder", e->fast_decoder,
+                 "With --student: decode with this fast streaming decoder");
   ev->add_flag("--action-sensitivity", e->action_sensitivity,
                "Also roll out with shuffled and with zero actions: does the model use the actions?");
   ev->add_option("--video-scale", e->video_scale, "Enlarge the side-by-side videos this many times")

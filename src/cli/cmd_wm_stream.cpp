@@ -88,7 +88,7 @@ class ActionLines {
 
 struct StreamArgs {
   ModelArgs model;
-  std::string split = "val", episode, image, actions, out, device = "cpu", precision = "fp32";
+  std::string split = "val", episode, image, actions, out, fast_decoder, device = "cpu", precision = "fp32";
   int64_t frames = 48;
   int window = -1, student_steps = 0, size = 64;
   bool raw = false, no_cache = false, no_decode = false, json = false;
@@ -117,6 +117,7 @@ int run_stream(StreamArgs a) {
   o.decode = !a.no_decode;
   o.device = parse_device(a.device);
   o.precision = parse_precision(a.precision);
+  if (!a.fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(a.fast_decoder);
   auto engine = infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, o);
   auto student = engine.options().student;
   if (a.window >= 0) student.window_frames = a.window;
@@ -209,6 +210,7 @@ int run_stream(StreamArgs a) {
       {"student_steps", student.steps},
       {"kv_cache", o.use_cache},
       {"decode", o.decode},
+      {"decoder", o.fast_decoder ? "fast" : "wan"},
       {"frames_per_second", seconds > 0 ? generated / seconds : 0},
       {"steady_frames_per_second", steady_s > 0 ? 4.0 * steady.size() / steady_s : 0},
       {"step_ms_p50", percentile(total_ms, 0.5)},
@@ -257,6 +259,9 @@ void register_wm_stream(CLI::App& wm) {
   cmd->add_option("--window", a->window, "Earlier latent frames attended (default: the student's)");
   cmd->add_option("--student-steps", a->student_steps,
                   "Denoising hops per latent frame, 1-4 (default: the student's)");
+  cmd->add_option(
+      "--fast-decoder", a->fast_decoder,
+      "Decode with this fast streaming decoder (dojo tokenizer fast-decoder) instead of the Wan decoder");
   cmd->add_flag("--raw", a->raw, "Write raw RGB frames (H x W x 3 bytes each) to stdout");
   cmd->add_flag("--no-cache", a->no_cache,
                 "Recompute the whole history every hop (the plain reference path)");

@@ -47,6 +47,7 @@ void register_data(CLI::App& app);
 void register_demo(CLI::App& app);
 void register_lam(CLI::App& app);
 void register_tokenizer(CLI::App& app);
+void register_fast_decoder(CLI::App& tokenizer);  // `tokenizer fast-decoder`
 void register_wm(CLI::App& app);
 void register_wm_stream(CLI::App& wm);  // `wm stream`, under register_wm's `wm`
 void register_metrics(CLI::App& app);

@@ -85,6 +85,10 @@ StreamingEngine::StreamingEngine(models::ActionDit student, models::WanVae token
   tokenizer_->to(options_.device);
   net_->eval();
   tokenizer_->eval();
+  if (options_.fast_decoder) {
+    options_.fast_decoder->to(options_.device);
+    options_.fast_decoder->eval();
+  }
   torch::NoGradGuard no_grad;
   projected_context_ = net_->project_context(
       torch::zeros({1, 1, net_->config.crossattn_emb_channels}, torch::TensorOptions(options_.device)));
@@ -142,12 +146,15 @@ torch::Tensor StreamingEngine::reset(const torch::Tensor& first, uint64_t seed) 
   history_actions_.clear();
   frames_ = 0;
   recache(z0, torch::Tensor());  // frame 0: clean, no action term
-  if (options_.decode) {
-    decoder_ = std::make_unique<models::WanVaeStreamDecoder>(tokenizer_);
-    const auto pixels = decoder_->push(tokenizer_->denormalize(z0)).clamp(-1, 1);  // [B, 3, 1, H, W]
-    return models::model_to_video(pixels).to(torch::kCPU);                         // [B, 1, H, W, 3]
-  }
-  return torch::Tensor();
+  decoder_ = std::make_unique<models::WanVaeStreamDecoder>(tokenizer_);
+  fast_state_.clear();
+  return options_.decode ? decode(z0) : torch::Tensor();  // [B, 1, H, W, 3]
+}
+
+torch::Tensor StreamingEngine::decode(const torch::Tensor& x0) {
+  const auto pixels = options_.fast_decoder ? options_.fast_decoder->step(x0.select(2, 0), fast_state_)
+                                            : decoder_->push(tokenizer_->denormalize(x0));  // [B, 3, n, H, W]
+  return models::model_to_video(pixels.clamp(-1, 1)).to(torch::kCPU);                       // [B, n, H, W, 3]
 }
 
 void StreamingEngine::recache(const torch::Tensor& x0, const torch::Tensor& actions) {
@@ -244,10 +251,7 @@ torch::Tensor StreamingEngine::step(const torch::Tensor& actions) {
 
   torch::Tensor out = x0;
   const auto decode_start = std::chrono::steady_clock::now();
-  if (options_.decode) {
-    const auto pixels = decoder_->push(tokenizer_->denormalize(x0)).clamp(-1, 1);  // [B, 3, 4, H, W]
-    out = models::model_to_video(pixels).to(torch::kCPU);                          // [B, 4, H, W, 3]
-  }
+  if (options_.decode) out = decode(x0);  // [B, 4, H, W, 3]
   timings_.decode_ms = ms_since(decode_start);
   timings_.total_ms = ms_since(start);
   return out;

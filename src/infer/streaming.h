@@ -25,6 +25,7 @@
 #include "core/autocast.h"
 #include "diffusion/samplers.h"
 #include "models/dit.h"
+#include "models/fast_decoder.h"
 #include "models/wan_vae.h"
 
 namespace dojo::infer {
@@ -66,6 +67,9 @@ class StreamingEngine {
     // mask. The plain reference the cached path is tested against (cost grows with the horizon).
     bool use_cache = true;
     bool decode = true;  // false: step() returns latents only (benchmarks of the DiT alone)
+    // Decode with this small streaming decoder instead of the tokenizer's Wan decoder (faster,
+    // a little blurrier; models/fast_decoder.h). Empty: the Wan decoder.
+    models::FastDecoder fast_decoder{nullptr};
     torch::Device device = torch::kCPU;
     Precision precision = Precision::kFloat32;
   };
@@ -104,6 +108,7 @@ class StreamingEngine {
   static constexpr int64_t kActionsPerStep = 4;
 
  private:
+  torch::Tensor decode(const torch::Tensor& x0);  // [B, 16, 1, h, w] -> [B, n, H, W, 3] uint8
   torch::Tensor denoise_cached(const torch::Tensor& noise, const torch::Tensor& actions);
   torch::Tensor denoise_reference(const torch::Tensor& noise, const torch::Tensor& actions);
   void recache(const torch::Tensor& x0, const torch::Tensor& actions);
@@ -115,6 +120,7 @@ class StreamingEngine {
   std::vector<diffusion::StudentStep> schedule_;
   std::vector<models::DitKvCache> cache_;
   std::unique_ptr<models::WanVaeStreamDecoder> decoder_;
+  models::FastDecoderState fast_state_;
   torch::Tensor projected_context_;  // the zero text context through crossattn_proj, once
   torch::Generator generator_;
   std::vector<int64_t> latent_shape_;  // [B, 16, 1, h, w] of the stream

@@ -179,7 +179,8 @@ TeacherData teacher_data(const DistillJob& job, int frames, const std::string& p
     if (!slot.empty() && t.action_ranges.contains(slot))
       spec.action_stats =
           data::ArrayStats::from_json(t.action_ranges[slot], job.teacher.string() + ": actions." + slot);
-    sets.push_back(load_or_build_latent_clips(spec, job.out / (prefix + "-" + std::to_string(i) + ".safetensors")));
+    sets.push_back(
+        load_or_build_latent_clips(spec, job.out / (prefix + "-" + std::to_string(i) + ".safetensors")));
     data_json.push_back(spec.to_json());
   }
   t.clips = concat_latent_clips(sets);
@@ -188,7 +189,9 @@ TeacherData teacher_data(const DistillJob& job, int frames, const std::string& p
 }
 
 // A network with its own parameters, initialised from a checkpoint (trainers must not share).
-models::ActionDit fresh_copy(const std::filesystem::path& checkpoint) { return models::load_world_model(checkpoint); }
+models::ActionDit fresh_copy(const std::filesystem::path& checkpoint) {
+  return models::load_world_model(checkpoint);
+}
 
 double mean_of(const std::deque<double>& values) {
   double sum = 0;
@@ -299,7 +302,6 @@ DistillResult run_warmup(const DistillJob& job) {
   return result;
 }
 
-
 DistillResult run_self_forcing(const DistillJob& job) {
   const auto& sf = job.self_forcing;
   DOJO_CHECK(sf.min_frames > sf.loss_frames && sf.max_frames >= sf.min_frames,
@@ -312,13 +314,14 @@ DistillResult run_self_forcing(const DistillJob& job) {
   const int64_t n = clips.size();
 
   const bool resuming = checkpoint_exists(ckpt_dir) && checkpoint_exists(critic_dir);
-  DOJO_CHECK(resuming || !job.init.empty(), "distill --stage self-forcing needs --init (the warmed-up student)");
+  DOJO_CHECK(resuming || !job.init.empty(),
+             "distill --stage self-forcing needs --init (the warmed-up student)");
   const auto student_source = resuming ? ckpt_dir : job.init;
   const auto student_config_json = Checkpoint::open(resolve_checkpoint_dir(student_source)).config();
-  const auto student =
-      student_config_json.contains("student")
-          ? infer::StudentConfig::from_json(student_config_json["student"], student_source.string() + "/config.json")
-          : job.student;
+  const auto student = student_config_json.contains("student")
+                           ? infer::StudentConfig::from_json(student_config_json["student"],
+                                                             student_source.string() + "/config.json")
+                           : job.student;
   auto teacher = models::load_world_model(job.teacher);
   for (auto& p : teacher->parameters()) p.set_requires_grad(false);
   torch::manual_seed(job.seed);
@@ -334,8 +337,9 @@ DistillResult run_self_forcing(const DistillJob& job) {
   WmTrainer generator(fresh_copy(student_source), gen_options);
   // The critic starts as the teacher (the fake score equals the real one before any student sample).
   WmTrainer critic(fresh_copy(resuming ? critic_dir : job.teacher), critic_options);
-  generator.set_config_extras(
-      {{"actions", data.action_ranges}, {"student", student.to_json()}, {"teacher", data.fingerprint["teacher"]}});
+  generator.set_config_extras({{"actions", data.action_ranges},
+                               {"student", student.to_json()},
+                               {"teacher", data.fingerprint["teacher"]}});
   critic.set_config_extras({{"actions", data.action_ranges}});
   if (resuming) {
     generator.resume(ckpt_dir);
@@ -351,8 +355,9 @@ DistillResult run_self_forcing(const DistillJob& job) {
     const auto x = clips.latents.index_select(0, probe_idx);
     auto g = cpu_generator(job.seed + 4242);
     const auto noise = torch::randn(x.sizes(), g);
-    const auto rolled = student_rollout(*generator.ema(), student, x.narrow(2, 0, 1),
-                                        clips.actions.index_select(0, probe_idx), noise, student.steps - 1, x.size(2));
+    const auto rolled =
+        student_rollout(*generator.ema(), student, x.narrow(2, 0, 1),
+                        clips.actions.index_select(0, probe_idx), noise, student.steps - 1, x.size(2));
     return (rolled - x).narrow(2, 1, x.size(2) - 1).pow(2).mean().item<double>();
   };
   DistillResult result;
@@ -365,7 +370,8 @@ DistillResult run_self_forcing(const DistillJob& job) {
   if (job.time_budget_s > 0) loop.time_budget_s = std::max(1e-3, job.time_budget_s - budget.elapsed());
   loop.save_every = job.save_every;
   loop.loss_curve = job.out / "loss.csv";
-  loop.columns = {"generator_loss", "critic_loss", "grad_norm", "exit_hop", "frames", "fixed_batch_latent_mse"};
+  loop.columns = {"generator_loss", "critic_loss", "grad_norm",
+                  "exit_hop",       "frames",      "fixed_batch_latent_mse"};
   const int64_t start = generator.steps_done() + critic.steps_done();
   std::deque<double> recent_generator, recent_critic;
   const auto run = run_training_loop(
@@ -387,7 +393,8 @@ DistillResult run_self_forcing(const DistillJob& job) {
         WmStepStats s;
         if (generator_phase) {
           s = generator.step_loss([&](models::ActionDitImpl& net) {
-            const auto rolled = student_rollout(net, student, x.narrow(2, 0, 1), acts, noise, exit_hop, first_scored);
+            const auto rolled =
+                student_rollout(net, student, x.narrow(2, 0, 1), acts, noise, exit_hop, first_scored);
             return dmd_generator_loss(*teacher, *critic.net(), rolled.narrow(2, first_scored - 1, 1 + L),
                                       window_actions, sigma, window_noise);
           });
@@ -397,10 +404,12 @@ DistillResult run_self_forcing(const DistillJob& job) {
           torch::Tensor rolled;
           {
             torch::NoGradGuard no_grad;
-            rolled = student_rollout(*generator.net(), student, x.narrow(2, 0, 1), acts, noise, exit_hop, frames);
+            rolled =
+                student_rollout(*generator.net(), student, x.narrow(2, 0, 1), acts, noise, exit_hop, frames);
           }
           s = critic.step_loss([&](models::ActionDitImpl& net) {
-            return critic_loss(net, rolled.narrow(2, first_scored - 1, 1 + L), window_actions, sigma, window_noise);
+            return critic_loss(net, rolled.narrow(2, first_scored - 1, 1 + L), window_actions, sigma,
+                               window_noise);
           });
           recent_critic.push_back(s.loss);
           if (recent_critic.size() > 40) recent_critic.pop_front();

@@ -62,17 +62,18 @@ nlohmann::json checkpoint_fingerprint(const fs::path& dir) {
 }
 
 nlohmann::json LatentCacheSpec::to_json() const {
-  nlohmann::json j = {{"dataset", fs::absolute(dataset).lexically_normal().string()},
-          {"split", split},
-          {"tokenizer", checkpoint_fingerprint(tokenizer)},
-          {"lam", mode == ActionMode::kLatent ? checkpoint_fingerprint(lam) : nlohmann::json(nullptr)},
-          {"mode", train::to_string(mode)},
-          {"strides", strides},
-          {"hop", hop},
-          {"size", size},
-          {"max_clips", max_clips},
-          {"relative_actions", relative_actions},
-          {"action_stats", action_stats ? action_stats->to_json() : nlohmann::json(nullptr)}};
+  nlohmann::json j = {
+      {"dataset", fs::absolute(dataset).lexically_normal().string()},
+      {"split", split},
+      {"tokenizer", checkpoint_fingerprint(tokenizer)},
+      {"lam", mode == ActionMode::kLatent ? checkpoint_fingerprint(lam) : nlohmann::json(nullptr)},
+      {"mode", train::to_string(mode)},
+      {"strides", strides},
+      {"hop", hop},
+      {"size", size},
+      {"max_clips", max_clips},
+      {"relative_actions", relative_actions},
+      {"action_stats", action_stats ? action_stats->to_json() : nlohmann::json(nullptr)}};
   if (frames != 13) j["frames"] = frames;  // older caches (all 13 frames) keep their fingerprint
   return j;
 }

@@ -7,16 +7,17 @@
 namespace dojo::train {
 
 nlohmann::json SelfForcingOptions::to_json() const {
-  return {{"generator_lr", generator_lr}, {"critic_lr", critic_lr},   {"weight_decay", weight_decay},
+  return {{"generator_lr", generator_lr}, {"critic_lr", critic_lr},       {"weight_decay", weight_decay},
           {"grad_clip", grad_clip},       {"critic_steps", critic_steps}, {"min_frames", min_frames},
-          {"max_frames", max_frames},     {"loss_frames", loss_frames}, {"shift", shift}};
+          {"max_frames", max_frames},     {"loss_frames", loss_frames},   {"shift", shift}};
 }
 
 torch::Tensor student_rollout(models::ActionDitImpl& student, const infer::StudentConfig& config,
-                              const torch::Tensor& first, const torch::Tensor& actions, const torch::Tensor& noise,
-                              int exit_hop, int64_t grad_from) {
+                              const torch::Tensor& first, const torch::Tensor& actions,
+                              const torch::Tensor& noise, int exit_hop, int64_t grad_from) {
   const auto schedule = config.schedule();
-  DOJO_CHECK(exit_hop >= 0 && exit_hop < static_cast<int>(schedule.size()), "self-forcing: exit hop out of range");
+  DOJO_CHECK(exit_hop >= 0 && exit_hop < static_cast<int>(schedule.size()),
+             "self-forcing: exit hop out of range");
   const int64_t frames = noise.size(2), k = student.config.actions_per_latent_frame;
   DOJO_CHECK(actions.size(1) == k * (frames - 1), "self-forcing: actions must cover every new frame");
   const auto& c = student.config;
@@ -87,8 +88,8 @@ torch::Tensor noised(const torch::Tensor& window, const torch::Tensor& sigma, co
 }  // namespace
 
 torch::Tensor dmd_generator_loss(models::ActionDitImpl& teacher, models::ActionDitImpl& critic,
-                                 const torch::Tensor& window, const torch::Tensor& actions, const torch::Tensor& sigma,
-                                 const torch::Tensor& noise) {
+                                 const torch::Tensor& window, const torch::Tensor& actions,
+                                 const torch::Tensor& sigma, const torch::Tensor& noise) {
   const int64_t L = window.size(2) - 1;
   torch::Tensor g;
   {
@@ -106,8 +107,9 @@ torch::Tensor dmd_generator_loss(models::ActionDitImpl& teacher, models::ActionD
   return (generated - (generated - g).detach()).pow(2).mean();
 }
 
-torch::Tensor critic_loss(models::ActionDitImpl& critic, const torch::Tensor& window, const torch::Tensor& actions,
-                          const torch::Tensor& sigma, const torch::Tensor& noise) {
+torch::Tensor critic_loss(models::ActionDitImpl& critic, const torch::Tensor& window,
+                          const torch::Tensor& actions, const torch::Tensor& sigma,
+                          const torch::Tensor& noise) {
   const int64_t L = window.size(2) - 1;
   const auto w = window.detach();
   const auto x = noised(w, sigma, noise);
@@ -117,7 +119,7 @@ torch::Tensor critic_loss(models::ActionDitImpl& critic, const torch::Tensor& wi
   in.timesteps = (sigma * 1000).unsqueeze(1);
   in.actions = actions;
   const auto v = models::denoise_velocity(critic, in, x, w, noise, mask);  // [B, 16, 1 + L, h, w]
-  return (v - (noise - w)).narrow(2, 1, L).pow(2).mean();                 // the x0 loss / σ², as released
+  return (v - (noise - w)).narrow(2, 1, L).pow(2).mean();                  // the x0 loss / σ², as released
 }
 
 }  // namespace dojo::train

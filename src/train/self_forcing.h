@@ -33,11 +33,11 @@ struct SelfForcingOptions {
   double critic_lr = 1e-4;     // released 1e-5
   double weight_decay = 0.01;
   double grad_clip = 1.0;
-  int critic_steps = 4;        // critic updates per generator update (released 1 : 4)
-  int64_t min_frames = 4;      // rollout length in latent frames, drawn per iteration
-  int64_t max_frames = 13;     // (released: 4 ... 13, i.e. 13 ... 49 video frames)
-  int64_t loss_frames = 3;     // frames generated with gradient and scored
-  double shift = 5.0;          // σ = shift·u / (1 + (shift − 1)·u) for the score times
+  int critic_steps = 4;     // critic updates per generator update (released 1 : 4)
+  int64_t min_frames = 4;   // rollout length in latent frames, drawn per iteration
+  int64_t max_frames = 13;  // (released: 4 ... 13, i.e. 13 ... 49 video frames)
+  int64_t loss_frames = 3;  // frames generated with gradient and scored
+  double shift = 5.0;       // σ = shift·u / (1 + (shift − 1)·u) for the score times
   nlohmann::json to_json() const;
 };
 
@@ -46,17 +46,18 @@ struct SelfForcingOptions {
 // Each new frame runs `exit_hop` + 1 hops of the student schedule; frames >= grad_from keep the
 // gradient of their last hop. Returns [B, 16, frames, h, w], frame 0 = first.
 torch::Tensor student_rollout(models::ActionDitImpl& student, const infer::StudentConfig& config,
-                              const torch::Tensor& first, const torch::Tensor& actions, const torch::Tensor& noise,
-                              int exit_hop, int64_t grad_from);
+                              const torch::Tensor& first, const torch::Tensor& actions,
+                              const torch::Tensor& noise, int exit_hop, int64_t grad_from);
 
 // Losses on a score window: window [B, 16, 1 + L, h, w] (frame 0 conditioning), actions
 // [B, 4 L, 384], sigma [B], noise like window.
 // DMD generator loss (the window carries the student's gradient; teacher and critic run without).
 torch::Tensor dmd_generator_loss(models::ActionDitImpl& teacher, models::ActionDitImpl& critic,
-                                 const torch::Tensor& window, const torch::Tensor& actions, const torch::Tensor& sigma,
-                                 const torch::Tensor& noise);
+                                 const torch::Tensor& window, const torch::Tensor& actions,
+                                 const torch::Tensor& sigma, const torch::Tensor& noise);
 // Flow-matching loss of the critic on the (detached) window.
-torch::Tensor critic_loss(models::ActionDitImpl& critic, const torch::Tensor& window, const torch::Tensor& actions,
-                          const torch::Tensor& sigma, const torch::Tensor& noise);
+torch::Tensor critic_loss(models::ActionDitImpl& critic, const torch::Tensor& window,
+                          const torch::Tensor& actions, const torch::Tensor& sigma,
+                          const torch::Tensor& noise);
 
 }  // namespace dojo::train

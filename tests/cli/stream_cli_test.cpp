@@ -47,8 +47,9 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
 
   // Self-Forcing from the warmed-up student, then resumed for one more iteration.
   const auto sf = tmp / "self_forcing";
-  const auto sf_args = "--threads 1 distill --stage self-forcing --init " + (out / "checkpoint").string() + " --data " +
-                       data + " --split all --max-clips 2 --min-frames 4 --max-frames 5 --batch 1 --out " + sf.string();
+  const auto sf_args =
+      "--threads 1 distill --stage self-forcing --init " + (out / "checkpoint").string() + " --data " + data +
+      " --split all --max-clips 2 --min-frames 4 --max-frames 5 --batch 1 --out " + sf.string();
   r = test::run_dojo(sf_args + " --steps 3");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(std::filesystem::exists(sf / "critic" / "config.json"));
@@ -58,7 +59,8 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_EQ(summary.at("iterations"), 4);
   EXPECT_EQ(summary.at("generator_updates"), 1) << "iteration 0 updates the student, 1-3 the critic";
   EXPECT_EQ(summary.at("critic_updates"), 3);
-  r = test::run_dojo("--threads 1 distill --stage self-forcing --data " + data + " --out " + (tmp / "x").string());
+  r = test::run_dojo("--threads 1 distill --stage self-forcing --data " + data + " --out " +
+                     (tmp / "x").string());
   EXPECT_NE(r.exit_code, 0);
   EXPECT_NE(r.output.find("--init"), std::string::npos) << r.output;
 
@@ -74,6 +76,16 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_NE(r.output.find("streamed 8 frames"), std::string::npos)
       << "the file's two chunks, then its end: " << r.output;
   EXPECT_TRUE(std::filesystem::exists(tmp / "s.mp4"));
+
+  // A fast decoder distilled from the tokenizer (two steps: the plumbing), then streamed with.
+  r = test::run_dojo("--threads 1 tokenizer fast-decoder --tokenizer " + tok + " --data " + data +
+                     " --split all --max-clips 4 --steps 2 --batch 2 --out " + (tmp / "fd").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
+                     " --data " + data + " --split all --frames 8 --fast-decoder " +
+                     (tmp / "fd" / "checkpoint").string() + " --out " + (tmp / "fast.mp4").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(tmp / "fast.mp4"));
 
   write_lines(actions, {rows(4, 384, 0.0), "[[1, 2], [3]]"});
   r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +

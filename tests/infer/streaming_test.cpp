@@ -99,6 +99,26 @@ TEST(Streaming, FramesFollowSeedAndActionsWithFlatMemory) {
   EXPECT_THROW(e.step(torch::zeros({1, 3, 384})), Error);
 }
 
+TEST(Streaming, DecodesWithTheFastDecoderWhenGiven) {
+  test::OneThread one;
+  StreamingEngine::Options o;
+  models::FastDecoderConfig fc;
+  fc.widths = {16, 12, 8};
+  fc.blocks = {1, 1, 1};
+  fc.head_width = 8;
+  o.fast_decoder = models::FastDecoder(fc);
+  auto e = engine(o);
+  const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
+  const auto video = e.rollout(first, actions_for(3, 1, 2), 4);
+  EXPECT_EQ(video.sizes(), (std::vector<int64_t>{1, 13, 32, 32, 3}));
+  // Frame 0 as the fast decoder shows the first latent (not the Wan round trip).
+  models::FastDecoderState state;
+  torch::NoGradGuard no_grad;
+  const auto z0 = e.tokenizer()->encode_latents(models::video_to_model(first.unsqueeze(1)));
+  const auto expect = models::model_to_video(o.fast_decoder->step(z0.select(2, 0), state).clamp(-1, 1));
+  EXPECT_TRUE(video.narrow(1, 0, 1).equal(expect));
+}
+
 TEST(StudentConfig, BadFieldsNameTheFile) {
   EXPECT_THROW(StudentConfig::from_json({{"steps", 5}}, "ck/config.json"), Error);
   try {

@@ -30,7 +30,8 @@ TEST(SelfForcing, TrainingRolloutEqualsTheStreamingEngine) {
   for (int64_t s = 0; s < 6; ++s) streamed.push_back(engine.step(actions.narrow(1, 4 * s, 4)));
 
   torch::NoGradGuard no_grad;
-  const auto z0 = engine.tokenizer()->encode_latents(models::video_to_model(first.unsqueeze(1)));  // [1, 16, 1, 4, 4]
+  const auto z0 =
+      engine.tokenizer()->encode_latents(models::video_to_model(first.unsqueeze(1)));  // [1, 16, 1, 4, 4]
   auto g = gen(11);  // the engine's draws: one ε per new frame, in order
   std::vector<torch::Tensor> noise = {torch::zeros_like(z0)};
   for (int64_t s = 0; s < 6; ++s) noise.push_back(torch::randn(z0.sizes(), g));
