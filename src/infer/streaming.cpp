@@ -145,10 +145,31 @@ torch::Tensor StreamingEngine::reset(const torch::Tensor& first, uint64_t seed) 
   history_latents_.clear();
   history_actions_.clear();
   frames_ = 0;
+  position_base_ = 0;
   recache(z0, torch::Tensor());  // frame 0: clean, no action term
   decoder_ = std::make_unique<models::WanVaeStreamDecoder>(tokenizer_);
   fast_state_.clear();
   return options_.decode ? decode(z0) : torch::Tensor();  // [B, 1, H, W, 3]
+}
+
+void StreamingEngine::rebase_positions() {
+  // Attention between RoPE'd queries and keys depends only on their position difference, so all
+  // positions may move together. When the next frame would leave the network's RoPE table, the
+  // cached keys are rotated back by delta frames (temporal angles only) and later frames are
+  // numbered from the new base: the outputs do not change, and the horizon has no limit.
+  const int64_t limit = net_->pos_embedder->seq.size(0);
+  if (frames_ - position_base_ < limit) return;
+  const int64_t delta = frames_ - position_base_ - options_.student.window_frames;
+  const auto angles =
+      models::rope_angles_3d(net_->pos_embedder->dim_spatial_range, net_->pos_embedder->dim_temporal_range, 1,
+                             1, 1, -delta, net_->config.rope_h_extrapolation_ratio,
+                             net_->config.rope_w_extrapolation_ratio,
+                             net_->config.rope_t_extrapolation_ratio)
+          .flatten()
+          .to(options_.device);  // [head_dim]: temporal angles of -delta, spatial 0
+  const auto cos = angles.cos(), sin = angles.sin();
+  for (auto& c : cache_) c.rotate_keys(cos, sin);
+  position_base_ += delta;
 }
 
 torch::Tensor StreamingEngine::decode(const torch::Tensor& x0) {
@@ -164,7 +185,7 @@ void StreamingEngine::recache(const torch::Tensor& x0, const torch::Tensor& acti
     in.x = x0;
     in.condition_mask = torch::zeros_like(x0.narrow(1, 0, 1));
     in.timesteps = torch::zeros({x0.size(0), 1}, x0.options());
-    in.frame_offset = frames_;
+    in.frame_offset = frames_ - position_base_;
     in.kv_cache = &cache_;
     in.store_kv = true;
     net_->forward(in);  // only the stored keys and values matter
@@ -177,7 +198,7 @@ void StreamingEngine::recache(const torch::Tensor& x0, const torch::Tensor& acti
 
 torch::Tensor StreamingEngine::denoise_cached(const torch::Tensor& noise, const torch::Tensor& actions) {
   auto base = inputs(actions);
-  base.frame_offset = frames_;  // absolute RoPE index of the new frame
+  base.frame_offset = frames_ - position_base_;  // RoPE index of the new frame
   base.kv_cache = &cache_;
   base.store_kv = false;  // hops read the cache; the clean pass writes it
   auto x = noise;         // TrigFlow state at t = π/2
@@ -242,6 +263,7 @@ torch::Tensor StreamingEngine::step(const torch::Tensor& actions) {
                                                    std::to_string(acts.size(0)) + ", the stream has " +
                                                    std::to_string(latent_shape_[0]));
   const auto noise = torch::randn(latent_shape_, generator_).to(options_.device);  // ε [B, 16, 1, h, w]
+  if (options_.use_cache) rebase_positions();
 
   const auto x0 = options_.use_cache ? denoise_cached(noise, acts) : denoise_reference(noise, acts);
   timings_.denoise_ms = ms_since(start);

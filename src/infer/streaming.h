@@ -113,6 +113,8 @@ class StreamingEngine {
   torch::Tensor denoise_reference(const torch::Tensor& noise, const torch::Tensor& actions);
   void recache(const torch::Tensor& x0, const torch::Tensor& actions);
   models::DitInputs inputs(const torch::Tensor& actions) const;
+  // Keeps RoPE positions inside the network's table for any horizon (see step()).
+  void rebase_positions();
 
   models::ActionDit net_;
   models::WanVae tokenizer_;
@@ -125,6 +127,7 @@ class StreamingEngine {
   torch::Generator generator_;
   std::vector<int64_t> latent_shape_;  // [B, 16, 1, h, w] of the stream
   int64_t frames_ = 0;
+  int64_t position_base_ = 0;  // frame index that sits at RoPE position 0
   // Reference path: every clean latent and action chunk so far.
   std::vector<torch::Tensor> history_latents_, history_actions_;
   StreamTimings timings_;

@@ -128,6 +128,12 @@ void DitKvCache::clear() {
   if (!ring()) k = v = torch::Tensor();  // a ring keeps its buffer: reset is allocation-free
 }
 
+void DitKvCache::rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin) {
+  if (!k.defined()) return;
+  torch::NoGradGuard no_grad;
+  k.copy_(apply_rope(k, cos, sin));  // [B, h, L, d]; in place keeps a ring's buffer
+}
+
 void DitKvCache::set_ring(int64_t window_frames, int64_t tokens_per_frame) {
   DOJO_CHECK(window_frames >= 0 && tokens_per_frame > 0,
              "DitKvCache: ring needs a window >= 0 and tokens > 0");

@@ -181,6 +181,9 @@ struct DitKvCache {
   void set_ring(int64_t window_frames, int64_t tokens_per_frame);
   bool ring() const { return ring_tokens_ > 0; }
   int64_t committed_frames() const { return committed_; }
+  // Rotates every cached key by the angles whose cos/sin are given ([head_dim], broadcast over
+  // tokens): with temporal-only angles this moves the keys to other absolute frame positions.
+  void rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin);
   // Keys and values to attend for this call's k_new, v_new ([B, h, L, d]); with store, this
   // call's entries stay in the cache for later calls.
   std::pair<torch::Tensor, torch::Tensor> attend(const torch::Tensor& k_new, const torch::Tensor& v_new,

@@ -9,6 +9,7 @@
 #include <ctime>
 #include <functional>
 #include <nlohmann/json.hpp>
+#include <optional>
 
 #include "core/atomic_file.h"
 #include "core/autocast.h"
@@ -19,12 +20,16 @@
 #include "data/episode_store.h"
 #include "eval/keypoint_metrics.h"
 #include "eval/wm_eval.h"
+#include "infer/streaming.h"
 #include "infer/world_model.h"
+#include "models/fast_decoder.h"
 #include "models/keypoint_probe.h"
 #include "models/lam.h"
 #include "models/wan_vae.h"
 #include "recipes/demo_report.h"
 #include "sim/generate.h"
+#include "train/distill.h"
+#include "train/fast_decoder_train.h"
 #include "train/lam_train.h"
 #include "train/probe_train.h"
 #include "train/tokenizer_train.h"
@@ -48,9 +53,18 @@ struct StageCost {
 };
 // Measured on a fresh clone of 6144186 (docs/benchmarks.md, "Action following"); the world-model
 // stages' fixed part is building their latent caches, eval's the three splits' rollouts.
-constexpr StageCost kCosts[] = {{"data", 35, 0},     {"lam", 5, 0.11},           {"tokenizer", 5, 0.29},
-                                {"probe", 5, 0.025}, {"wm_pretrain", 30, 0.225}, {"wm_posttrain", 30, 0.225},
-                                {"eval", 135, 0},    {"eval_reference", 135, 0}};
+constexpr StageCost kCosts[] = {{"data", 35, 0},
+                                {"lam", 5, 0.11},
+                                {"tokenizer", 5, 0.29},
+                                {"probe", 5, 0.025},
+                                {"wm_pretrain", 30, 0.225},
+                                {"wm_posttrain", 30, 0.225},
+                                {"student_warmup", 55, 0.2},
+                                {"student_self_forcing", 60, 0.8},
+                                {"fast_decoder", 45, 0.25},
+                                {"eval", 135, 0},
+                                {"eval_student", 60, 0},
+                                {"eval_reference", 135, 0}};
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -92,6 +106,39 @@ nlohmann::json run_stage(const fs::path& out, const std::string& name, const nlo
   return done;
 }
 
+// The student streaming one held-out episode's first frame and recorded actions (looped) for 600
+// frames at batch 1 with the fast decoder: frames/s, step latency and memory.
+nlohmann::json time_streaming(const fs::path& out, const fs::path& tokenizer, torch::Device device,
+                              Precision precision, int threads) {
+  ScopedThreads matmul_bound(threads);
+  infer::StreamingEngine::Options so;
+  so.device = device;
+  so.precision = precision;
+  so.fast_decoder = models::load_fast_decoder(out / "fast_decoder" / "checkpoint");
+  auto engine = infer::StreamingEngine::load(out / "student" / "checkpoint", tokenizer, so);
+  const auto clip = eval::read_episode_clip(out / "robot", "val", "", 4, engine.action_ranges());
+  engine.reset(clip.video.narrow(0, 0, 1), 0);
+  std::vector<double> ms;
+  int64_t rss_100 = 0;
+  for (int64_t frames = 4; frames <= 600; frames += 4) {
+    const int64_t s = (frames / 4 - 1) % (clip.actions.size(0) / 4);
+    engine.step(clip.actions.narrow(0, 4 * s, 4).unsqueeze(0));
+    ms.push_back(engine.last_timings().total_ms);
+    if (frames == 100) rss_100 = resident_memory_bytes();
+  }
+  const int64_t rss_600 = resident_memory_bytes();
+  std::vector<double> steady(ms.begin() + 2, ms.end()), sorted = steady;
+  std::sort(sorted.begin(), sorted.end());
+  double total = 0;
+  for (double v : steady) total += v;
+  return {{"frames", 600},
+          {"frames_per_second", 4.0 * static_cast<double>(steady.size()) / (total / 1000)},
+          {"step_ms_p50", sorted[sorted.size() / 2]},
+          {"step_ms_p95", sorted[sorted.size() * 95 / 100]},
+          {"rss_mib_frame_100", rss_100 / 1048576.0},
+          {"rss_mib_frame_600", rss_600 / 1048576.0}};
+}
+
 }  // namespace
 
 DemoSummary run_demo(const DemoOptions& o) {
@@ -121,7 +168,10 @@ DemoSummary run_demo(const DemoOptions& o) {
                                                 {"tokenizer", o.tokenizer_steps},
                                                 {"probe", o.probe_steps},
                                                 {"wm_pretrain", o.pretrain_steps},
-                                                {"wm_posttrain", o.posttrain_steps}};
+                                                {"wm_posttrain", o.posttrain_steps},
+                                                {"student_warmup", o.warmup_steps},
+                                                {"student_self_forcing", o.self_forcing_steps},
+                                                {"fast_decoder", o.fast_decoder_steps}};
   const std::map<std::string, double> time_share = {
       {"lam", 0.09}, {"tokenizer", 0.36}, {"probe", 0.05}, {"wm_pretrain", 0.22}, {"wm_posttrain", 0.28}};
   auto stage_minutes = [&](const std::string& name) -> double {
@@ -155,7 +205,7 @@ DemoSummary run_demo(const DemoOptions& o) {
   nlohmann::json stages;
 
   // 1. The world.
-  LOG_INFO("[1/8] DojoSim: human and robot episodes into ", out.string());
+  LOG_INFO("[1/10] DojoSim: human and robot episodes into ", out.string());
   const nlohmann::json data_settings = {{"episodes", o.episodes},
                                         {"eval_episodes", o.eval_episodes},
                                         {"frames", o.frames},
@@ -189,7 +239,7 @@ DemoSummary run_demo(const DemoOptions& o) {
   });
 
   // 2. Latent action model on human and robot video (no actions used).
-  LOG_INFO("[2/8] LAM: latent actions from video alone");
+  LOG_INFO("[2/10] LAM: latent actions from video alone");
   stages["lam"] = run_stage(out, "lam", {{"budget", budget_settings("lam")}, {"data", stages["data"]}}, [&] {
     train::LamTrainJob lam;
     lam.datasets = {{out / "human", 1.0}, {out / "robot", 1.0}};
@@ -207,7 +257,7 @@ DemoSummary run_demo(const DemoOptions& o) {
   });
 
   // 3. Tokenizer.
-  LOG_INFO("[3/8] tokenizer: Wan2.1-architecture VAE");
+  LOG_INFO("[3/10] tokenizer: Wan2.1-architecture VAE");
   const fs::path tokenizer = out / "tokenizer" / "checkpoint";
   stages["tokenizer"] =
       run_stage(out, "tokenizer", {{"budget", budget_settings("tokenizer")}, {"data", stages["data"]}}, [&] {
@@ -246,7 +296,7 @@ DemoSummary run_demo(const DemoOptions& o) {
       });
 
   // 4. Keypoint probe: where the arm and the hand are, to score rollouts by.
-  LOG_INFO("[4/8] keypoint probe: finds the arm and the hand in a frame");
+  LOG_INFO("[4/10] keypoint probe: finds the arm and the hand in a frame");
   const fs::path probe_dir = out / "probe" / "checkpoint";
   stages["probe"] =
       run_stage(out, "probe", {{"budget", budget_settings("probe")}, {"data", stages["data"]}}, [&] {
@@ -302,7 +352,7 @@ DemoSummary run_demo(const DemoOptions& o) {
                           {"clips_per_second", r.clips_per_second},
                           {"gflops", r.gflops}};
   };
-  LOG_INFO("[5/8] world model pretraining on human video with latent actions");
+  LOG_INFO("[5/10] world model pretraining on human video with latent actions");
   stages["wm_pretrain"] = run_stage(out, "wm_pretrain",
                                     {{"budget", budget_settings("wm_pretrain")},
                                      {"lam", stages["lam"]},
@@ -311,7 +361,7 @@ DemoSummary run_demo(const DemoOptions& o) {
                                       return wm_job(train::WmStage::kPretrain, out / "human", "all",
                                                     train::ActionMode::kLatent, "wm_pretrain");
                                     });
-  LOG_INFO("[6/8] world model post-training on robot actions");
+  LOG_INFO("[6/10] world model post-training on robot actions");
   stages["wm_posttrain"] = run_stage(out, "wm_posttrain",
                                      {{"budget", budget_settings("wm_posttrain")},
                                       {"init", stages["wm_pretrain"]},
@@ -321,13 +371,76 @@ DemoSummary run_demo(const DemoOptions& o) {
                                                      train::ActionMode::kDataset, "wm_posttrain");
                                      });
 
-  // 7. Rollouts and evaluation, of the demo's models and of the reference set.
+  // 7. The real-time student, distilled from the post-trained model, and its fast decoder. Step
+  // budgets even under --minutes (they are short).
+  LOG_INFO("[7/10] real-time student: warm-up and Self-Forcing from the post-trained world model");
+  stages["student"] = run_stage(
+      out, "student",
+      {{"warmup_steps", o.warmup_steps},
+       {"self_forcing_steps", o.self_forcing_steps},
+       {"teacher", stages["wm_posttrain"]}},
+      [&] {
+        train::DistillJob job;
+        train::LatentCacheSpec spec;
+        spec.dataset = out / "robot";
+        spec.tokenizer = tokenizer;
+        spec.hop = 4;
+        spec.max_clips = kMaxClips;
+        job.data = {spec};
+        job.teacher = out / "wm_posttrain" / "checkpoint";
+        job.out = out / "student_warmup";
+        job.steps = o.warmup_steps;
+        job.save_every = 100;
+        job.seed = o.seed;
+        ScopedThreads matmul_bound(matmul_threads(false));
+        const auto warmup = train::run_distillation(job);
+        job.stage = train::DistillStage::kSelfForcing;
+        job.init = out / "student_warmup" / "checkpoint";
+        job.out = out / "student";
+        job.steps = o.self_forcing_steps;
+        job.batch_size = 2;
+        job.save_every = 50;
+        const auto sf = train::run_distillation(job);
+        return nlohmann::json{
+            {"warmup_steps", warmup.steps},
+            {"warmup_fixed_batch_loss", {warmup.fixed_batch_loss_start, warmup.fixed_batch_loss_end}},
+            {"self_forcing_iterations", sf.steps},
+            {"rollout_latent_mse", {sf.fixed_batch_loss_start, sf.fixed_batch_loss_end}}};
+      });
+  LOG_INFO("[8/10] fast streaming decoder distilled from the tokenizer");
+  stages["fast_decoder"] = run_stage(
+      out, "fast_decoder", {{"steps", o.fast_decoder_steps}, {"tokenizer", stages["tokenizer"]}}, [&] {
+        train::FastDecoderJob job;
+        train::LatentCacheSpec spec;
+        spec.dataset = out / "robot";
+        spec.tokenizer = tokenizer;
+        spec.hop = 4;
+        spec.strides = {1};
+        spec.max_clips = kMaxClips;
+        job.data = {spec};
+        job.out = out / "fast_decoder";
+        job.steps = o.fast_decoder_steps;
+        job.seed = o.seed;
+        ScopedThreads matmul_bound(matmul_threads(false));
+        const auto r = train::run_fast_decoder_training(job);
+        return nlohmann::json{{"steps", r.steps}, {"heldout_psnr_vs_wan", r.heldout_psnr}};
+      });
+
+  // 9. Rollouts and evaluation, of the demo's models and of the reference set.
   LOG_INFO(
-      "[7/8] rollouts: 49 frames (4 chunks, 3 resets) on held-out, out-of-distribution and "
+      "[9/10] rollouts: 49 frames (4 chunks, 3 resets) on held-out, out-of-distribution and "
       "counterfactual robot episodes, with true, shuffled and zero actions");
   auto evaluate = [&](const fs::path& wm, const fs::path& tok, const fs::path& probe_ckpt,
-                      const fs::path& videos) {
+                      const fs::path& videos, bool student = false) {
     auto model = infer::WorldModel::load(wm, tok, device, precision);
+    std::optional<infer::StreamingEngine> engine;
+    if (student) {
+      infer::StreamingEngine::Options so;
+      so.device = device;
+      so.precision = precision;
+      so.fast_decoder = models::load_fast_decoder(out / "fast_decoder" / "checkpoint");
+      engine.emplace(infer::StreamingEngine::load(wm, tok, so));
+    }
     auto probe = models::load_keypoint_probe(probe_ckpt);
     eval::WmEvalOptions eo;
     eo.max_episodes = o.eval_episodes;
@@ -338,6 +451,7 @@ DemoSummary run_demo(const DemoOptions& o) {
     eo.videos = 2;
     eo.probe = &probe;
     eo.action_sensitivity = o.eval_episodes >= 2;  // shuffling needs another episode's actions
+    if (engine) eo.student = &*engine;
     // DiT sampling is matmul-bound: 31.0 generated frames/s with one OpenMP thread, 12.6 with two.
     ScopedThreads matmul_bound(matmul_threads(device.is_cuda()));
     nlohmann::json results = nlohmann::json::array();
@@ -355,6 +469,14 @@ DemoSummary run_demo(const DemoOptions& o) {
       out, "eval",
       {{"wm", stages["wm_posttrain"]}, {"probe", stages["probe"]}, {"sampler_steps", o.sampler_steps}},
       [&] { return evaluate(out / "wm_posttrain" / "checkpoint", tokenizer, probe_dir, out / "rollouts"); });
+  stages["eval_student"] = run_stage(
+      out, "eval_student", {{"student", stages["student"]}, {"fast_decoder", stages["fast_decoder"]}}, [&] {
+        auto result = nlohmann::json{{"splits", evaluate(out / "student" / "checkpoint", tokenizer, probe_dir,
+                                                         out / "rollouts_student", /*student=*/true)}};
+        result["streaming"] =
+            time_streaming(out, tokenizer, device, precision, matmul_threads(device.is_cuda()));
+        return result;
+      });
   if (!o.reference.empty()) {
     const auto ref = fs::absolute(o.reference).lexically_normal();
     stages["eval_reference"] =
@@ -363,8 +485,8 @@ DemoSummary run_demo(const DemoOptions& o) {
         });
   }
 
-  // 8. Report.
-  LOG_INFO("[8/8] report: ", (out / "report.html").string());
+  // 10. Report.
+  LOG_INFO("[10/10] report: ", (out / "report.html").string());
   stages["seconds"] = seconds_since(start);
   stages["device"] = device.str();
   stages["precision"] = to_string(precision);

@@ -4,7 +4,8 @@
 // keypoint probe learns where the arm and the hand are; the world model is pretrained on human
 // video with latent actions, post-trained on robot actions, rolled out on held-out,
 // out-of-distribution and counterfactual episodes and scored against a copy-the-first-frame
-// baseline, with and without the true actions. Everything lands in one directory with a
+// baseline, with and without the true actions; then distilled into the real-time student, which is
+// scored the same way and timed streaming 600 frames. Everything lands in one directory with a
 // self-contained HTML report.
 //
 // Reproducible: every stage has a budget in optimisation steps, so the same seed gives the same
@@ -34,6 +35,8 @@ struct DemoOptions {
   // Stage budgets in optimisation steps (about 30 minutes on 2 cores in all).
   int64_t lam_steps = 1500, tokenizer_steps = 2700, probe_steps = 600, pretrain_steps = 1200,
           posttrain_steps = 1500;
+  // The real-time student: warm-up steps, Self-Forcing iterations, fast-decoder steps.
+  int64_t warmup_steps = 500, self_forcing_steps = 300, fast_decoder_steps = 800;
   // Noise on the conditioning latent in post-training (wm train --condition-noise): held-out
   // keypoint error 9.2 -> 7.4 px at 1000 steps (docs/action_following.md).
   double posttrain_condition_noise = 0.3;

@@ -111,7 +111,27 @@ std::string write_demo_report(const fs::path& out, const nlohmann::json& stages)
     append(scores, score_table(stages["eval_reference"]["result"], "reference"));
     append(sensitivity, sensitivity_table(stages["eval_reference"]["result"], "reference"));
   }
-  const std::string md = markdown(scores) + "\nAction sensitivity:\n\n" + markdown(sensitivity);
+  const bool student = stages.contains("eval_student");
+  if (student) {
+    append(scores, score_table(stages["eval_student"]["result"]["splits"], "student"));
+    append(sensitivity, sensitivity_table(stages["eval_student"]["result"]["splits"], "student"));
+  }
+  std::string md = markdown(scores) + "\nAction sensitivity:\n\n" + markdown(sensitivity);
+  Tables speed;
+  if (student) {
+    speed.header = {"split", "teacher frames/s", "student frames/s"};
+    const auto& st = stages["eval_student"]["result"]["splits"];
+    for (size_t i = 0; i < evals.size() && i < st.size(); ++i)
+      speed.rows.push_back({evals[i].value("split", ""), fixed(value(evals[i], "frames_per_second"), 1),
+                            fixed(value(st[i], "frames_per_second"), 1)});
+    const auto& stream = stages["eval_student"]["result"]["streaming"];
+    md +=
+        "\nGenerated frames/s (rollouts of the evaluation, same batches):\n\n" + markdown(speed) +
+        "\nStreaming 600 frames at batch 1 (fast decoder): " + fixed(value(stream, "frames_per_second"), 1) +
+        " frames/s, step p50 " + fixed(value(stream, "step_ms_p50"), 1) + " ms, p95 " +
+        fixed(value(stream, "step_ms_p95"), 1) + " ms, RSS " + fixed(value(stream, "rss_mib_frame_100"), 0) +
+        " MiB at frame 100, " + fixed(value(stream, "rss_mib_frame_600"), 0) + " MiB at frame 600.\n";
+  }
   write_file_atomic(out / "eval.md", md);
 
   eval::HtmlReport html("DreamDojo.cpp demo on DojoSim");
@@ -138,6 +158,23 @@ std::string write_demo_report(const fs::path& out, const nlohmann::json& stages)
       "the "
       "rate on the real frames.");
   html.table(scores.header, scores.rows);
+  if (student) {
+    html.heading("The real-time student");
+    html.paragraph(
+        "The post-trained world model distilled into a causal 4-step student (warm-up on the teacher's ODE "
+        "trajectories, then Self-Forcing), streamed one latent frame (4 video frames) per step through its "
+        "KV "
+        "cache and decoded by the fast decoder. Its rows in the tables above are labelled \"student\". "
+        "Generated "
+        "frames/s of the evaluation rollouts:");
+    html.table(speed.header, speed.rows);
+    const auto& stream = stages["eval_student"]["result"]["streaming"];
+    html.paragraph("Streaming 600 frames at batch 1: " + fixed(value(stream, "frames_per_second"), 1) +
+                   " frames/s, step latency p50 " + fixed(value(stream, "step_ms_p50"), 1) + " ms, p95 " +
+                   fixed(value(stream, "step_ms_p95"), 1) + " ms; resident memory " +
+                   fixed(value(stream, "rss_mib_frame_100"), 0) + " MiB at frame 100 and " +
+                   fixed(value(stream, "rss_mib_frame_600"), 0) + " MiB at frame 600.");
+  }
   html.heading("Does the model use the actions?");
   html.paragraph(
       "The same rollouts driven by another episode's actions (shuffled) and by zero actions (hold still). A "
@@ -200,8 +237,8 @@ std::string write_demo_report(const fs::path& out, const nlohmann::json& stages)
   html.video(out / "preview_robot.mp4", "robot episodes");
   html.heading("Stages");
   std::vector<std::vector<std::string>> rows;
-  for (const char* name :
-       {"data", "lam", "tokenizer", "probe", "wm_pretrain", "wm_posttrain", "eval", "eval_reference"})
+  for (const char* name : {"data", "lam", "tokenizer", "probe", "wm_pretrain", "wm_posttrain", "student",
+                           "fast_decoder", "eval", "eval_student", "eval_reference"})
     if (stages.contains(name))
       rows.push_back(
           {name, fixed(stages[name].value("seconds", 0.0), 1) + " s",

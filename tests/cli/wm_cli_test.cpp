@@ -132,7 +132,8 @@ TEST(WmCli, DemoRunsEndToEndOnTinyStepBudgetsAndReusesFinishedStages) {
   const auto out = (tmp / "demo").string();
   const std::string command =
       "--threads 1 demo --lam-steps 3 --tokenizer-steps 3 --probe-steps 3 --pretrain-steps 3 "
-      "--posttrain-steps 3 --episodes 2 --eval-episodes 2 --frames 50 --sampler-steps 2 --workers 1 "
+      "--posttrain-steps 3 --warmup-steps 3 --self-forcing-steps 3 --fast-decoder-steps 3 --episodes 2 "
+      "--eval-episodes 2 --frames 50 --sampler-steps 2 --workers 1 "
       "--reference none --out " +
       out;
   auto r = test::run_dojo(command);
@@ -149,6 +150,12 @@ TEST(WmCli, DemoRunsEndToEndOnTinyStepBudgetsAndReusesFinishedStages) {
   EXPECT_TRUE(demo["eval"]["result"][0].contains("shuffled_actions"));
   EXPECT_TRUE(demo["eval"]["result"][0]["world_model"].contains("keypoint_error_px"));
   EXPECT_EQ(demo["wm_posttrain"]["result"].at("steps").get<int>(), 3);
+  // The student: distilled, scored on the same splits, timed streaming.
+  EXPECT_NE(html.find("The real-time student"), std::string::npos);
+  ASSERT_EQ(demo["eval_student"]["result"]["splits"].size(), 3u);
+  EXPECT_TRUE(demo["eval_student"]["result"]["splits"][0]["world_model"].contains("keypoint_error_px"));
+  EXPECT_GT(demo["eval_student"]["result"]["streaming"].at("frames_per_second").get<double>(), 0.0);
+  EXPECT_EQ(demo["student"]["result"].at("self_forcing_iterations").get<int>(), 3);
 
   // Running it again re-uses every stage: nothing trains, the records stay, the report is rewritten.
   const auto posttrain = test::read_file(tmp / "demo" / "stages" / "wm_posttrain.json");

@@ -99,6 +99,34 @@ TEST(Streaming, FramesFollowSeedAndActionsWithFlatMemory) {
   EXPECT_THROW(e.step(torch::zeros({1, 3, 384})), Error);
 }
 
+// Past the network's RoPE table (max_frames) the engine moves every position back together: the
+// frames equal those of a network with a longer table.
+TEST(Streaming, AnyHorizonRebasesRopePositions) {
+  test::OneThread one;
+  StreamingEngine::Options o;
+  o.decode = false;
+  o.student.window_frames = 2;
+  auto config = train::test_fixtures::tiny_dit(/*live_actions=*/true, /*width=*/64);
+  config.max_img_h = config.max_img_w = 8;  // the table's length is max(h, w, frames) / patch
+  const auto make = [&](int64_t max_frames) {
+    config.max_frames = max_frames;
+    torch::manual_seed(0);
+    models::ActionDit net(config);
+    models::WanVae vae(models::WanVaeConfig::tiny());
+    return StreamingEngine(net, vae, o);
+  };
+  auto short_table = make(6), long_table = make(64);
+  ASSERT_EQ(short_table.net()->pos_embedder->seq.size(0), 6);
+  const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
+  const auto actions = actions_for(14, 1, 6);
+  const auto a = run(short_table, first, actions, 2);
+  const auto b = run(long_table, first, actions, 2);
+  double worst = 0;
+  for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, (a[i] - b[i]).abs().max().item<double>());
+  EXPECT_LT(worst, 1e-4);
+  std::printf("rebased (RoPE table 6) vs absolute positions, 14 frames: max abs %.2g\n", worst);
+}
+
 TEST(Streaming, DecodesWithTheFastDecoderWhenGiven) {
   test::OneThread one;
   StreamingEngine::Options o;
