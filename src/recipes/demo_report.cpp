@@ -173,7 +173,11 @@ std::string write_demo_report(const fs::path& out, const nlohmann::json& stages)
                    " frames/s, step latency p50 " + fixed(value(stream, "step_ms_p50"), 1) + " ms, p95 " +
                    fixed(value(stream, "step_ms_p95"), 1) + " ms; resident memory " +
                    fixed(value(stream, "rss_mib_frame_100"), 0) + " MiB at frame 100 and " +
-                   fixed(value(stream, "rss_mib_frame_600"), 0) + " MiB at frame 600.");
+                   fixed(value(stream, "rss_mib_frame_600"), 0) +
+                   " MiB at frame 600. The 600 frames, from a "
+                   "held-out episode's first frame with its recorded actions repeated:");
+    if (fs::exists(out / "student_600_frames.mp4"))
+      html.video(out / "student_600_frames.mp4", "the student streaming 600 frames (60 s at 10 Hz)");
   }
   html.heading("Does the model use the actions?");
   html.paragraph(
