@@ -64,7 +64,8 @@ class StreamingEngine {
   struct Options {
     StudentConfig student;
     // false: no KV cache; every hop recomputes the whole history under the block-causal window
-    // mask. The plain reference the cached path is tested against (cost grows with the horizon).
+    // mask. The plain reference the cached path is tested against (cost grows with the horizon,
+    // and the history must fit the network's RoPE table: max_frames latent frames).
     bool use_cache = true;
     bool decode = true;  // false: step() returns latents only (benchmarks of the DiT alone)
     // Decode with this small streaming decoder instead of the tokenizer's Wan decoder (faster,
