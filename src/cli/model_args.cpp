@@ -27,7 +27,8 @@ void resolve_models(std::string& checkpoint, std::string& tokenizer, std::string
     if (tokenizer.empty()) tokenizer = (reference / "tokenizer").string();
     LOG_INFO("using the reference world model ", checkpoint);
   }
-  if (tokenizer.empty()) throw UsageError("--tokenizer is required with a model other than the reference set");
+  if (tokenizer.empty())
+    throw UsageError("--tokenizer is required with a model other than the reference set");
   if (probe != nullptr && probe->empty() && fs::exists(reference / "probe" / "config.json"))
     *probe = (reference / "probe").string();
 }
