@@ -71,12 +71,7 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
   torch::optim::AdamW opt(decoder->parameters(), torch::optim::AdamWOptions(job.lr).weight_decay(1e-4));
   int64_t start = 0;
   if (resuming) {
-    const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir));
-    LoadOptions opts;
-    opts.prefix = "decoder.";
-    load_state_dict(*decoder, ckpt.model(), opts);
-    start = ckpt.step();
-    load_adamw_state(opt, *decoder, ckpt.trainer_tensors().tensors(/*copy=*/true));
+    start = resume_with_adamw(ckpt_dir, *decoder, "decoder.", opt);
     LOG_INFO("fast decoder: resumed from ", ckpt_dir.string(), " at step ", start);
   }
   const auto heldout_idx = torch::arange(train_n, n);
@@ -121,12 +116,7 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
         return StepRecord{{value, lr, s.saves ? heldout_psnr() : std::nan("")}, job.batch_size, note.str()};
       },
       [&](int64_t steps_done, bool) {
-        CheckpointData ckpt = models::fast_decoder_checkpoint(*decoder);
-        TrainerState state;
-        state.step = steps_done;
-        state.tensors = adamw_state(opt, *decoder);
-        ckpt.trainer = state;
-        save_checkpoint(ckpt_dir, ckpt);
+        save_with_adamw(ckpt_dir, models::fast_decoder_checkpoint(*decoder), opt, *decoder, steps_done);
       });
   FastDecoderResult r;
   r.steps = run.end_step;

@@ -67,13 +67,7 @@ ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
   torch::optim::AdamW opt(probe->parameters(), torch::optim::AdamWOptions(job.lr).weight_decay(1e-4));
   int64_t start = 0;
   if (resuming) {
-    const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir));
-    LoadOptions opts;
-    opts.prefix = "probe.";
-    load_state_dict(*probe, ckpt.model(), opts);
-    start = ckpt.step();
-    const auto tensors = ckpt.trainer_tensors().tensors(/*copy=*/true);
-    load_adamw_state(opt, *probe, tensors);
+    start = resume_with_adamw(ckpt_dir, *probe, "probe.", opt);
     LOG_INFO("probe train: resumed from ", ckpt_dir.string(), " at step ", start);
   }
   probe->train();
@@ -116,12 +110,7 @@ ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
         return StepRecord{{value}, job.batch_size, note.str()};
       },
       [&](int64_t steps_done, bool) {
-        CheckpointData ckpt = models::keypoint_probe_checkpoint(*probe);
-        TrainerState state;
-        state.step = steps_done;
-        state.tensors = adamw_state(opt, *probe);
-        ckpt.trainer = state;
-        save_checkpoint(ckpt_dir, ckpt);
+        save_with_adamw(ckpt_dir, models::keypoint_probe_checkpoint(*probe), opt, *probe, steps_done);
       });
   ProbeTrainResult r;
   r.steps = run.end_step;

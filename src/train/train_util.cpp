@@ -5,6 +5,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/state_dict.h"
 
 namespace dojo::train {
 namespace {
@@ -93,6 +94,25 @@ void LossCurve::write() const {
   std::string text;
   for (const auto& r : rows_) text += r + "\n";
   write_file_atomic(path_, text);
+}
+
+void save_with_adamw(const std::filesystem::path& dir, CheckpointData data,
+                     const torch::optim::AdamW& optimizer, const torch::nn::Module& module, int64_t step) {
+  TrainerState state;
+  state.step = step;
+  state.tensors = adamw_state(optimizer, module);
+  data.trainer = state;
+  save_checkpoint(dir, data);
+}
+
+int64_t resume_with_adamw(const std::filesystem::path& dir, torch::nn::Module& module,
+                          const std::string& prefix, torch::optim::AdamW& optimizer) {
+  const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
+  LoadOptions opts;
+  opts.prefix = prefix;
+  load_state_dict(module, ckpt.model(), opts);
+  load_adamw_state(optimizer, module, ckpt.trainer_tensors().tensors(/*copy=*/true));
+  return ckpt.step();
 }
 
 }  // namespace dojo::train

@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "core/checkpoint.h"
 #include "core/safetensors.h"
 
 namespace dojo::train {
@@ -27,6 +28,15 @@ void load_adamw_state(torch::optim::AdamW& optimizer, const torch::nn::Module& m
 // adamw_state writes; every other tensor passes through unchanged.
 NamedTensors named_adamw_state(NamedTensors tensors, const torch::nn::Module& module,
                                const std::string& prefix = "adamw.");
+
+// Checkpoints of the plain AdamW loops (probe, fast decoder): `data` is the model's checkpoint
+// (config and weights), to which the step and the AdamW moments are added as trainer state.
+void save_with_adamw(const std::filesystem::path& dir, CheckpointData data,
+                     const torch::optim::AdamW& optimizer, const torch::nn::Module& module, int64_t step);
+// Loads what save_with_adamw wrote: weights under `prefix` into `module` (strict) and the moments
+// into `optimizer`. Returns the step.
+int64_t resume_with_adamw(const std::filesystem::path& dir, torch::nn::Module& module,
+                          const std::string& prefix, torch::optim::AdamW& optimizer);
 
 // A CSV loss curve: header row plus one row per step, rewritten atomically. Opening an existing
 // file keeps rows up to `resume_step` (rows written after the last checkpoint are dropped, so a
