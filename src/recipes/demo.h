@@ -36,7 +36,7 @@ struct DemoOptions {
   int64_t lam_steps = 1500, tokenizer_steps = 2700, probe_steps = 600, pretrain_steps = 1200,
           posttrain_steps = 1500;
   // The real-time student: warm-up steps, Self-Forcing iterations, fast-decoder steps.
-  int64_t warmup_steps = 300, self_forcing_steps = 200, fast_decoder_steps = 400;
+  int64_t warmup_steps = 300, self_forcing_steps = 300, fast_decoder_steps = 400;
   // Noise on the conditioning latent in post-training (wm train --condition-noise): held-out
   // keypoint error 9.2 -> 7.4 px at 1000 steps (docs/action_following.md).
   double posttrain_condition_noise = 0.3;
