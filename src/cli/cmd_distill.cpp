@@ -110,8 +110,10 @@ void register_distill(CLI::App& app) {
   cmd->add_option("--weight-decay", a->weight_decay, "AdamW weight decay")->capture_default_str();
   cmd->add_option("--grad-clip", a->grad_clip, "Global gradient-norm clip")->capture_default_str();
   cmd->add_option("--window", a->window, "Earlier latent frames a new frame attends to (released: 3)")
+      ->check(CLI::Range(int64_t{0}, int64_t{64}))
       ->capture_default_str();
   cmd->add_option("--student-steps", a->student_steps, "Student hops per latent frame, 1-4")
+      ->check(CLI::Range(1, 4))
       ->capture_default_str();
   cmd->add_flag("--fp32-times", a->fp32_times, "Exact student times instead of the released bf16 rounding");
   cmd->add_option("--teacher-steps", a->teacher_steps, "Teacher UniPC steps for the trajectories")
@@ -124,6 +126,7 @@ void register_distill(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--critic-lr", sf.critic_lr, "self-forcing: critic learning rate")->capture_default_str();
   cmd->add_option("--critic-steps", sf.critic_steps, "self-forcing: critic updates per student update")
+      ->check(CLI::PositiveNumber)
       ->capture_default_str();
   cmd->add_option("--min-frames", sf.min_frames, "self-forcing: shortest rollout in latent frames")
       ->capture_default_str();

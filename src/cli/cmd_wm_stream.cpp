@@ -256,9 +256,11 @@ void register_wm_stream(CLI::App& wm) {
       "own commands (normalised and made relative here; {\"baseline\": [...]} sets the start "
       "command). Default: the episode's recorded actions, looped");
   cmd->add_option("--frames", a->frames, "Frames to generate (a multiple of 4)")->capture_default_str();
-  cmd->add_option("--window", a->window, "Earlier latent frames attended (default: the student's)");
+  cmd->add_option("--window", a->window, "Earlier latent frames attended (default: the student's)")
+      ->check(CLI::NonNegativeNumber);
   cmd->add_option("--student-steps", a->student_steps,
-                  "Denoising hops per latent frame, 1-4 (default: the student's)");
+                  "Denoising hops per latent frame, 1-4 (default: the student's)")
+      ->check(CLI::Range(1, 4));
   cmd->add_option(
       "--fast-decoder", a->fast_decoder,
       "Decode with this fast streaming decoder (dojo tokenizer fast-decoder) instead of the Wan decoder");

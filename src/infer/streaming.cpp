@@ -2,6 +2,7 @@
 
 #include <ATen/CPUGeneratorImpl.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 
@@ -78,6 +79,7 @@ StreamingEngine::StreamingEngine(models::ActionDit student, models::WanVae token
       options_(options),
       schedule_(options.student.schedule()),
       cache_(static_cast<size_t>(net_->config.num_blocks)) {
+  set_student(options_.student);  // validates the window against the RoPE table
   check_precision_supported(options_.precision, options_.device.type());
   DOJO_CHECK(net_->config.whole_clip_actions == 0,
              "streaming: a whole-clip-action network (ablation) cannot generate frame by frame");
@@ -109,6 +111,10 @@ StreamingEngine StreamingEngine::load(const std::filesystem::path& checkpoint,
 }
 
 void StreamingEngine::set_student(const StudentConfig& student) {
+  DOJO_CHECK(student.window_frames >= 0 && student.window_frames + 2 <= net_->pos_embedder->seq.size(0),
+             "streaming: the window (" + std::to_string(student.window_frames) +
+                 " frames) must be >= 0 and leave room in the network's RoPE table of " +
+                 std::to_string(net_->pos_embedder->seq.size(0)) + " frames");
   schedule_ = student.schedule();
   options_.student = student;
   frames_ = 0;  // the cache was built for the old window
@@ -159,7 +165,8 @@ void StreamingEngine::rebase_positions() {
   // numbered from the new base: the outputs do not change, and the horizon has no limit.
   const int64_t limit = net_->pos_embedder->seq.size(0);
   if (frames_ - position_base_ < limit) return;
-  const int64_t delta = frames_ - position_base_ - options_.student.window_frames;
+  // The new frame lands at position max(window, 1): position 0 means "first frame, no actions".
+  const int64_t delta = frames_ - position_base_ - std::max<int64_t>(options_.student.window_frames, 1);
   const auto angles =
       models::rope_angles_3d(net_->pos_embedder->dim_spatial_range, net_->pos_embedder->dim_temporal_range, 1,
                              1, 1, -delta, net_->config.rope_h_extrapolation_ratio,

@@ -160,6 +160,7 @@ std::pair<torch::Tensor, torch::Tensor> DitKvCache::attend(const torch::Tensor& 
     shape[2] = slots * ring_tokens_;
     k = torch::empty(shape, k_new.options());  // [B, h, slots · S, d]
     v = torch::empty(shape, v_new.options());
+    committed_ = 0;  // a new batch or dtype: nothing cached is valid
   }
   // The slot after the newest committed frame: empty while filling, then the oldest one, which
   // falls out of the window now.

@@ -304,8 +304,9 @@ DistillResult run_warmup(const DistillJob& job) {
 
 DistillResult run_self_forcing(const DistillJob& job) {
   const auto& sf = job.self_forcing;
-  DOJO_CHECK(sf.min_frames > sf.loss_frames && sf.max_frames >= sf.min_frames,
-             "self-forcing: need loss_frames < min_frames <= max_frames");
+  DOJO_CHECK(sf.min_frames > sf.loss_frames && sf.max_frames >= sf.min_frames && sf.loss_frames >= 1,
+             "self-forcing: need 1 <= loss_frames < min_frames <= max_frames");
+  DOJO_CHECK(sf.critic_steps >= 1, "self-forcing: --critic-steps must be >= 1 (the critic must learn)");
   TimeBudget budget(job.time_budget_s);
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint", critic_dir = job.out / "critic";
@@ -342,6 +343,15 @@ DistillResult run_self_forcing(const DistillJob& job) {
                                {"teacher", data.fingerprint["teacher"]}});
   critic.set_config_extras({{"actions", data.action_ranges}});
   if (resuming) {
+    // Both are saved at the same iterations; a crash between the two saves leaves them apart.
+    const auto iterations = [](const fs::path& dir) {
+      return Checkpoint::open(resolve_checkpoint_dir(dir)).trainer_extra().value("iterations", int64_t{-1});
+    };
+    DOJO_CHECK(
+        iterations(ckpt_dir) == iterations(critic_dir),
+        job.out.string() + ": the student and critic checkpoints were saved at different iterations (" +
+            std::to_string(iterations(ckpt_dir)) + " vs " + std::to_string(iterations(critic_dir)) +
+            "); remove " + critic_dir.string() + " and " + ckpt_dir.string() + " to restart the stage");
     generator.resume(ckpt_dir);
     critic.resume(critic_dir);
     LOG_INFO("distill: resumed self-forcing at iteration ", generator.steps_done() + critic.steps_done());

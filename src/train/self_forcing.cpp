@@ -119,7 +119,9 @@ torch::Tensor critic_loss(models::ActionDitImpl& critic, const torch::Tensor& wi
   in.timesteps = (sigma * 1000).unsqueeze(1);
   in.actions = actions;
   const auto v = models::denoise_velocity(critic, in, x, w, noise, mask);  // [B, 16, 1 + L, h, w]
-  return (v - (noise - w)).narrow(2, 1, L).pow(2).mean();                  // the x0 loss / σ², as released
+  // |v̂ − v|² = |x0 − x̂0|² / σ² in rectified-flow units; the release's TrigFlow form weights it by a
+  // further 1 / (cos t + sin t)² (1 to 1/2 over t), which only reweights the noise levels.
+  return (v - (noise - w)).narrow(2, 1, L).pow(2).mean();
 }
 
 }  // namespace dojo::train

@@ -115,16 +115,22 @@ TEST(Streaming, AnyHorizonRebasesRopePositions) {
     models::WanVae vae(models::WanVaeConfig::tiny());
     return StreamingEngine(net, vae, o);
   };
-  auto short_table = make(6), long_table = make(64);
-  ASSERT_EQ(short_table.net()->pos_embedder->seq.size(0), 6);
   const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
   const auto actions = actions_for(14, 1, 6);
-  const auto a = run(short_table, first, actions, 2);
-  const auto b = run(long_table, first, actions, 2);
-  double worst = 0;
-  for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, (a[i] - b[i]).abs().max().item<double>());
-  EXPECT_LT(worst, 1e-4);
-  std::printf("rebased (RoPE table 6) vs absolute positions, 14 frames: max abs %.2g\n", worst);
+  for (int64_t window : {2, 0}) {  // window 0: the new frame alone, still with its actions
+    o.student.window_frames = window;
+    auto short_table = make(6), long_table = make(64);
+    ASSERT_EQ(short_table.net()->pos_embedder->seq.size(0), 6);
+    const auto a = run(short_table, first, actions, 2);
+    const auto b = run(long_table, first, actions, 2);
+    double worst = 0;
+    for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, (a[i] - b[i]).abs().max().item<double>());
+    EXPECT_LT(worst, 1e-4) << "window " << window;
+    std::printf("window %ld: rebased (RoPE table 6) vs absolute positions, 14 frames: max abs %.2g\n",
+                static_cast<long>(window), worst);
+  }
+  o.student.window_frames = 5;  // no room left in a table of 6
+  EXPECT_THROW(make(6), Error);
 }
 
 TEST(Streaming, DecodesWithTheFastDecoderWhenGiven) {
