@@ -24,8 +24,6 @@ namespace dojo::train {
 
 namespace {
 
-torch::Generator cpu_generator(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
-
 // The teacher's ODE solution for clips [n, 16, 4, h, w] from per-clip noise; the samples before
 // the query steps and the final x0, frame 0 the clean conditioning latent: [n, P, 16, 4, h, w].
 torch::Tensor teacher_points(models::ActionDitImpl& teacher, const diffusion::SigmaSchedule& schedule,
@@ -105,7 +103,7 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
       const int64_t m = std::min<int64_t>(spec.batch, begin + count - b);
       std::vector<torch::Tensor> noise;  // per clip, so the batching does not change the draws
       for (int64_t i = b; i < b + m; ++i) {
-        auto g = cpu_generator(spec.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(i) + 1);
+        auto g = step_generator(spec.seed, i);
         noise.push_back(torch::randn(clips.latents[i].sizes(), g));
       }
       shard.push_back(teacher_points(teacher, schedule, clips.latents.narrow(0, b, m),
@@ -261,7 +259,7 @@ DistillResult run_warmup(const DistillJob& job) {
   const auto run = run_training_loop(
       loop, start_step,
       [&](const LoopStep& info) {
-        auto gen = cpu_generator(job.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(info.index) + 1);
+        auto gen = step_generator(job.seed, info.index);
         const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
         const auto pts = trajectories.points.index_select(0, idx),
                    acts = trajectories.actions.index_select(0, idx);
@@ -387,7 +385,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
   const auto run = run_training_loop(
       loop, start,
       [&](const LoopStep& info) {
-        auto g = cpu_generator(job.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(info.index) + 1);
+        auto g = step_generator(job.seed, info.index);
         const auto idx = torch::randint(n, {job.batch_size}, g, torch::kLong);
         const int exit_hop = static_cast<int>(torch::randint(student.steps, {1}, g).item<int64_t>());
         const int64_t frames = torch::randint(sf.min_frames, sf.max_frames + 1, {1}, g).item<int64_t>();

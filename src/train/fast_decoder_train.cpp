@@ -95,8 +95,7 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
   const auto run = run_training_loop(
       loop, start,
       [&](const LoopStep& s) {
-        auto gen = at::make_generator<at::CPUGeneratorImpl>(job.seed * 0x9E3779B97F4A7C15ULL +
-                                                            static_cast<uint64_t>(s.index) + 1);
+        auto gen = step_generator(job.seed, s.index);
         const auto idx = torch::randint(train_n, {job.batch_size}, gen, torch::kLong);
         const double warm = std::min(1.0, static_cast<double>(s.index + 1) / 50.0);
         const double progress =

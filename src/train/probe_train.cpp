@@ -86,8 +86,7 @@ ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
       [&](const LoopStep& s) {
         // The batch, its augmentation and nothing else depend on (seed, step): resumes continue
         // the same stream.
-        auto gen = at::make_generator<at::CPUGeneratorImpl>(job.seed * 0x9E3779B97F4A7C15ULL +
-                                                            static_cast<uint64_t>(s.index) + 1);
+        auto gen = step_generator(job.seed, s.index);
         const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
         auto images = frames.frames.index_select(0, idx).permute({0, 3, 1, 2}).to(torch::kFloat32).div(255.0);
         const auto target = targets.index_select(0, idx);

@@ -1,5 +1,7 @@
 #include "train/train_util.h"
 
+#include <ATen/CPUGeneratorImpl.h>
+
 #include <fstream>
 #include <map>
 
@@ -94,6 +96,12 @@ void LossCurve::write() const {
   std::string text;
   for (const auto& r : rows_) text += r + "\n";
   write_file_atomic(path_, text);
+}
+
+torch::Generator cpu_generator(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
+
+torch::Generator step_generator(uint64_t seed, int64_t step) {
+  return cpu_generator(seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(step) + 1);
 }
 
 void save_with_adamw(const std::filesystem::path& dir, CheckpointData data,

@@ -2,6 +2,7 @@
 // a loss-curve CSV that survives resumes, and a wall-clock budget.
 #pragma once
 
+#include <ATen/core/Generator.h>
 #include <torch/nn/module.h>
 #include <torch/optim/adamw.h>
 
@@ -28,6 +29,12 @@ void load_adamw_state(torch::optim::AdamW& optimizer, const torch::nn::Module& m
 // adamw_state writes; every other tensor passes through unchanged.
 NamedTensors named_adamw_state(NamedTensors tensors, const torch::nn::Module& module,
                                const std::string& prefix = "adamw.");
+
+// A CPU generator (so a seed gives the same draws on every device), and the one every trainer
+// draws step k's batch and noise from: it depends on (seed, k) only, so a resumed run sees the
+// same stream as an unbroken one. Draw i of a per-item stream (e.g. clip i's noise) uses the same.
+torch::Generator cpu_generator(uint64_t seed);
+torch::Generator step_generator(uint64_t seed, int64_t step);
 
 // Checkpoints of the plain AdamW loops (probe, fast decoder): `data` is the model's checkpoint
 // (config and weights), to which the step and the AdamW moments are added as trainer state.

@@ -133,8 +133,6 @@ FlowLoss flow_loss(models::ActionDit& net, const WmTrainOptions& options, const 
           (v - noise.target_velocity).pow(2).mean()};
 }
 
-torch::Generator make_cpu_generator(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
-
 void check_training_precision(Precision precision) {
   // fp16's 5 exponent bits underflow small gradients unless the loss is scaled; bf16 has
   // float32's range and is what the release trains in.
@@ -206,7 +204,7 @@ double WmTrainer::eval_loss(const torch::Tensor& x0, const torch::Tensor& action
   // The held-out loss measures the plain objective: no conditioning noise, no weighting.
   WmTrainOptions plain = options_;
   plain.condition_noise = plain.motion_weight = plain.action_dropout = 0;
-  return flow_loss(ema_, plain, x0.to(device_), actions.to(device_), make_cpu_generator(seed), precision_)
+  return flow_loss(ema_, plain, x0.to(device_), actions.to(device_), cpu_generator(seed), precision_)
       .total.item<double>();
 }
 
@@ -374,8 +372,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
       loop, start_step,
       [&](const LoopStep& info) {
         // Batch and noise of step k depend on (seed, k) only, so a resumed run sees the same stream.
-        auto gen =
-            make_cpu_generator(job.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(info.index) + 1);
+        auto gen = step_generator(job.seed, info.index);
         const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
         const auto t0 = std::chrono::steady_clock::now();
         const auto s =
