@@ -88,7 +88,8 @@ class ActionLines {
 
 struct StreamArgs {
   ModelArgs model;
-  std::string split = "val", episode, image, actions, out, fast_decoder, device = "cpu", precision = "fp32";
+  std::string split = "val", episode, image, actions, out, fast_decoder, alignment, device = "cpu",
+              precision = "fp32";
   int64_t frames = 48;
   int window = -1, student_steps = 0, size = 64;
   bool raw = false, no_cache = false, no_decode = false, json = false;
@@ -122,6 +123,8 @@ int run_stream(StreamArgs a) {
   auto student = engine.options().student;
   if (a.window >= 0) student.window_frames = a.window;
   if (a.student_steps > 0) student.steps = a.student_steps;
+  if (!a.alignment.empty())
+    student.action_alignment = infer::parse_action_alignment(a.alignment, "--action-alignment");
   engine.set_student(student);
 
   // The start frame and, without --actions, the recorded actions (looped past their end).
@@ -171,25 +174,29 @@ int run_stream(StreamArgs a) {
 
   std::vector<double> total_ms, denoise_ms, recache_ms, decode_ms;
   int64_t generated = 0, rss_at_100 = 0;
+  int64_t chunks_read = 0;
+  const auto next_chunk = [&]() -> std::optional<torch::Tensor> {  // [4, 384]
+    if (lines) return lines->next();
+    const int64_t steps = recorded.size(0) / 4, s = chunks_read++ % steps;
+    return recorded.narrow(0, 4 * s, 4);
+  };
   while (generated < a.frames) {
-    torch::Tensor chunk;  // [4, 384]
-    if (lines) {
-      auto next = lines->next();
+    std::vector<torch::Tensor> chunks;  // one step's actions: 1 chunk, or the window's in teleop mode
+    while (static_cast<int64_t>(chunks.size()) * 4 < engine.actions_per_step()) {
+      auto next = next_chunk();
       if (!next) break;
-      chunk = *next;
-    } else {
-      const int64_t steps = recorded.size(0) / 4, s = (generated / 4) % steps;
-      chunk = recorded.narrow(0, 4 * s, 4);
+      chunks.push_back(*next);
     }
-    const auto out = engine.step(chunk.unsqueeze(0));
+    if (static_cast<int64_t>(chunks.size()) * 4 < engine.actions_per_step()) break;
+    const auto out = engine.step(torch::cat(chunks).unsqueeze(0));  // [1, 4 n, H, W, 3] | [1, 16, n, h, w]
     if (o.decode) emit(out[0]);
-    generated += 4;
+    generated += o.decode ? out.size(1) : 4 * out.size(2);
     const auto& t = engine.last_timings();
     total_ms.push_back(t.total_ms);
     denoise_ms.push_back(t.denoise_ms);
     recache_ms.push_back(t.recache_ms);
     decode_ms.push_back(t.decode_ms);
-    if (generated == 100) rss_at_100 = resident_memory_bytes();
+    if (rss_at_100 == 0 && generated >= 100) rss_at_100 = resident_memory_bytes();
   }
   if (writer) writer->close();
   double seconds = 0;
@@ -208,6 +215,7 @@ int run_stream(StreamArgs a) {
       {"frames", generated},
       {"window_frames", student.window_frames},
       {"student_steps", student.steps},
+      {"action_alignment", infer::to_string(student.action_alignment)},
       {"kv_cache", o.use_cache},
       {"decode", o.decode},
       {"decoder", o.fast_decoder ? "fast" : "wan"},
@@ -261,6 +269,10 @@ void register_wm_stream(CLI::App& wm) {
   cmd->add_option("--student-steps", a->student_steps,
                   "Denoising hops per latent frame, 1-4 (default: the student's)")
       ->check(CLI::Range(1, 4));
+  cmd->add_option("--action-alignment", a->alignment,
+                  "training (default: a new frame uses its own 4 actions), or the released scripts' "
+                  "released_offline (8-action lag) / released_teleop (12 actions per step, 8 dropped)")
+      ->check(CLI::IsMember({"training", "released_offline", "released_teleop"}));
   cmd->add_option(
       "--fast-decoder", a->fast_decoder,
       "Decode with this fast streaming decoder (dojo tokenizer fast-decoder) instead of the Wan decoder");

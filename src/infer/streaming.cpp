@@ -20,8 +20,31 @@ double ms_since(std::chrono::steady_clock::time_point start) {
 
 }  // namespace
 
+const char* to_string(ActionAlignment a) {
+  switch (a) {
+    case ActionAlignment::kTraining:
+      return "training";
+    case ActionAlignment::kReleasedOffline:
+      return "released_offline";
+    case ActionAlignment::kReleasedTeleop:
+      return "released_teleop";
+  }
+  return "training";
+}
+
+ActionAlignment parse_action_alignment(const std::string& name, const std::string& where) {
+  for (auto a :
+       {ActionAlignment::kTraining, ActionAlignment::kReleasedOffline, ActionAlignment::kReleasedTeleop})
+    if (name == to_string(a)) return a;
+  throw Error(where + ": unknown action alignment '" + name +
+              "' (expected training, released_offline or released_teleop)");
+}
+
 nlohmann::json StudentConfig::to_json() const {
-  return {{"window_frames", window_frames}, {"steps", steps}, {"bf16_times", bf16_times}};
+  return {{"window_frames", window_frames},
+          {"steps", steps},
+          {"bf16_times", bf16_times},
+          {"action_alignment", to_string(action_alignment)}};
 }
 
 StudentConfig StudentConfig::from_json(const nlohmann::json& j, const std::string& where) {
@@ -41,6 +64,11 @@ StudentConfig StudentConfig::from_json(const nlohmann::json& j, const std::strin
   if (j.contains("bf16_times")) {
     DOJO_CHECK(j["bf16_times"].is_boolean(), field("bf16_times") + " must be true or false");
     c.bf16_times = j["bf16_times"].get<bool>();
+  }
+  if (j.contains("action_alignment")) {
+    DOJO_CHECK(j["action_alignment"].is_string(), field("action_alignment") + " must be a string");
+    c.action_alignment =
+        parse_action_alignment(j["action_alignment"].get<std::string>(), field("action_alignment"));
   }
   return c;
 }
@@ -115,6 +143,11 @@ void StreamingEngine::set_student(const StudentConfig& student) {
              "streaming: the window (" + std::to_string(student.window_frames) +
                  " frames) must be >= 0 and leave room in the network's RoPE table of " +
                  std::to_string(net_->pos_embedder->seq.size(0)) + " frames");
+  DOJO_CHECK(student.action_alignment == ActionAlignment::kTraining || student.window_frames >= 1,
+             std::string("streaming: the ") + to_string(student.action_alignment) +
+                 " action alignment needs a window of at least 1 frame");
+  DOJO_CHECK(student.action_alignment != ActionAlignment::kReleasedTeleop || options_.use_cache,
+             "streaming: the released_teleop action alignment re-writes the KV cache and needs it on");
   schedule_ = student.schedule();
   options_.student = student;
   frames_ = 0;  // the cache was built for the old window
@@ -150,6 +183,8 @@ torch::Tensor StreamingEngine::reset(const torch::Tensor& first, uint64_t seed) 
   }
   history_latents_.clear();
   history_actions_.clear();
+  recent_chunks_.clear();
+  window_latents_.clear();
   frames_ = 0;
   position_base_ = 0;
   recache(z0, torch::Tensor());  // frame 0: clean, no action term
@@ -185,22 +220,44 @@ torch::Tensor StreamingEngine::decode(const torch::Tensor& x0) {
   return models::model_to_video(pixels.clamp(-1, 1)).to(torch::kCPU);                       // [B, n, H, W, 3]
 }
 
-void StreamingEngine::recache(const torch::Tensor& x0, const torch::Tensor& actions) {
+void StreamingEngine::store_frame(const torch::Tensor& x0, const torch::Tensor& actions, int64_t position) {
   AutocastGuard autocast(options_.device.type(), options_.precision);
+  auto in = inputs(actions);
+  in.x = x0;
+  in.condition_mask = torch::zeros_like(x0.narrow(1, 0, 1));
+  in.timesteps = torch::zeros({x0.size(0), 1}, x0.options());
+  in.frame_offset = position;
+  in.kv_cache = &cache_;
+  in.store_kv = true;
+  net_->forward(in);  // only the stored keys and values matter
+}
+
+void StreamingEngine::recache(const torch::Tensor& x0, const torch::Tensor& actions) {
   if (options_.use_cache) {
-    auto in = inputs(actions);
-    in.x = x0;
-    in.condition_mask = torch::zeros_like(x0.narrow(1, 0, 1));
-    in.timesteps = torch::zeros({x0.size(0), 1}, x0.options());
-    in.frame_offset = frames_ - position_base_;
-    in.kv_cache = &cache_;
-    in.store_kv = true;
-    net_->forward(in);  // only the stored keys and values matter
+    store_frame(x0, actions, frames_ - position_base_);
   } else {
     history_latents_.push_back(x0);
     if (actions.defined()) history_actions_.push_back(actions);
   }
+  if (options_.student.action_alignment == ActionAlignment::kReleasedTeleop) {
+    window_latents_.push_back(x0);
+    while (static_cast<int64_t>(window_latents_.size()) > options_.student.window_frames)
+      window_latents_.pop_front();
+  }
   ++frames_;
+}
+
+void StreamingEngine::rebuild_teleop_cache(const torch::Tensor& fresh) {
+  // As the released teleop script does every step after the first: the context is the last w
+  // latents, the oldest stored as a first frame (no actions, position 0) and latent i >= 1 with
+  // fresh chunk i - 1; the new frame then sits at position w.
+  for (auto& c : cache_) c.clear();
+  const int64_t w = static_cast<int64_t>(window_latents_.size());
+  for (int64_t i = 0; i < w; ++i) {
+    const auto acts = i == 0 ? torch::Tensor() : fresh.narrow(1, (i - 1) * kActionsPerStep, kActionsPerStep);
+    store_frame(window_latents_[static_cast<size_t>(i)], acts, i);
+  }
+  position_base_ = frames_ - w;
 }
 
 torch::Tensor StreamingEngine::denoise_cached(const torch::Tensor& noise, const torch::Tensor& actions) {
@@ -258,29 +315,81 @@ torch::Tensor StreamingEngine::denoise_reference(const torch::Tensor& noise, con
   return x0;
 }
 
+int64_t StreamingEngine::actions_per_step() const {
+  return options_.student.action_alignment == ActionAlignment::kReleasedTeleop
+             ? kActionsPerStep * options_.student.window_frames
+             : kActionsPerStep;
+}
+
+torch::Tensor StreamingEngine::generate(const torch::Tensor& generate_with, const torch::Tensor& cache_with) {
+  const auto start = std::chrono::steady_clock::now();
+  const auto noise = torch::randn(latent_shape_, generator_).to(options_.device);  // ε [B, 16, 1, h, w]
+  if (options_.use_cache) rebase_positions();
+  const auto x0 =
+      options_.use_cache ? denoise_cached(noise, generate_with) : denoise_reference(noise, generate_with);
+  timings_.denoise_ms += ms_since(start);
+  const auto recache_start = std::chrono::steady_clock::now();
+  recache(x0, cache_with);
+  timings_.recache_ms += ms_since(recache_start);
+  return x0;  // [B, 16, 1, h, w]
+}
+
 torch::Tensor StreamingEngine::step(const torch::Tensor& actions) {
   DOJO_CHECK(frames_ > 0, "streaming: reset() must come before step()");
-  DOJO_CHECK(
-      actions.dim() == 3 && actions.size(1) == kActionsPerStep && actions.size(2) == net_->config.action_dim,
-      "streaming: actions must be [B, 4, " + std::to_string(net_->config.action_dim) + "]");
+  const int64_t expected = actions_per_step();
+  DOJO_CHECK(actions.dim() == 3 && actions.size(1) == expected && actions.size(2) == net_->config.action_dim,
+             "streaming: actions must be [B, " + std::to_string(expected) + ", " +
+                 std::to_string(net_->config.action_dim) + "] (" +
+                 to_string(options_.student.action_alignment) + " alignment)");
   torch::NoGradGuard no_grad;
   const auto start = std::chrono::steady_clock::now();
   const auto acts = actions.to(options_.device, torch::kFloat32);
   DOJO_CHECK(acts.size(0) == latent_shape_[0], "streaming: actions for batch " +
                                                    std::to_string(acts.size(0)) + ", the stream has " +
                                                    std::to_string(latent_shape_[0]));
-  const auto noise = torch::randn(latent_shape_, generator_).to(options_.device);  // ε [B, 16, 1, h, w]
-  if (options_.use_cache) rebase_positions();
+  timings_ = StreamTimings{};
+  const int64_t window = options_.student.window_frames;
+  std::vector<torch::Tensor> latents;
+  switch (options_.student.action_alignment) {
+    case ActionAlignment::kTraining:
+      latents.push_back(generate(acts, acts));
+      break;
+    case ActionAlignment::kReleasedOffline: {
+      // The released offline script generates the first w latents in one call with their own
+      // chunks; afterwards its 12-action window slides by one chunk while the new latent reads the
+      // window's first chunk: chunk k - (w - 1). Re-caching uses the latent's own chunk.
+      recent_chunks_.push_back(acts);
+      while (static_cast<int64_t>(recent_chunks_.size()) > window) recent_chunks_.pop_front();
+      const bool lagged = frames_ > window;  // frames_ is the new latent's index
+      latents.push_back(generate(lagged ? recent_chunks_.front() : acts, acts));
+      break;
+    }
+    case ActionAlignment::kReleasedTeleop:
+      if (frames_ == 1) {
+        // First step: w latents from the w fresh chunks, each with its own (start index 1).
+        for (int64_t i = 0; i < window; ++i) {
+          const auto chunk = acts.narrow(1, i * kActionsPerStep, kActionsPerStep);
+          latents.push_back(generate(chunk, chunk));
+        }
+      } else {
+        const auto rebuild_start = std::chrono::steady_clock::now();
+        rebuild_teleop_cache(acts);
+        timings_.recache_ms += ms_since(rebuild_start);
+        const auto first_chunk = acts.narrow(1, 0, kActionsPerStep);
+        latents.push_back(generate(first_chunk, first_chunk));  // fresh chunks 1 .. w - 1 unused
+      }
+      break;
+  }
 
-  const auto x0 = options_.use_cache ? denoise_cached(noise, acts) : denoise_reference(noise, acts);
-  timings_.denoise_ms = ms_since(start);
-  const auto recache_start = std::chrono::steady_clock::now();
-  recache(x0, acts);
-  timings_.recache_ms = ms_since(recache_start);
-
-  torch::Tensor out = x0;
   const auto decode_start = std::chrono::steady_clock::now();
-  if (options_.decode) out = decode(x0);  // [B, 4, H, W, 3]
+  torch::Tensor out;
+  if (options_.decode) {
+    std::vector<torch::Tensor> frames;
+    for (const auto& x0 : latents) frames.push_back(decode(x0));  // [B, 4, H, W, 3] each
+    out = torch::cat(frames, 1);
+  } else {
+    out = torch::cat(latents, 2);  // [B, 16, n, h, w]
+  }
   timings_.decode_ms = ms_since(decode_start);
   timings_.total_ms = ms_since(start);
   return out;
@@ -289,14 +398,15 @@ torch::Tensor StreamingEngine::step(const torch::Tensor& actions) {
 torch::Tensor StreamingEngine::rollout(const torch::Tensor& first, const torch::Tensor& actions,
                                        uint64_t seed, const std::function<void(int64_t)>& on_step) {
   DOJO_CHECK(options_.decode, "streaming: rollout() needs decoding on");
-  DOJO_CHECK(actions.dim() == 3 && actions.size(1) % kActionsPerStep == 0 && actions.size(1) > 0,
-             "streaming: the action count must be a positive multiple of 4");
+  const int64_t per_step = actions_per_step();
+  DOJO_CHECK(actions.dim() == 3 && actions.size(1) % per_step == 0 && actions.size(1) > 0,
+             "streaming: the action count must be a positive multiple of " + std::to_string(per_step));
   std::vector<torch::Tensor> frames = {reset(first, seed)};  // [B, 1, H, W, 3]
-  for (int64_t k = 0; k < actions.size(1) / kActionsPerStep; ++k) {
-    frames.push_back(step(actions.narrow(1, k * kActionsPerStep, kActionsPerStep)));  // [B, 4, H, W, 3]
+  for (int64_t k = 0; k < actions.size(1) / per_step; ++k) {
+    frames.push_back(step(actions.narrow(1, k * per_step, per_step)));  // [B, 4 n, H, W, 3]
     if (on_step) on_step(k);
   }
-  return torch::cat(frames, 1);  // [B, 1 + 4 K, H, W, 3]
+  return torch::cat(frames, 1);  // [B, 1 + frames, H, W, 3]
 }
 
 }  // namespace dojo::infer

@@ -8,13 +8,15 @@
 //   for each student time t_s:  x̂0 = D(x, t_s) reading the cache;  x ← cos t_{s+1}·x̂0 + sin t_{s+1}·ε
 //   re-cache: one clean pass on x̂0 at t = 0 stores the frame's keys and values
 //   decode x̂0 → 4 frames with the tokenizer's causal feature caches
-// Actions follow the training alignment: the new latent frame uses the 4 actions of its own
-// transitions, and cached frames keep the actions they were generated with.
+// Actions follow the training alignment by default: the new latent frame uses the 4 actions of its
+// own transitions, and cached frames keep the actions they were generated with. The released
+// inference scripts' alignments are kept as compatibility modes (ActionAlignment).
 #pragma once
 
 #include <torch/torch.h>
 
 #include <cstdint>
+#include <deque>
 #include <filesystem>
 #include <functional>
 #include <memory>
@@ -30,11 +32,28 @@
 
 namespace dojo::infer {
 
+// Which actions a new latent frame and its cached context see (dreamdojo.md §0 row 6). The two
+// released inference scripts disagree with each other and with the training rollout; both are
+// kept for parity with released outputs. w = window_frames, a "chunk" = 4 actions.
+enum class ActionAlignment {
+  kTraining,         // 4 actions per step; latent k is generated and cached with its own chunk k
+  kReleasedOffline,  // 4 per step; after the first w latents, latent k is generated with chunk
+                     // k - (w - 1) (an 8-action lag at w = 3) and cached with its own
+  kReleasedTeleop,   // 4 w per step, w latents at the first step; afterwards every step rebuilds
+                     // the cache from the last w latents, the oldest without actions and the others
+                     // with the fresh chunks 0 .. w - 2, generates one latent with fresh chunk 0
+                     // and discards the last fresh chunk
+};
+// "training" | "released_offline" | "released_teleop"; parse throws naming `where`.
+const char* to_string(ActionAlignment a);
+ActionAlignment parse_action_alignment(const std::string& name, const std::string& where);
+
 // What makes a DiT a student: stored as the "student" entry of its checkpoint's config.json.
 struct StudentConfig {
   int64_t window_frames = 3;  // earlier latent frames a new one attends to (released: 3)
   int steps = 4;              // hops per latent frame, the first `steps` of the 4 student times
   bool bf16_times = true;     // the released streaming code's bf16 time rounding (self_forcing.md §3.1)
+  ActionAlignment action_alignment = ActionAlignment::kTraining;
   nlohmann::json to_json() const;
   // Missing fields keep the defaults; a bad value throws dojo::Error naming `where` and the field.
   static StudentConfig from_json(const nlohmann::json& j, const std::string& where);
@@ -88,12 +107,15 @@ class StreamingEngine {
   // Noise for every later frame comes from `seed`. Returns frame 0 as the tokenizer shows it,
   // [B, 1, H, W, 3] uint8 (undefined with decode off).
   torch::Tensor reset(const torch::Tensor& first, uint64_t seed);
-  // actions [B, 4, 384] (the unified layout, chunk-relative as in training) -> the next 4 frames
-  // [B, 4, H, W, 3] uint8, or with decode off the new latent [B, 16, 1, h, w].
+  // actions [B, actions_per_step(), 384] (the unified layout, chunk-relative as in training) ->
+  // the next frames [B, 4 n, H, W, 3] uint8, or with decode off the new latents [B, 16, n, h, w];
+  // n = 1 except at the first step of the teleop compatibility mode (n = window).
   torch::Tensor step(const torch::Tensor& actions);
+  // Actions one step() consumes: 4, or 4 · window in the teleop compatibility mode.
+  int64_t actions_per_step() const;
 
-  // A whole rollout: reset at first [B, H, W, 3], then one step per 4 actions of [B, 4 K, 384]
-  // -> [B, 1 + 4 K, H, W, 3] uint8. on_step(k) after step k.
+  // A whole rollout: reset at first [B, H, W, 3], then one step per actions_per_step() actions of
+  // [B, A, 384] -> [B, 1 + frames, H, W, 3] uint8. on_step(k) after step k.
   torch::Tensor rollout(const torch::Tensor& first, const torch::Tensor& actions, uint64_t seed,
                         const std::function<void(int64_t)>& on_step = {});
 
@@ -112,7 +134,13 @@ class StreamingEngine {
   torch::Tensor decode(const torch::Tensor& x0);  // [B, 16, 1, h, w] -> [B, n, H, W, 3] uint8
   torch::Tensor denoise_cached(const torch::Tensor& noise, const torch::Tensor& actions);
   torch::Tensor denoise_reference(const torch::Tensor& noise, const torch::Tensor& actions);
+  // One new latent frame: denoised with `generate_with`, cached with `cache_with`.
+  torch::Tensor generate(const torch::Tensor& generate_with, const torch::Tensor& cache_with);
   void recache(const torch::Tensor& x0, const torch::Tensor& actions);
+  // Stores one clean frame's keys and values at RoPE position `position` (actions undefined: none).
+  void store_frame(const torch::Tensor& x0, const torch::Tensor& actions, int64_t position);
+  // Teleop compatibility: the cache holds only the last window latents, re-stored with fresh actions.
+  void rebuild_teleop_cache(const torch::Tensor& fresh);
   models::DitInputs inputs(const torch::Tensor& actions) const;
   // Keeps RoPE positions inside the network's table for any horizon (see step()).
   void rebase_positions();
@@ -131,6 +159,8 @@ class StreamingEngine {
   int64_t position_base_ = 0;  // frame index that sits at RoPE position 0
   // Reference path: every clean latent and action chunk so far.
   std::vector<torch::Tensor> history_latents_, history_actions_;
+  // Compatibility modes: the last chunks received (offline lag) and the last window latents (teleop).
+  std::deque<torch::Tensor> recent_chunks_, window_latents_;
   StreamTimings timings_;
   nlohmann::json action_ranges_ = nlohmann::json::object();
 };

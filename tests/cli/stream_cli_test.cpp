@@ -87,6 +87,14 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(std::filesystem::exists(tmp / "fast.mp4"));
 
+  // The released teleop alignment takes 12 actions per step: 3 latents first, then 1 per step.
+  r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
+                     " --data " + data +
+                     " --split all --frames 16 --no-decode --json --action-alignment released_teleop");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("\"frames\": 16"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("released_teleop"), std::string::npos) << r.output;
+
   write_lines(actions, {rows(4, 384, 0.0), "[[1, 2], [3]]"});
   r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
                      " --data " + data + " --split all --actions " + actions.string() + " --no-decode");

@@ -153,6 +153,77 @@ TEST(Streaming, DecodesWithTheFastDecoderWhenGiven) {
   EXPECT_TRUE(video.narrow(1, 0, 1).equal(expect));
 }
 
+// The released offline script's alignment: the first w latents use their own chunks, later ones
+// are generated with chunk k - (w - 1) and cached with their own; the cached path and the plain
+// reference implement it alike.
+TEST(Streaming, ReleasedOfflineAlignmentLagsTwoChunks) {
+  test::OneThread one;
+  StreamingEngine::Options o;
+  o.decode = false;
+  o.student.window_frames = 3;
+  auto training = engine(o);
+  o.student.action_alignment = ActionAlignment::kReleasedOffline;
+  auto offline = engine(o);
+  o.use_cache = false;
+  auto offline_reference = engine(o);
+  const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
+  auto actions = actions_for(6, 1, 11);
+  const auto t = run(training, first, actions, 2);
+  const auto a = run(offline, first, actions, 2);
+  const auto r = run(offline_reference, first, actions, 2);
+  for (size_t k = 0; k < a.size(); ++k) EXPECT_LT((a[k] - r[k]).abs().max().item<double>(), 1e-4) << k;
+  for (size_t k = 0; k < 3; ++k) EXPECT_TRUE(a[k].equal(t[k])) << "latent " << k + 1 << " uses its own chunk";
+  EXPECT_GT((a[3] - t[3]).abs().max().item<double>(), 1e-3) << "latent 4 is generated with chunk 2";
+
+  // The last latent never sees its own chunk; in the training alignment it does.
+  actions.narrow(1, 20, 4).uniform_(-1, 1);
+  const auto t2 = run(training, first, actions, 2);
+  const auto a2 = run(offline, first, actions, 2);
+  EXPECT_TRUE(a2[5].equal(a[5]));
+  EXPECT_GT((t2[5] - t[5]).abs().max().item<double>(), 1e-3);
+}
+
+// The released teleop script's alignment: 12 actions per step; the first step makes 3 latents
+// with their own chunks, later steps re-store the context with the fresh chunks 0 and 1, generate
+// with fresh chunk 0 and drop chunk 2.
+TEST(Streaming, ReleasedTeleopAlignmentRecachesWithFreshActions) {
+  test::OneThread one;
+  StreamingEngine::Options o;
+  o.decode = false;
+  o.student.window_frames = 3;
+  auto training = engine(o);
+  o.student.action_alignment = ActionAlignment::kReleasedTeleop;
+  auto teleop = engine(o);
+  EXPECT_EQ(teleop.actions_per_step(), 12);
+  const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
+  const auto chunks = actions_for(3, 1, 12);
+  const auto t = run(training, first, chunks, 4);
+  teleop.reset(first, 4);
+  const auto boot = teleop.step(chunks);  // [1, 16, 3, h, w]
+  ASSERT_EQ(boot.size(2), 3);
+  EXPECT_TRUE(boot.equal(torch::cat(t, 2))) << "the first step is the training rollout of 3 latents";
+  EXPECT_THROW(teleop.step(chunks.narrow(1, 0, 4)), Error);
+
+  const auto steady = [&](const torch::Tensor& fresh) {
+    teleop.reset(first, 4);
+    teleop.step(chunks);
+    return teleop.step(fresh);  // [1, 16, 1, h, w]
+  };
+  auto fresh = actions_for(3, 1, 13);
+  const auto base = steady(fresh);
+  ASSERT_EQ(base.size(2), 1);
+  auto dropped = fresh.clone();
+  dropped.narrow(1, 8, 4).uniform_(-1, 1);
+  EXPECT_TRUE(steady(dropped).equal(base)) << "fresh chunk 2 is dropped";
+  auto context = fresh.clone();
+  context.narrow(1, 4, 4).uniform_(-1, 1);
+  EXPECT_GT((steady(context) - base).abs().max().item<double>(), 1e-3) << "chunk 1 re-caches the context";
+  EXPECT_EQ(teleop.cache_bytes() > 0, true);
+
+  o.use_cache = false;
+  EXPECT_THROW(engine(o), Error) << "teleop re-writes the cache: it needs one";
+}
+
 TEST(StudentConfig, BadFieldsNameTheFile) {
   EXPECT_THROW(StudentConfig::from_json({{"steps", 5}}, "ck/config.json"), Error);
   try {
@@ -161,7 +232,15 @@ TEST(StudentConfig, BadFieldsNameTheFile) {
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("ck/config.json: field 'student.window_frames'"), std::string::npos);
   }
-  const auto c = StudentConfig::from_json({{"steps", 2}, {"bf16_times", false}}, "x");
+  try {
+    StudentConfig::from_json({{"action_alignment", "lagged"}}, "ck/config.json");
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("field 'student.action_alignment'"), std::string::npos);
+  }
+  const auto c = StudentConfig::from_json(
+      {{"steps", 2}, {"bf16_times", false}, {"action_alignment", "released_offline"}}, "x");
+  EXPECT_EQ(c.action_alignment, ActionAlignment::kReleasedOffline);
   EXPECT_EQ(c.schedule().size(), 2u);
   EXPECT_EQ(StudentConfig::from_json(c.to_json(), "x").to_json(), c.to_json());
 }
