@@ -15,6 +15,7 @@ PACKAGES=(
   libhdf5-dev                                        # EgoDex reader
   libsnappy-dev libzstd-dev                          # Parquet pages (LeRobot datasets)
   opencv-doc                                         # real camera clips used by the video tests
+  libboost-dev libturbojpeg0-dev libsqlite3-dev      # dojo serve: HTTP/WebSocket, JPEG frames, votes
 )
 
 if [[ "${SKIP_APT:-0}" != 1 ]]; then

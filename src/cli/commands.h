@@ -53,5 +53,6 @@ void register_wm_stream(CLI::App& wm);  // `wm stream`, under register_wm's `wm`
 void register_metrics(CLI::App& app);
 void register_probe(CLI::App& app);
 void register_distill(CLI::App& app);
+void register_serve(CLI::App& app);
 
 }  // namespace dojo::cli

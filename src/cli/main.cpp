@@ -146,6 +146,7 @@ int main(int argc, char** argv) {
   cli::register_lam(app);
   cli::register_wm(app);
   cli::register_distill(app);
+  cli::register_serve(app);
   cli::register_metrics(app);
   cli::register_probe(app);
 

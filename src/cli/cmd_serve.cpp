@@ -1,0 +1,132 @@
+// `dojo serve`: the HTTP + WebSocket server (serve/server.h) over the demo's models or given ones.
+#include <CLI/CLI.hpp>
+
+#include <csignal>
+#include <filesystem>
+#include <memory>
+#include <thread>
+
+#include "cli/commands.h"
+#include "cli/options.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/runtime.h"
+#include "serve/model_host.h"
+#include "serve/server.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::cli {
+namespace {
+
+struct ServeArgs {
+  serve::ServeOptions server;
+  std::string demo = "dojo_demo", student, teacher, tokenizer, fast_decoder, data, split = "val";
+  std::string device = "cpu", precision = "fp32";
+  bool no_teacher = false;
+};
+
+// The models: given ones, else those `dojo demo` wrote into --demo.
+serve::ModelHost::Options host_options(const ServeArgs& a) {
+  serve::ModelHost::Options o;
+  const fs::path demo = a.demo;
+  const auto pick = [](const std::string& given, const fs::path& fallback) {
+    return !given.empty() ? fs::path(given) : (fs::exists(fallback) ? fallback : fs::path());
+  };
+  const auto tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
+  const auto student = pick(a.student, demo / "student" / "checkpoint");
+  const auto teacher = a.no_teacher ? fs::path() : pick(a.teacher, demo / "wm_posttrain" / "checkpoint");
+  DOJO_CHECK(!tokenizer.empty(),
+             "serve: no tokenizer (give --tokenizer, or --demo DIR of a finished `dojo demo`)");
+  DOJO_CHECK(!student.empty() || !teacher.empty(),
+             "serve: no model (give --student or --teacher, or --demo DIR of a finished `dojo demo`)");
+  if (!student.empty()) {
+    serve::ModelSpec s;
+    s.name = "student";
+    s.checkpoint = student;
+    s.tokenizer = tokenizer;
+    s.fast_decoder =
+        pick(a.fast_decoder, a.student.empty() ? demo / "fast_decoder" / "checkpoint" : fs::path());
+    o.models.push_back(s);
+  }
+  if (!teacher.empty()) {
+    serve::ModelSpec t;
+    t.name = "teacher";
+    t.streaming = false;
+    t.checkpoint = teacher;
+    t.tokenizer = tokenizer;
+    o.models.push_back(t);
+  }
+  o.data = pick(a.data, demo / "robot");
+  o.split = a.split;
+  o.device = parse_device(a.device);
+  o.precision = parse_precision(a.precision);
+  return o;
+}
+
+int run_serve(const ServeArgs& a) {
+  auto host = std::make_shared<serve::ModelHost>(host_options(a));
+  ScopedThreads matmul_bound(matmul_bound_command_threads("serve", parse_device(a.device).is_cuda()));
+  // SIGINT / SIGTERM are taken by sigwait below, on this thread only: block them before any
+  // thread starts so that every thread inherits the mask.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGTERM);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  serve::Server server(a.server, host);
+  const auto port = server.start();  // /health answers 503 while the models load
+  LOG_INFO("serve: listening on http://", a.server.host, ":", port, "/",
+           a.server.token.empty() ? "" : "?token=...");
+  std::thread loader([&] {
+    try {
+      host->load();
+      LOG_INFO("serve: ready");
+    } catch (const std::exception& e) {
+      LOG_ERROR("serve: ", e.what());
+      kill(getpid(), SIGTERM);  // a server without models serves nothing: stop with the error above
+    }
+  });
+  int signal = 0;
+  sigwait(&signals, &signal);
+  LOG_INFO("serve: stopping (signal ", signal, "): finishing sessions and recordings");
+  loader.join();
+  server.stop();
+  return host->ready() ? 0 : 1;
+}
+
+}  // namespace
+
+void register_serve(CLI::App& app) {
+  auto a = std::make_shared<ServeArgs>();
+  auto* cmd =
+      app.add_subcommand("serve", "Serve live teleoperation, the rollout API and the preference study");
+  cmd->add_option("--demo", a->demo, "Take the models and start frames from this `dojo demo` output")
+      ->capture_default_str();
+  cmd->add_option("--student", a->student, "Student checkpoint (streams 4 frames per step)");
+  cmd->add_option("--teacher", a->teacher, "Teacher checkpoint (12 frames per chunk, slower)");
+  cmd->add_flag("--no-teacher", a->no_teacher, "Host the student only");
+  cmd->add_option("--tokenizer", a->tokenizer, "Tokenizer checkpoint");
+  cmd->add_option("--fast-decoder", a->fast_decoder, "Fast streaming decoder for the student");
+  cmd->add_option("--data", a->data, "Dataset whose episodes sessions start from");
+  add_split_option(cmd, a->split);
+  cmd->add_option("--host", a->server.host, "Address to bind (0.0.0.0 exposes the server)")
+      ->capture_default_str();
+  cmd->add_option("--port", a->server.port, "Port (0: any free one)")->capture_default_str();
+  cmd->add_option("--token", a->server.token, "Require this token (Bearer header or ?token=)");
+  cmd->add_option("--max-sessions", a->server.max_sessions, "Concurrent sessions and rollout jobs")
+      ->check(CLI::Range(1, 256))
+      ->capture_default_str();
+  cmd->add_option("--fps", a->server.fps, "Live frame rate (0: the data's, 10 for DojoSim)")
+      ->check(CLI::NonNegativeNumber);
+  cmd->add_option("--recordings", a->server.recordings, "Where session recordings go")->capture_default_str();
+  cmd->add_option("--jpeg-quality", a->server.jpeg_quality, "JPEG quality of streamed frames")
+      ->check(CLI::Range(1, 100))
+      ->capture_default_str();
+  add_device_option(cmd, a->device);
+  add_precision_option(cmd, a->precision);
+  cmd->callback([a] { set_action([a] { return run_serve(*a); }); });
+}
+
+}  // namespace dojo::cli

@@ -1,0 +1,98 @@
+// The models a server hosts and the episodes it starts from. Models load once (in the
+// background: /health answers 503 until they are in); every session gets its own Generator,
+// which shares the model's weights and holds its own KV cache and decoder state. Sessions of one
+// model take turns on it, one step at a time (the weights are shared, and on 2 cores parallel
+// steps would only split the same cores).
+#pragma once
+
+#include <torch/torch.h>
+
+#include <atomic>
+#include <filesystem>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <nlohmann/json.hpp>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/autocast.h"
+#include "data/actions.h"
+
+namespace dojo::data {
+class EpisodeSource;
+}
+
+namespace dojo::serve {
+
+// One hosted model, as `dojo serve` names it.
+struct ModelSpec {
+  std::string name;       // what clients select: "student", "teacher", ...
+  bool streaming = true;  // the real-time student (4 frames per step) or the teacher
+  std::filesystem::path checkpoint, tokenizer;
+  std::filesystem::path fast_decoder;  // student only; empty: the Wan decoder
+};
+
+// A session's view of a model: frames in, actions in, frames out.
+class Generator {
+ public:
+  virtual ~Generator() = default;
+  // first [H, W, 3] uint8 -> the frames to show first [n, H, W, 3] (the start frame as the model sees it).
+  virtual torch::Tensor reset(const torch::Tensor& first, uint64_t seed) = 0;
+  // Actions one step consumes: 4 (student) or 12 (teacher chunk).
+  virtual int64_t actions_per_step() const = 0;
+  // actions [actions_per_step(), 384] (the model's layout) -> the next frames [n, H, W, 3] uint8.
+  virtual torch::Tensor step(const torch::Tensor& actions) = 0;
+};
+
+// Where sessions start: a dataset's episodes (first frame and the command in force there).
+struct StartFrame {
+  torch::Tensor frame;     // [H, W, 3] uint8
+  torch::Tensor baseline;  // [w] raw command at the frame, or undefined (human video, images)
+  std::string episode;
+};
+
+class ModelHost {
+ public:
+  struct Options {
+    std::vector<ModelSpec> models;
+    std::filesystem::path data;  // start frames; may be empty (then clients upload images)
+    std::string split = "val";
+    torch::Device device = torch::kCPU;
+    Precision precision = Precision::kFloat32;
+  };
+  explicit ModelHost(Options options);
+  ~ModelHost();
+
+  // Loads every model; throws dojo::Error naming the checkpoint on failure. ready() after.
+  void load();
+  bool ready() const { return ready_; }
+
+  // {models: [{name, kind, frame size, actions per step, action slots}], embodiments, episodes}.
+  nlohmann::json capabilities() const;
+  // A fresh generator of `model` ("" = the first). Throws dojo::Error for an unknown name.
+  std::unique_ptr<Generator> make_generator(const std::string& model) const;
+  // Episode `id` of the split ("" = the first) at the model's frame size.
+  StartFrame start_frame(const std::string& model, const std::string& episode) const;
+  // An uploaded image, centre-cropped and resized to the model's frame size.
+  torch::Tensor fit_image(const std::string& model, const torch::Tensor& image) const;
+  // Turns raw commands of the model's embodiment into its layout (empty when it records none).
+  std::optional<data::ActionChunker> chunker(const std::string& model) const;
+  // The range of those raw commands (live commands are clamped to it), when known.
+  std::optional<data::ArrayStats> command_stats(const std::string& model) const;
+  std::vector<std::string> episode_ids() const;
+  int frame_size(const std::string& model) const;
+
+ private:
+  struct Hosted;
+  const Hosted& find(const std::string& model) const;
+
+  Options options_;
+  std::vector<std::shared_ptr<Hosted>> hosted_;
+  std::shared_ptr<const data::EpisodeSource> source_;
+  std::vector<size_t> split_;
+  std::atomic<bool> ready_{false};
+};
+
+}  // namespace dojo::serve

@@ -1,0 +1,160 @@
+// The teleoperation page: frames arrive as binary WebSocket messages (a 32-byte header, then a
+// JPEG); keyboard, mouse, gamepad and WebXR controllers become per-dimension command velocities
+// through the embodiment's mapping file, sent as {"type": "control"} messages.
+"use strict";
+const params = new URLSearchParams(location.search);
+const token = params.get("token") || "";
+const auth = token ? "?token=" + encodeURIComponent(token) : "";
+const $ = (id) => document.getElementById(id);
+const view = $("view"), ctx = view.getContext("2d");
+
+let ws = null, mapping = null, width = 0, velocity = [], held = new Set(), mouse = null;
+let frameTimes = [], latencies = [], framesShown = 0, recording = false, xrSession = null;
+window.dojo = { frames: 0, lastSeq: -1, lastLatencyMs: null, ready: null, errors: [], recorded: null };
+
+function log(text) { $("log").textContent = text; if (text) window.dojo.errors.push(text); }
+
+async function init() {
+  const caps = await (await fetch("/api/capabilities" + auth)).json();
+  for (const m of caps.models) $("model").add(new Option(`${m.name} (${m.kind})`, m.name));
+  for (const e of caps.episodes) $("episode").add(new Option(e, e));
+  window.dojo.capabilities = caps;
+  const slot = (caps.models[0] && caps.models[0].action_slots[0]) || null;
+  if (slot) {
+    const r = await fetch(`/${slot.slot}.mapping.json`);
+    if (r.ok) mapping = await r.json();
+  }
+  if (mapping) {
+    for (const d of mapping.dims) {
+      const row = $("keys").insertRow();
+      row.insertCell().textContent = d.name;
+      row.insertCell().textContent = (d.keys || []).map((k) => k.replace("Key", "")).join(" / ");
+    }
+  }
+  if (navigator.xr && window.isSecureContext) {
+    navigator.xr.isSessionSupported("immersive-vr").then((ok) => { $("xr").hidden = !ok; });
+  }
+}
+
+function send(message) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(message)); }
+
+function start() {
+  if (ws) ws.close();
+  const proto = location.protocol === "https:" ? "wss:" : "ws:";
+  ws = new WebSocket(`${proto}//${location.host}/ws${auth}`);
+  ws.binaryType = "arraybuffer";
+  $("status").textContent = "connecting";
+  ws.onopen = async () => {
+    const file = $("image").files[0];
+    const start = { type: "start", mode: "live", model: $("model").value, episode: $("episode").value, seed: 0 };
+    if (file) { ws.send(await file.arrayBuffer()); start.image = true; }
+    send(start);
+  };
+  ws.onmessage = (event) => {
+    if (typeof event.data === "string") return onText(JSON.parse(event.data));
+    onFrame(event.data);
+  };
+  ws.onclose = (e) => { $("status").textContent = "closed" + (e.reason ? ": " + e.reason : ""); setButtons(false); };
+  ws.onerror = () => log("connection failed (is the session cap reached?)");
+}
+
+function onText(m) {
+  if (m.type === "ready") {
+    width = (m.command || []).length;
+    velocity = new Array(width).fill(0);
+    view.width = m.width; view.height = m.height;
+    $("status").textContent = `${m.model}, ${m.mode}` + (m.episode ? `, ${m.episode}` : "");
+    window.dojo.ready = m;
+    setButtons(true);
+    log("");
+  } else if (m.type === "error") {
+    log(m.message);
+  } else if (m.type === "recorded") {
+    window.dojo.recorded = m.path; log(""); $("status").textContent = "recorded " + m.path;
+  }
+}
+
+async function onFrame(buffer) {
+  const header = new DataView(buffer, 0, 32);
+  if (String.fromCharCode(...new Uint8Array(buffer, 0, 4)) !== "DJF1") return;
+  const seq = header.getUint32(4, true), clientT = header.getFloat64(16, true);
+  const bitmap = await createImageBitmap(new Blob([new Uint8Array(buffer, 32)], { type: "image/jpeg" }));
+  ctx.drawImage(bitmap, 0, 0, view.width, view.height);
+  const now = performance.now();
+  frameTimes.push(now);
+  while (frameTimes.length && frameTimes[0] < now - 2000) frameTimes.shift();
+  if (clientT > 0) { latencies.push(now - clientT); if (latencies.length > 30) latencies.shift(); }
+  framesShown++;
+  window.dojo.frames = framesShown; window.dojo.lastSeq = seq;
+  window.dojo.lastLatencyMs = latencies.length ? latencies[latencies.length - 1] : null;
+}
+
+setInterval(() => {
+  $("fps").textContent = `${(frameTimes.length / 2).toFixed(1)} frames/s`;
+  const mean = latencies.length ? latencies.reduce((a, b) => a + b) / latencies.length : null;
+  $("latency").textContent = mean === null ? "— ms input→frame" : `${mean.toFixed(0)} ms input→frame`;
+  $("frames").textContent = `${framesShown} frames`;
+}, 250);
+
+// Inputs -> velocity: keys (negative, positive), mouse drag, gamepad axes and buttons, WebXR
+// controllers' gamepads. Sent on change and every 100 ms while moving (the echoed "t" is the
+// clock that input-to-frame latency is measured against).
+function computeVelocity() {
+  const v = new Array(width).fill(0);
+  if (!mapping) return v;
+  const pads = [...(navigator.getGamepads ? navigator.getGamepads() : [])].filter(Boolean);
+  if (xrSession) for (const source of xrSession.inputSources) if (source.gamepad) pads.push(source.gamepad);
+  mapping.dims.forEach((d, i) => {
+    const dim = d.index !== undefined ? d.index : i;
+    if (dim >= width) return;
+    let u = 0;
+    if (d.keys) { if (held.has(d.keys[0])) u -= 1; if (held.has(d.keys[1])) u += 1; }
+    if (mouse && d.mouse) u += Math.max(-1, Math.min(1, (d.mouse === "x" ? mouse.dx : -mouse.dy) / 40));
+    for (const pad of pads) {
+      if (d.gamepad_axis !== undefined && pad.axes.length > d.gamepad_axis) {
+        const a = pad.axes[d.gamepad_axis];
+        if (Math.abs(a) > 0.15) u += d.gamepad_axis % 2 ? -a : a;
+      }
+      if (d.gamepad_buttons) {
+        const [neg, pos] = d.gamepad_buttons;
+        if (pad.buttons[neg] && pad.buttons[neg].pressed) u -= 1;
+        if (pad.buttons[pos] && pad.buttons[pos].pressed) u += 1;
+      }
+    }
+    v[dim] = Math.max(-1, Math.min(1, u)) * d.rate;
+  });
+  return v;
+}
+
+let lastSent = "";
+function pumpControls() {
+  if (window.dojo.ready && ws && ws.readyState === WebSocket.OPEN) {
+    const v = computeVelocity();
+    const key = JSON.stringify(v);
+    const moving = v.some((x) => x !== 0);
+    if (key !== lastSent || moving) {
+      send({ type: "control", velocity: v, t: performance.now() });
+      lastSent = key;
+    }
+  }
+}
+setInterval(pumpControls, 100);
+document.addEventListener("keydown", (e) => { if (!held.has(e.code)) { held.add(e.code); pumpControls(); } });
+document.addEventListener("keyup", (e) => { held.delete(e.code); pumpControls(); });
+view.addEventListener("mousedown", (e) => { mouse = { x0: e.clientX, y0: e.clientY, dx: 0, dy: 0 }; });
+window.addEventListener("mousemove", (e) => { if (mouse) { mouse.dx = e.clientX - mouse.x0; mouse.dy = e.clientY - mouse.y0; } });
+window.addEventListener("mouseup", () => { mouse = null; pumpControls(); });
+
+function setButtons(on) { $("reset").disabled = !on; $("record").disabled = !on; }
+$("start").onclick = start;
+$("reset").onclick = () => send({ type: "reset" });
+$("record").onclick = () => {
+  recording = !recording;
+  send({ type: "record", on: recording });
+  $("record").textContent = recording ? "Stop recording" : "Record";
+};
+$("xr").onclick = async () => {
+  xrSession = await navigator.xr.requestSession("immersive-vr");
+  xrSession.addEventListener("end", () => { xrSession = null; });
+};
+init().catch((e) => log("cannot load capabilities: " + e));

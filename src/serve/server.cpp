@@ -1,0 +1,418 @@
+#include "serve/server.h"
+
+#include <boost/asio/dispatch.hpp>
+#include <boost/asio/ip/tcp.hpp>
+#include <boost/asio/post.hpp>
+#include <boost/asio/strand.hpp>
+#include <boost/beast/core.hpp>
+#include <boost/beast/http.hpp>
+#include <boost/beast/websocket.hpp>
+
+#include <condition_variable>
+#include <deque>
+#include <mutex>
+#include <optional>
+#include <thread>
+#include <vector>
+
+#include "core/error.h"
+#include "core/log.h"
+#include "serve/model_host.h"
+#include "serve/pages.h"
+#include "serve/rollout_api.h"
+#include "serve/session.h"
+
+namespace dojo::serve {
+
+namespace beast = boost::beast;
+namespace http = beast::http;
+namespace websocket = beast::websocket;
+namespace net = boost::asio;
+using tcp = net::ip::tcp;
+
+struct Server::Impl {
+  ServeOptions options;
+  std::shared_ptr<ModelHost> host;
+  ServerMetrics metrics;
+  net::io_context ioc;
+  tcp::acceptor acceptor{ioc};
+  std::vector<std::thread> threads;
+  std::atomic<int> sessions{0};  // WebSocket sessions and rollout jobs in flight
+  std::atomic<bool> stopping{false};
+  // Work that outlives its connection: rollout jobs and sessions winding down (recordings being
+  // written). Detached threads, counted: stop() waits for all of them.
+  std::mutex background_mutex;
+  std::condition_variable background_done;
+  int background_running = 0;
+  std::mutex connections_mutex;
+  std::vector<std::function<void()>> closers;  // close every live WebSocket at stop()
+
+  void run_in_background(std::function<void()> work) {
+    {
+      std::lock_guard<std::mutex> lock(background_mutex);
+      ++background_running;
+    }
+    std::thread([this, work = std::move(work)]() mutable {
+      try {
+        work();
+      } catch (const std::exception& e) {
+        LOG_WARN("serve: background work failed: ", e.what());
+      }
+      work = nullptr;  // release what it holds before counting it done
+      std::lock_guard<std::mutex> lock(background_mutex);
+      --background_running;
+      background_done.notify_all();
+    }).detach();
+  }
+  bool authorised(const http::request<http::string_body>& req) const;
+  void accept();
+};
+
+namespace {
+
+using Request = http::request<http::string_body>;
+using Response = http::response<http::string_body>;
+
+Response reply(const Request& req, http::status status, const std::string& type, std::string body) {
+  Response res{status, req.version()};
+  res.set(http::field::server, "dojo");
+  res.set(http::field::content_type, type);
+  res.set(http::field::cache_control, "no-store");
+  res.keep_alive(req.keep_alive());
+  res.body() = std::move(body);
+  res.prepare_payload();
+  return res;
+}
+
+Response json_error(const Request& req, http::status status, const std::string& message) {
+  return reply(req, status, "application/json", nlohmann::json{{"error", message}}.dump());
+}
+
+std::string path_of(beast::string_view target) {
+  const auto q = target.find('?');
+  return std::string(target.substr(0, q));
+}
+
+std::string query_param(beast::string_view target, const std::string& key) {
+  const auto q = target.find('?');
+  if (q == beast::string_view::npos) return "";
+  std::string query(target.substr(q + 1));
+  size_t start = 0;
+  while (start <= query.size()) {
+    const auto end = std::min(query.find('&', start), query.size());
+    const auto item = query.substr(start, end - start);
+    const auto eq = item.find('=');
+    if (eq != std::string::npos && item.substr(0, eq) == key) return item.substr(eq + 1);
+    start = end + 1;
+  }
+  return "";
+}
+
+// A WebSocket connection: carries a Session's messages. Writes go out one at a time on the
+// connection's strand; a live frame that finds the previous one still unsent replaces it.
+class WsConnection : public std::enable_shared_from_this<WsConnection> {
+ public:
+  WsConnection(tcp::socket&& socket, Server::Impl& server) : ws_(std::move(socket)), server_(server) {}
+
+  void accept(Request req) {
+    ws_.set_option(websocket::stream_base::timeout::suggested(beast::role_type::server));
+    ws_.read_message_max(server_.options.max_message_bytes);
+    ws_.async_accept(req, beast::bind_front_handler(&WsConnection::on_accept, shared_from_this()));
+  }
+
+ private:
+  void on_accept(beast::error_code ec) {
+    if (ec) return release();
+    server_.metrics.session_opened();
+    opened_ = true;
+    SessionOptions o;
+    o.jpeg_quality = server_.options.jpeg_quality;
+    o.fps = server_.options.fps;
+    o.recordings = server_.options.recordings;
+    std::weak_ptr<WsConnection> weak = shared_from_this();
+    session_ = std::make_unique<Session>(*server_.host, o, server_.metrics, [weak](Outgoing out) {
+      if (auto self = weak.lock())
+        net::post(self->ws_.get_executor(),
+                  [self, out = std::move(out)]() mutable { self->enqueue(std::move(out)); });
+    });
+    {
+      std::lock_guard<std::mutex> lock(server_.connections_mutex);
+      server_.closers.push_back([weak] {
+        if (auto self = weak.lock()) net::post(self->ws_.get_executor(), [self] { self->shutdown(); });
+      });
+    }
+    read();
+  }
+
+  void read() {
+    ws_.async_read(buffer_, beast::bind_front_handler(&WsConnection::on_read, shared_from_this()));
+  }
+
+  void on_read(beast::error_code ec, size_t) {
+    if (ec) return release();  // closed, timed out, or a message over the size limit
+    const auto data = buffer_.cdata();
+    const std::string_view message(static_cast<const char*>(data.data()), data.size());
+    if (ws_.got_text())
+      session_->on_text(message);
+    else
+      session_->on_binary(message);
+    buffer_.consume(buffer_.size());
+    read();
+  }
+
+  void enqueue(Outgoing out) {
+    if (released_) return;
+    if (out.droppable) {
+      if (pending_frame_) server_.metrics.frames_dropped(1);  // the client is slower than the model
+      pending_frame_ = std::move(out);
+    } else {
+      queue_.push_back(std::move(out));
+    }
+    write_next();
+  }
+
+  void write_next() {
+    if (writing_ || released_) return;
+    if (!queue_.empty()) {
+      current_ = std::move(queue_.front());
+      queue_.pop_front();
+    } else if (pending_frame_) {
+      current_ = std::move(*pending_frame_);
+      pending_frame_.reset();
+    } else {
+      return;
+    }
+    writing_ = true;
+    ws_.binary(current_.binary);
+    ws_.async_write(net::buffer(current_.data),
+                    beast::bind_front_handler(&WsConnection::on_write, shared_from_this()));
+  }
+
+  void on_write(beast::error_code ec, size_t) {
+    writing_ = false;
+    if (ec) return release();
+    write_next();
+  }
+
+  void shutdown() {
+    if (released_) return;
+    ws_.async_close(websocket::close_code::going_away,
+                    [self = shared_from_this()](beast::error_code) { self->release(); });
+  }
+
+  // The session ends on another thread: its worker may be inside a model step, and a recording
+  // in progress is written before the thread ends.
+  void release() {
+    if (released_) return;
+    released_ = true;
+    queue_.clear();
+    pending_frame_.reset();
+    if (session_) {
+      session_->close();
+      server_.run_in_background(
+          [session = std::shared_ptr<Session>(std::move(session_))]() mutable { session.reset(); });
+    }
+    if (opened_) server_.metrics.session_closed();
+    --server_.sessions;
+  }
+
+  websocket::stream<beast::tcp_stream> ws_;
+  Server::Impl& server_;
+  beast::flat_buffer buffer_;
+  std::unique_ptr<Session> session_;
+  std::deque<Outgoing> queue_;
+  std::optional<Outgoing> pending_frame_;
+  Outgoing current_;
+  bool writing_ = false, released_ = false, opened_ = false;
+};
+
+class HttpConnection : public std::enable_shared_from_this<HttpConnection> {
+ public:
+  HttpConnection(tcp::socket&& socket, Server::Impl& server) : stream_(std::move(socket)), server_(server) {}
+  void run() {
+    net::dispatch(stream_.get_executor(),
+                  beast::bind_front_handler(&HttpConnection::read, shared_from_this()));
+  }
+
+ private:
+  void read() {
+    parser_.emplace();
+    parser_->body_limit(server_.options.max_message_bytes);
+    parser_->header_limit(16 * 1024);
+    stream_.expires_after(std::chrono::seconds(30));
+    http::async_read(stream_, buffer_, *parser_,
+                     beast::bind_front_handler(&HttpConnection::on_read, shared_from_this()));
+  }
+
+  void on_read(beast::error_code ec, size_t) {
+    if (ec == http::error::end_of_stream) return close();
+    if (ec == http::error::body_limit) {
+      server_.metrics.error();
+      Request req;
+      return write(json_error(req, http::status::payload_too_large, "request body over the limit"), true);
+    }
+    if (ec) {  // malformed request or timeout: answer what can be answered, then close
+      if (ec != beast::error::timeout && ec != net::error::operation_aborted) {
+        server_.metrics.error();
+        Request req;
+        return write(json_error(req, http::status::bad_request, "malformed HTTP request"), true);
+      }
+      return close();
+    }
+    server_.metrics.request();
+    auto req = parser_->release();
+    const auto path = path_of(req.target());
+    if (path != "/health" && !server_.authorised(req)) {
+      server_.metrics.error();
+      return write(json_error(req, http::status::unauthorized, "missing or wrong token"));
+    }
+    if (websocket::is_upgrade(req)) {
+      if (path != "/ws") return write(json_error(req, http::status::not_found, "WebSocket endpoint is /ws"));
+      if (!server_.host->ready())
+        return write(json_error(req, http::status::service_unavailable, "models loading"));
+      if (server_.sessions.fetch_add(1) >= server_.options.max_sessions) {
+        --server_.sessions;
+        server_.metrics.session_refused();
+        return write(
+            json_error(req, http::status::service_unavailable,
+                       "all " + std::to_string(server_.options.max_sessions) + " sessions are in use"));
+      }
+      stream_.expires_never();
+      std::make_shared<WsConnection>(stream_.release_socket(), server_)->accept(std::move(req));
+      return;
+    }
+    route(std::move(req), path);
+  }
+
+  void route(Request req, const std::string& path) {
+    const bool get = req.method() == http::verb::get || req.method() == http::verb::head;
+    if (path == "/health" && get) {
+      const bool ready = server_.host->ready();
+      return write(reply(req, ready ? http::status::ok : http::status::service_unavailable,
+                         "application/json", nlohmann::json{{"status", ready ? "ok" : "loading"}}.dump()));
+    }
+    if (path == "/metrics" && get)
+      return write(
+          reply(req, http::status::ok, "text/plain; version=0.0.4", server_.metrics.prometheus_text()));
+    if (path == "/api/capabilities" && get)
+      return write(reply(req, http::status::ok, "application/json", server_.host->capabilities().dump()));
+    for (const auto& page : embedded_pages())
+      if (path == page.path && get)
+        return write(reply(req, http::status::ok, page.content_type, page.content));
+    if (path == "/v1/rollout") {
+      if (req.method() != http::verb::post)
+        return write(json_error(req, http::status::method_not_allowed, "use POST"));
+      if (!server_.host->ready())
+        return write(json_error(req, http::status::service_unavailable, "models loading"));
+      if (server_.sessions.fetch_add(1) >= server_.options.max_sessions) {
+        --server_.sessions;
+        server_.metrics.session_refused();
+        return write(json_error(req, http::status::service_unavailable, "the server is busy; retry later"));
+      }
+      // Minutes of work must not hold an IO thread: run it aside, answer on this connection.
+      auto self = shared_from_this();
+      server_.run_in_background([self, req = std::move(req)]() mutable {
+        auto r = run_rollout_request(*self->server_.host, req.body(), self->server_.metrics,
+                                     self->server_.options.jpeg_quality);
+        --self->server_.sessions;
+        auto res = reply(req, static_cast<http::status>(r.status), r.content_type, std::move(r.body));
+        net::post(self->stream_.get_executor(),
+                  [self, res = std::move(res)]() mutable { self->write(std::move(res)); });
+      });
+      return;
+    }
+    server_.metrics.error();
+    write(json_error(req, http::status::not_found, "no route " + path));
+  }
+
+  void write(Response res, bool close_after = false) {
+    if (close_after) res.keep_alive(false);
+    response_ = std::make_shared<Response>(std::move(res));
+    stream_.expires_after(std::chrono::seconds(60));
+    http::async_write(stream_, *response_, [self = shared_from_this()](beast::error_code ec, size_t) {
+      if (ec || !self->response_->keep_alive()) return self->close();
+      self->read();
+    });
+  }
+
+  void close() {
+    beast::error_code ec;
+    stream_.socket().shutdown(tcp::socket::shutdown_send, ec);
+  }
+
+  beast::tcp_stream stream_;
+  Server::Impl& server_;
+  beast::flat_buffer buffer_;
+  std::optional<http::request_parser<http::string_body>> parser_;
+  std::shared_ptr<Response> response_;
+};
+
+}  // namespace
+
+bool Server::Impl::authorised(const http::request<http::string_body>& req) const {
+  if (options.token.empty()) return true;
+  const auto header = req[http::field::authorization];
+  if (header == "Bearer " + options.token) return true;
+  return query_param(req.target(), "token") == options.token;
+}
+
+void Server::Impl::accept() {
+  acceptor.async_accept(net::make_strand(ioc), [this](beast::error_code ec, tcp::socket socket) {
+    if (stopping) return;
+    if (!ec) std::make_shared<HttpConnection>(std::move(socket), *this)->run();
+    accept();
+  });
+}
+
+Server::Server(ServeOptions options, std::shared_ptr<ModelHost> host) : impl_(std::make_unique<Impl>()) {
+  impl_->options = std::move(options);
+  impl_->host = std::move(host);
+  DOJO_CHECK(impl_->options.max_sessions >= 1, "serve: --max-sessions must be at least 1");
+}
+
+Server::~Server() { stop(); }
+
+ServerMetrics& Server::metrics() { return impl_->metrics; }
+
+uint16_t Server::start() {
+  auto& s = *impl_;
+  beast::error_code ec;
+  const auto address = net::ip::make_address(s.options.host, ec);
+  DOJO_CHECK(!ec, "serve: --host '" + s.options.host + "' is not an IP address");
+  const tcp::endpoint endpoint(address, s.options.port);
+  s.acceptor.open(endpoint.protocol(), ec);
+  if (!ec) s.acceptor.set_option(net::socket_base::reuse_address(true), ec);
+  if (!ec) s.acceptor.bind(endpoint, ec);
+  if (!ec) s.acceptor.listen(net::socket_base::max_listen_connections, ec);
+  DOJO_CHECK(!ec, "serve: cannot listen on " + s.options.host + ":" + std::to_string(s.options.port) + ": " +
+                      ec.message());
+  s.accept();
+  for (int i = 0; i < std::max(1, s.options.io_threads); ++i) s.threads.emplace_back([&s] { s.ioc.run(); });
+  return s.acceptor.local_endpoint().port();
+}
+
+void Server::stop() {
+  auto& s = *impl_;
+  if (s.stopping.exchange(true)) return;
+  net::post(s.ioc, [&s] {
+    beast::error_code ec;
+    s.acceptor.close(ec);
+  });
+  {
+    std::lock_guard<std::mutex> lock(s.connections_mutex);
+    for (auto& close : s.closers) close();
+  }
+  // Sessions close (their recordings are written), rollout jobs finish, then the IO threads stop.
+  for (int waited = 0; s.sessions > 0 && waited < 300; ++waited)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  {
+    std::unique_lock<std::mutex> lock(s.background_mutex);
+    s.background_done.wait(lock, [&s] { return s.background_running == 0; });
+  }
+  s.ioc.stop();
+  for (auto& t : s.threads)
+    if (t.joinable()) t.join();
+  s.threads.clear();
+}
+
+}  // namespace dojo::serve

@@ -1,0 +1,405 @@
+#include "serve/session.h"
+
+#include <cmath>
+#include <cstring>
+#include <fstream>
+
+#include "core/atomic_file.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "io/jpeg.h"
+#include "io/video.h"
+#include "serve/model_host.h"
+
+namespace dojo::serve {
+
+namespace fs = std::filesystem;
+
+// A session's recording: the frames as they are sent (an mp4), every step's actions as JSON lines
+// and the start frame, written into a hidden directory that is renamed into place when it is
+// complete, so a recordings folder never holds half a recording under a real name.
+class SessionRecorder {
+ public:
+  SessionRecorder(const fs::path& root, const std::string& name, const torch::Tensor& start, double fps)
+      : partial_(root / ("." + name + ".partial")), final_(root / name) {
+    fs::create_directories(partial_);
+    write_file_atomic(partial_ / "start.jpg", io::encode_jpeg(start, 95));
+    io::VideoWriterOptions w;
+    w.fps = fps;
+    video_ = std::make_unique<io::VideoWriter>((partial_ / "video.mp4").string(), w);
+    video_->write(start);
+    actions_.open(partial_ / "actions.jsonl");
+    DOJO_CHECK(actions_.good(), (partial_ / "actions.jsonl").string() + ": cannot write");
+  }
+  void add(const torch::Tensor& raw, const torch::Tensor& layout, const torch::Tensor& frames) {
+    nlohmann::json line = {{"actions", tensor_rows(layout)}};
+    if (raw.defined()) line["raw"] = tensor_rows(raw);
+    actions_ << line.dump() << "\n";
+    video_->write_many(frames);
+  }
+  // Closes the files and moves the directory into place. Returns where it went.
+  fs::path finish() {
+    actions_.close();
+    video_->close();
+    fsync_directory(partial_);
+    fs::rename(partial_, final_);
+    fsync_directory(final_.parent_path());
+    return final_;
+  }
+  int64_t frames() const { return video_->frames_written(); }
+
+ private:
+  static nlohmann::json tensor_rows(const torch::Tensor& rows) {  // [n, w] -> [[...], ...]
+    const auto c = rows.to(torch::kFloat).contiguous();
+    nlohmann::json out = nlohmann::json::array();
+    for (int64_t i = 0; i < c.size(0); ++i)
+      out.push_back(std::vector<float>(c[i].data_ptr<float>(), c[i].data_ptr<float>() + c.size(1)));
+    return out;
+  }
+  fs::path partial_, final_;
+  std::unique_ptr<io::VideoWriter> video_;
+  std::ofstream actions_;
+};
+
+namespace {
+
+torch::Tensor json_rows(const nlohmann::json& rows, const std::string& where) {  // -> [n, w] float
+  DOJO_CHECK(rows.is_array() && !rows.empty() && rows.size() <= 64,
+             where + " must be a non-empty array of rows");
+  const size_t width = rows[0].is_array() ? rows[0].size() : 0;
+  DOJO_CHECK(width > 0 && width <= 1024, where + ": every row must be an array of numbers");
+  std::vector<float> values;
+  for (const auto& r : rows) {
+    DOJO_CHECK(r.is_array() && r.size() == width,
+               where + ": every row must have " + std::to_string(width) + " values");
+    for (const auto& x : r) {
+      DOJO_CHECK(x.is_number() && std::isfinite(x.get<double>()), where + ": values must be finite numbers");
+      values.push_back(x.get<float>());
+    }
+  }
+  return torch::tensor(values).view({static_cast<int64_t>(rows.size()), static_cast<int64_t>(width)});
+}
+
+torch::Tensor json_vector(const nlohmann::json& v, int64_t width, const std::string& where) {  // -> [w]
+  DOJO_CHECK(v.is_array() && static_cast<int64_t>(v.size()) == width,
+             where + " must be an array of " + std::to_string(width) + " numbers");
+  return json_rows(nlohmann::json::array({v}), where)[0];
+}
+
+}  // namespace
+
+Session::Session(const ModelHost& host, SessionOptions options, ServerMetrics& metrics, Send send)
+    : host_(host), options_(std::move(options)), metrics_(metrics), send_(std::move(send)) {
+  thread_ = std::thread([this] { worker(); });
+}
+
+Session::~Session() {
+  close();
+  if (thread_.joinable()) thread_.join();
+}
+
+void Session::close() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stop_ = true;
+  }
+  wake_.notify_all();
+}
+
+double Session::now_ms() const {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - started_).count();
+}
+
+void Session::send_text(const nlohmann::json& message) { send_(Outgoing{false, message.dump(), false}); }
+
+void Session::error(const std::string& message) {
+  metrics_.error();
+  send_text({{"type", "error"}, {"message", message}});
+}
+
+void Session::on_binary(std::string_view message) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  upload_.assign(message.data(), message.size());  // a start image, used by the next start
+}
+
+void Session::on_text(std::string_view text) {
+  try {
+    const auto message = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
+    DOJO_CHECK(!message.is_discarded(), "message is not valid JSON");
+    DOJO_CHECK(message.is_object() && message.contains("type") && message["type"].is_string(),
+               "message must be a JSON object with a string 'type'");
+    handle(message);
+  } catch (const std::exception& e) {
+    error(e.what());
+  }
+}
+
+void Session::handle(const nlohmann::json& m) {
+  const auto type = m["type"].get<std::string>();
+  std::unique_lock<std::mutex> lock(mutex_);
+  if (type == "start") {
+    const auto mode = m.value("mode", std::string("live"));
+    DOJO_CHECK(mode == "live" || mode == "step", "start: 'mode' must be \"live\" or \"step\"");
+    DOJO_CHECK(!m.contains("model") || m["model"].is_string(), "start: 'model' must be a string");
+    DOJO_CHECK(!m.contains("episode") || m["episode"].is_string(), "start: 'episode' must be a string");
+    DOJO_CHECK(!m.contains("seed") || m["seed"].is_number_unsigned(),
+               "start: 'seed' must be a non-negative integer");
+    DOJO_CHECK(!m.value("image", false) || !upload_.empty(),
+               "start: 'image' needs a JPEG sent first as a binary message");
+    start_ = m;
+    start_requested_ = true;
+    steps_.clear();
+  } else if (type == "control" || type == "command") {
+    DOJO_CHECK(streaming_ && !start_requested_, type + ": start a session and wait for 'ready' first");
+    const auto& key = type == "control" ? "velocity" : "value";
+    DOJO_CHECK(m.contains(key), type + ": missing '" + key + "'");
+    DOJO_CHECK(command_width_ > 0,
+               type + ": this model takes no raw commands; use step mode with 384-d rows");
+    const auto v = json_vector(m[key], command_width_, type + "." + key);
+    if (type == "control")
+      velocity_ = v;
+    else
+      command_request_ = v;
+    if (m.contains("t") && m["t"].is_number()) client_t_ = m["t"].get<double>();
+  } else if (type == "step") {
+    DOJO_CHECK(mode_ == "step" && streaming_ && !start_requested_,
+               "step: start a session with \"mode\": \"step\" and wait for 'ready' first");
+    DOJO_CHECK(steps_.size() < options_.max_pending_steps, "step: more than " +
+                                                               std::to_string(options_.max_pending_steps) +
+                                                               " steps pending; wait for step_done");
+    DOJO_CHECK(m.contains("actions"), "step: missing 'actions'");
+    const auto rows = json_rows(m["actions"], "step.actions");
+    DOJO_CHECK(rows.size(0) == actions_per_step_,
+               "step.actions: this model takes " + std::to_string(actions_per_step_) +
+                   " actions per step, got " + std::to_string(rows.size(0)));
+    DOJO_CHECK(
+        rows.size(1) == data::kUnifiedActionDim || (command_width_ > 0 && rows.size(1) == command_width_),
+        "step.actions: rows must have " + std::to_string(data::kUnifiedActionDim) + " values" +
+            (command_width_ > 0 ? " or " + std::to_string(command_width_) + " (raw commands)" : ""));
+    steps_.push_back(rows);
+  } else if (type == "reset") {
+    DOJO_CHECK(streaming_ || start_requested_, "reset: start a session first");
+    reset_requested_ = true;
+  } else if (type == "record") {
+    DOJO_CHECK(m.contains("on") && m["on"].is_boolean(), "record: 'on' must be true or false");
+    record_requested_ = m["on"].get<bool>();
+  } else {
+    throw Error("unknown message type '" + type + "'");
+  }
+  lock.unlock();
+  wake_.notify_all();
+}
+
+void Session::send_frames(const torch::Tensor& frames, bool droppable) {
+  for (int64_t i = 0; i < frames.size(0); ++i) {
+    const auto jpeg = io::encode_jpeg(frames[i], options_.jpeg_quality);
+    std::string message(kFrameHeaderBytes, '\0');
+    const uint32_t seq = sequence_++, zero = 0;
+    double client_t = 0;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      client_t = client_t_;
+    }
+    const double server_ms = now_ms();
+    std::memcpy(message.data(), "DJF1", 4);
+    std::memcpy(message.data() + 4, &seq, 4);  // little-endian hosts (x86-64, arm64)
+    std::memcpy(message.data() + 8, &step_index_, 4);
+    std::memcpy(message.data() + 12, &zero, 4);
+    std::memcpy(message.data() + 16, &client_t, 8);
+    std::memcpy(message.data() + 24, &server_ms, 8);
+    message += jpeg;
+    send_(Outgoing{true, std::move(message), droppable});
+  }
+  metrics_.frames_generated(frames.size(0));
+}
+
+void Session::start_stream() {
+  nlohmann::json start;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    start = start_;
+  }
+  const auto model = start.value("model", std::string());
+  generator_ = host_.make_generator(model);
+  chunker_ = host_.chunker(model);
+  const auto stats = host_.command_stats(model);
+  command_min_ = stats ? torch::tensor(stats->min) : torch::Tensor();
+  command_max_ = stats ? torch::tensor(stats->max) : torch::Tensor();
+  if (start.value("image", false)) {
+    std::string upload;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      upload = upload_;
+    }
+    start_frame_ = host_.fit_image(model, io::decode_jpeg(upload, "start image"));
+    baseline_ = torch::Tensor();
+    episode_.clear();
+  } else {
+    const auto s = host_.start_frame(model, start.value("episode", std::string()));
+    start_frame_ = s.frame;
+    baseline_ = s.baseline;
+    episode_ = s.episode;
+  }
+  if (command_min_.defined() && (!baseline_.defined() || baseline_.size(0) != command_min_.size(0)))
+    baseline_ = (command_min_ + command_max_) / 2;  // an image: start from the middle of the range
+  model_ = model;
+  seed_ = start.value("seed", uint64_t{0});
+  std::lock_guard<std::mutex> lock(mutex_);
+  mode_ = start.value("mode", std::string("live"));
+  actions_per_step_ = generator_->actions_per_step();
+  command_width_ = command_min_.defined() ? command_min_.size(0) : 0;
+  const double fps = options_.fps > 0 ? options_.fps : 10.0;
+  frame_dt_ = 1.0 / fps;
+}
+
+void Session::worker() {
+  auto next_due = std::chrono::steady_clock::now();
+  while (true) {
+    bool start = false, reset = false;
+    std::optional<bool> record;
+    torch::Tensor step_rows;
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      wake_.wait_until(lock, next_due, [&] {
+        return stop_ || start_requested_ || reset_requested_ || record_requested_ || !steps_.empty() ||
+               (streaming_ && mode_ == "live" && std::chrono::steady_clock::now() >= next_due);
+      });
+      if (stop_) break;
+      start = std::exchange(start_requested_, false);
+      reset = std::exchange(reset_requested_, false);
+      record = std::exchange(record_requested_, std::nullopt);
+      if (!start && !steps_.empty()) {
+        step_rows = steps_.front();
+        steps_.pop_front();
+      }
+    }
+    try {
+      if (start) {
+        {
+          std::lock_guard<std::mutex> lock(mutex_);
+          streaming_ = false;
+        }
+        start_stream();
+        reset = true;
+      }
+      if (reset && generator_) {
+        const auto first = generator_->reset(start_frame_, seed_);  // [n, H, W, 3]
+        if (chunker_) {
+          chunker_->reset();
+          if (baseline_.defined()) chunker_->set_baseline(baseline_);
+        }
+        command_ = baseline_.defined() ? baseline_.clone() : torch::Tensor();
+        {
+          std::lock_guard<std::mutex> lock(mutex_);
+          velocity_ = command_request_ = torch::Tensor();
+          streaming_ = true;
+        }
+        step_index_ = 0;
+        send_text({{"type", "ready"},
+                   {"model", model_},
+                   {"mode", mode_},
+                   {"episode", episode_},
+                   {"width", start_frame_.size(1)},
+                   {"height", start_frame_.size(0)},
+                   {"actions_per_step", generator_->actions_per_step()},
+                   {"command", command_.defined() ? nlohmann::json(std::vector<float>(
+                                                        command_.data_ptr<float>(),
+                                                        command_.data_ptr<float>() + command_.numel()))
+                                                  : nlohmann::json()}});
+        if (recorder_) {  // a recording covers one stream: a reset ends it
+          const auto where = recorder_->finish();
+          recorder_.reset();
+          send_text({{"type", "recorded"}, {"path", where.string()}});
+        }
+        send_frames(first, false);
+        next_due = std::chrono::steady_clock::now();
+      }
+      if (record) {
+        if (*record && !recorder_ && generator_) {
+          const auto name =
+              "session-" + std::to_string(std::chrono::system_clock::now().time_since_epoch().count());
+          fs::create_directories(options_.recordings);
+          recorder_ =
+              std::make_unique<SessionRecorder>(options_.recordings, name, start_frame_, 1.0 / frame_dt_);
+          send_text({{"type", "recording"}, {"name", name}});
+        } else if (!*record && recorder_) {
+          const auto where = recorder_->finish();
+          recorder_.reset();
+          send_text({{"type", "recorded"}, {"path", where.string()}});
+        }
+      }
+      if (step_rows.defined() && generator_) {
+        torch::Tensor raw, layout = step_rows;
+        if (step_rows.size(1) != data::kUnifiedActionDim) {
+          DOJO_CHECK(chunker_, "step: this model takes 384-d rows");
+          raw = step_rows;
+          layout = chunker_->push(step_rows);
+        }
+        const auto t0 = std::chrono::steady_clock::now();
+        const auto frames = generator_->step(layout);  // [n, H, W, 3]
+        const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        metrics_.observe_step(seconds);
+        ++step_index_;
+        if (recorder_) recorder_->add(raw, layout, frames);
+        send_frames(frames, false);
+        send_text({{"type", "step_done"},
+                   {"step", step_index_},
+                   {"frames", frames.size(0)},
+                   {"ms", seconds * 1000}});
+      }
+      bool live = false;
+      {
+        std::lock_guard<std::mutex> lock(mutex_);
+        live = streaming_ && mode_ == "live";
+      }
+      if (live && std::chrono::steady_clock::now() >= next_due) {
+        live_step();
+        next_due += std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+            std::chrono::duration<double>(frame_dt_ * generator_->actions_per_step()));
+        // A step slower than real time does not build a backlog: the next is due now.
+        next_due = std::max(next_due, std::chrono::steady_clock::now());
+      }
+    } catch (const std::exception& e) {
+      error(e.what());
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (!generator_) streaming_ = false;
+    }
+  }
+  if (recorder_) {
+    try {
+      recorder_->finish();
+    } catch (const std::exception& e) {
+      LOG_WARN("serve: recording not finished: ", e.what());
+    }
+  }
+}
+
+void Session::live_step() {
+  const int64_t n = generator_->actions_per_step();
+  torch::Tensor raw, layout;
+  if (chunker_ && command_.defined()) {
+    torch::Tensor velocity, request;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      velocity = velocity_;
+      request = std::exchange(command_request_, torch::Tensor());
+    }
+    if (request.defined()) command_ = request.clamp(command_min_, command_max_);
+    raw = torch::empty({n, command_.size(0)});
+    for (int64_t i = 0; i < n; ++i) {
+      if (velocity.defined()) command_ = (command_ + velocity * frame_dt_).clamp(command_min_, command_max_);
+      raw[i] = command_;
+    }
+    layout = chunker_->push(raw);  // [n, 384]
+  } else {
+    layout = torch::zeros({n, data::kUnifiedActionDim});  // no action space: the model runs free
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto frames = generator_->step(layout);
+  metrics_.observe_step(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  ++step_index_;
+  if (recorder_) recorder_->add(raw, layout, frames);
+  send_frames(frames, /*droppable=*/true);
+}
+
+}  // namespace dojo::serve

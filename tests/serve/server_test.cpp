@@ -1,0 +1,310 @@
+// `dojo serve` over real sockets on loopback: health while loading, metrics, capabilities, the
+// embedded page, tokens, malformed HTTP, live and step-by-step WebSocket sessions, the session
+// cap, recordings and POST /v1/rollout. Models: the reference set (the post-trained teacher also
+// streams as an undistilled "student"), start frames from a synthetic DojoSim-style dataset.
+#include "serve/server.h"
+
+#include <gtest/gtest.h>
+
+#include <boost/asio/connect.hpp>
+#include <boost/asio/ip/tcp.hpp>
+#include <boost/beast/core.hpp>
+#include <boost/beast/http.hpp>
+#include <boost/beast/websocket.hpp>
+#include <cstring>
+#include <nlohmann/json.hpp>
+
+#include "core/error.h"
+#include "io/jpeg.h"
+#include "serve/model_host.h"
+#include "serve/rollout_api.h"
+#include "serve/session.h"
+#include "synthetic_data.h"
+#include "test_util.h"
+
+namespace dojo::serve {
+namespace {
+
+namespace beast = boost::beast;
+namespace http = beast::http;
+namespace websocket = beast::websocket;
+namespace net = boost::asio;
+using tcp = net::ip::tcp;
+
+struct HttpResult {
+  int status = 0;
+  std::string body, content_type;
+};
+
+HttpResult request(uint16_t port, http::verb verb, const std::string& target, const std::string& body = "",
+                   const std::string& bearer = "") {
+  net::io_context ioc;
+  beast::tcp_stream stream(ioc);
+  stream.connect(tcp::endpoint(net::ip::make_address("127.0.0.1"), port));
+  http::request<http::string_body> req{verb, target, 11};
+  req.set(http::field::host, "127.0.0.1");
+  if (!bearer.empty()) req.set(http::field::authorization, "Bearer " + bearer);
+  if (!body.empty()) {
+    req.set(http::field::content_type, "application/json");
+    req.body() = body;
+    req.prepare_payload();
+  }
+  http::write(stream, req);
+  beast::flat_buffer buffer;
+  http::response<http::string_body> res;
+  http::read(stream, buffer, res);
+  return {static_cast<int>(res.result_int()), res.body(), std::string(res[http::field::content_type])};
+}
+
+class WsClient {
+ public:
+  explicit WsClient(uint16_t port) : ws_(ioc_) {
+    beast::get_lowest_layer(ws_).connect(tcp::endpoint(net::ip::make_address("127.0.0.1"), port));
+    ws_.handshake("127.0.0.1", "/ws");
+  }
+  void send(const nlohmann::json& j) {
+    ws_.text(true);
+    ws_.write(net::buffer(j.dump()));
+  }
+  void send_raw(const std::string& text) {
+    ws_.text(true);
+    ws_.write(net::buffer(text));
+  }
+  // The next message: text as JSON (binary: {"binary": size}), frames collected in `frames`.
+  nlohmann::json next() {
+    beast::flat_buffer buffer;
+    ws_.read(buffer);
+    const auto data = beast::buffers_to_string(buffer.data());
+    if (ws_.got_text()) return nlohmann::json::parse(data);
+    frames.push_back(data);
+    return {{"binary", data.size()}};
+  }
+  // Reads until a text message of `type` arrives (frames on the way are kept).
+  nlohmann::json until(const std::string& type, int limit = 400) {
+    for (int i = 0; i < limit; ++i) {
+      const auto m = next();
+      if (m.contains("type") && m["type"] == type) return m;
+      if (m.contains("type") && m["type"] == "error" && type != "error") ADD_FAILURE() << m.dump();
+    }
+    ADD_FAILURE() << "no '" << type << "' message";
+    return {};
+  }
+  size_t frames_until(size_t n) {
+    while (frames.size() < n) next();
+    return frames.size();
+  }
+  std::vector<std::string> frames;
+
+ private:
+  net::io_context ioc_;
+  websocket::stream<beast::tcp_stream> ws_;
+};
+
+uint32_t frame_seq(const std::string& frame) {
+  uint32_t seq = 0;
+  std::memcpy(&seq, frame.data() + 4, 4);
+  return seq;
+}
+
+class ServeTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    tmp_ = new test::TempDir();
+    test::SyntheticOptions g;
+    g.episodes = 2;
+    g.frames = 16;
+    g.size = 64;
+    g.val_episodes = 2;
+    test::write_synthetic_dataset(*tmp_ / "robot", g);
+  }
+  static void TearDownTestSuite() {
+    delete tmp_;
+    tmp_ = nullptr;
+  }
+  static std::shared_ptr<ModelHost> host(bool load = true) {
+    const auto reference = std::filesystem::path(DOJO_SOURCE_DIR) / "models" / "reference";
+    ModelHost::Options o;
+    ModelSpec student;
+    student.name = "student";
+    student.checkpoint = reference / "wm_posttrain";
+    student.tokenizer = reference / "tokenizer";
+    ModelSpec teacher = student;
+    teacher.name = "teacher";
+    teacher.streaming = false;
+    o.models = {student, teacher};
+    o.data = *tmp_ / "robot";
+    auto h = std::make_shared<ModelHost>(o);
+    if (load) h->load();
+    return h;
+  }
+  static ServeOptions options() {
+    ServeOptions o;
+    o.port = 0;
+    o.fps = 40;
+    o.recordings = *tmp_ / "recordings";
+    return o;
+  }
+  static test::TempDir* tmp_;
+};
+test::TempDir* ServeTest::tmp_ = nullptr;
+
+TEST(ServeCodecs, Base64AndJpegRoundTrip) {
+  // RFC 4648 §10 test vectors.
+  const std::vector<std::pair<std::string, std::string>> vectors = {{"", ""},
+                                                                    {"f", "Zg=="},
+                                                                    {"fo", "Zm8="},
+                                                                    {"foo", "Zm9v"},
+                                                                    {"foob", "Zm9vYg=="},
+                                                                    {"fooba", "Zm9vYmE="},
+                                                                    {"foobar", "Zm9vYmFy"}};
+  for (const auto& [plain, coded] : vectors) {
+    EXPECT_EQ(base64_encode(plain), coded);
+    EXPECT_EQ(base64_decode(coded, "x"), plain);
+  }
+  EXPECT_THROW(base64_decode("Zm9", "x"), Error);
+  EXPECT_THROW(base64_decode("Zm!v", "x"), Error);
+
+  auto frame = torch::zeros({32, 48, 3}, torch::kByte);
+  frame.narrow(1, 0, 24).fill_(200);  // half bright, half dark
+  const auto decoded = io::decode_jpeg(io::encode_jpeg(frame, 95));
+  ASSERT_EQ(decoded.sizes(), frame.sizes());
+  EXPECT_LT((decoded.to(torch::kFloat) - frame.to(torch::kFloat)).abs().mean().item<double>(), 3.0);
+  EXPECT_THROW(io::decode_jpeg("not a jpeg", "upload"), Error);
+  try {
+    io::decode_jpeg("\xff\xd8\xff garbage", "upload");
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("upload"), std::string::npos);
+  }
+}
+
+TEST_F(ServeTest, HttpRoutesTokensAndMalformedRequests) {
+  test::OneThread one;
+  auto h = host(/*load=*/false);
+  auto o = options();
+  o.token = "secret";
+  Server server(o, h);
+  const auto port = server.start();
+  EXPECT_EQ(request(port, http::verb::get, "/health").status, 503) << "models not loaded yet";
+  h->load();
+  EXPECT_EQ(request(port, http::verb::get, "/health").status, 200);
+  EXPECT_EQ(request(port, http::verb::get, "/api/capabilities").status, 401);
+  auto caps = request(port, http::verb::get, "/api/capabilities", "", "secret");
+  ASSERT_EQ(caps.status, 200);
+  const auto j = nlohmann::json::parse(caps.body);
+  EXPECT_EQ(j.at("models").size(), 2u);
+  EXPECT_EQ(j.at("models")[0].at("action_slots")[0].at("slot"), "dojosim_robot");
+  EXPECT_EQ(j.at("episodes").size(), 2u);
+  const auto page = request(port, http::verb::get, "/?token=secret");
+  EXPECT_EQ(page.status, 200);
+  EXPECT_NE(page.body.find("teleop.js"), std::string::npos);
+  EXPECT_EQ(request(port, http::verb::get, "/teleop.js?token=secret").status, 200);
+  EXPECT_EQ(request(port, http::verb::get, "/nowhere", "", "secret").status, 404);
+  EXPECT_EQ(request(port, http::verb::post, "/v1/rollout", "{not json", "secret").status, 400);
+
+  // Raw garbage instead of HTTP: answered 400 (or dropped), and the server keeps serving.
+  {
+    net::io_context ioc;
+    tcp::socket s(ioc);
+    s.connect(tcp::endpoint(net::ip::make_address("127.0.0.1"), port));
+    net::write(s, net::buffer(std::string("\x01\x02 GARBAGE / HTTP/9\r\n\r\n")));
+    std::string reply(64, '\0');
+    beast::error_code ec;
+    const auto n = s.read_some(net::buffer(reply), ec);
+    if (!ec) EXPECT_NE(reply.substr(0, n).find("400"), std::string::npos);
+  }
+  EXPECT_EQ(request(port, http::verb::get, "/health").status, 200);
+  const auto metrics = request(port, http::verb::get, "/metrics", "", "secret");
+  EXPECT_NE(metrics.body.find("dojo_step_seconds_bucket{le=\"+Inf\"}"), std::string::npos);
+  EXPECT_NE(metrics.body.find("dojo_errors_total"), std::string::npos);
+  server.stop();
+}
+
+TEST_F(ServeTest, LiveSessionStreamsFramesAndSurvivesBadMessages) {
+  test::OneThread one;
+  Server server(options(), host());
+  const auto port = server.start();
+  WsClient ws(port);
+  ws.send_raw("{oops");
+  EXPECT_EQ(ws.until("error")["message"], "message is not valid JSON");
+  ws.send({{"type", "warp"}});
+  EXPECT_NE(ws.until("error")["message"].get<std::string>().find("unknown message type"), std::string::npos);
+  ws.send({{"type", "control"}, {"velocity", {1, 0, 0, 0, 0, 0}}});
+  EXPECT_NE(ws.until("error")["message"].get<std::string>().find("start a session"), std::string::npos);
+
+  ws.send({{"type", "start"}, {"mode", "live"}, {"model", "student"}});
+  const auto ready = ws.until("ready");
+  EXPECT_EQ(ready["width"], 64);
+  EXPECT_EQ(ready["command"].size(), 6u);
+  ws.send({{"type", "control"}, {"velocity", {1, 2}}});  // wrong width: an error, the stream goes on
+  EXPECT_NE(ws.until("error")["message"].get<std::string>().find("6 numbers"), std::string::npos);
+  ws.send({{"type", "control"}, {"velocity", {0.8, 0, 0, 0, 0, 0}}, {"t", 12.5}});
+  ws.frames_until(ws.frames.size() + 9);
+  const auto& last = ws.frames.back();
+  ASSERT_GT(last.size(), Session::kFrameHeaderBytes);
+  EXPECT_EQ(last.substr(0, 4), "DJF1");
+  double echoed = 0;
+  std::memcpy(&echoed, last.data() + 16, 8);
+  EXPECT_EQ(echoed, 12.5) << "the control's client time comes back with the frames it drove";
+  EXPECT_GT(frame_seq(last), frame_seq(ws.frames.front()));
+  const auto image = io::decode_jpeg(std::string_view(last).substr(Session::kFrameHeaderBytes));
+  EXPECT_EQ(image.sizes(), (std::vector<int64_t>{64, 64, 3}));
+
+  // A recording: start, a few frames, stop -> a complete directory under its final name.
+  ws.send({{"type", "record"}, {"on", true}});
+  ws.until("recording");
+  ws.frames_until(ws.frames.size() + 8);
+  ws.send({{"type", "record"}, {"on", false}});
+  const auto recorded = std::filesystem::path(ws.until("recorded")["path"].get<std::string>());
+  EXPECT_TRUE(std::filesystem::exists(recorded / "video.mp4"));
+  EXPECT_TRUE(std::filesystem::exists(recorded / "start.jpg"));
+  EXPECT_GT(test::read_file(recorded / "actions.jsonl").size(), 0u);
+  server.stop();
+}
+
+TEST_F(ServeTest, StepModeRolloutApiAndSessionCap) {
+  test::OneThread one;
+  auto o = options();
+  o.max_sessions = 1;
+  Server server(o, host());
+  const auto port = server.start();
+  {
+    WsClient ws(port);
+    ws.send({{"type", "start"}, {"mode", "step"}, {"model", "student"}});
+    EXPECT_EQ(ws.until("ready")["actions_per_step"], 4);
+    ws.frames_until(1);  // the start frame follows "ready"
+    // The cap: a second session is refused with 503 while this one lives.
+    EXPECT_THROW(WsClient second(port), boost::system::system_error);
+    const nlohmann::json raw_rows = {{1, 0.5, 1.8, 0.8, 0, 0.5},
+                                     {1, 0.5, 1.8, 0.8, 0, 0.5},
+                                     {1.1, 0.5, 1.8, 0.8, 0, 0.5},
+                                     {1.2, 0.5, 1.8, 0.8, 0, 0.5}};
+    const size_t before = ws.frames.size();
+    ws.send({{"type", "step"}, {"actions", raw_rows}});
+    EXPECT_EQ(ws.until("step_done")["frames"], 4);
+    EXPECT_EQ(ws.frames.size(), before + 4) << "step mode loses no frame";
+    ws.send({{"type", "step"}, {"actions", {{1, 2, 3}}}});
+    EXPECT_NE(ws.until("error")["message"].get<std::string>().find("4 actions per step"), std::string::npos);
+  }
+  for (int i = 0; i < 200 && server.metrics().sessions_active() > 0; ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+
+  nlohmann::json body = {{"model", "student"}, {"format", "jpeg"}, {"actions", nlohmann::json::array()}};
+  for (int i = 0; i < 8; ++i) body["actions"].push_back({1 + 0.02 * i, 0.5, 1.8, 0.8, 0, 0.5});
+  auto r = request(port, http::verb::post, "/v1/rollout", body.dump());
+  ASSERT_EQ(r.status, 200) << r.body;
+  EXPECT_EQ(nlohmann::json::parse(r.body).at("frames").size(), 9u) << "the start frame and 8 more";
+  body["format"] = "mp4";
+  r = request(port, http::verb::post, "/v1/rollout", body.dump());
+  ASSERT_EQ(r.status, 200) << r.body;
+  EXPECT_EQ(r.content_type, "video/mp4");
+  EXPECT_EQ(r.body.substr(4, 4), "ftyp");
+  body["actions"] = {{1, 2, 3}};
+  r = request(port, http::verb::post, "/v1/rollout", body.dump());
+  EXPECT_EQ(r.status, 400);
+  EXPECT_NE(r.body.find("'actions'"), std::string::npos) << r.body;
+  server.stop();
+}
+
+}  // namespace
+}  // namespace dojo::serve
