@@ -16,6 +16,8 @@ PACKAGES=(
   libsnappy-dev libzstd-dev                          # Parquet pages (LeRobot datasets)
   opencv-doc                                         # real camera clips used by the video tests
   libboost-dev libturbojpeg0-dev libsqlite3-dev      # dojo serve: HTTP/WebSocket, JPEG frames, votes
+  libssl-dev                                         # dojo serve --tls-cert: HTTPS
+  chromium nodejs npm                                # browser tests of the served pages
 )
 
 if [[ "${SKIP_APT:-0}" != 1 ]]; then
@@ -23,6 +25,8 @@ if [[ "${SKIP_APT:-0}" != 1 ]]; then
   if [[ $(id -u) -ne 0 ]]; then SUDO="sudo"; fi
   missing=()
   for p in "${PACKAGES[@]}"; do
+    # A Node.js installed some other way (e.g. NodeSource, which bundles npm) serves as well.
+    if [[ $p == nodejs || $p == npm ]] && command -v node >/dev/null && command -v npm >/dev/null; then continue; fi
     dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
   done
   if ((${#missing[@]})); then
@@ -32,6 +36,11 @@ if [[ "${SKIP_APT:-0}" != 1 ]]; then
   else
     echo "[setup] all Debian packages present"
   fi
+fi
+
+# playwright-core (npm) drives Debian's chromium in the browser tests; pinned by the lock file.
+if [[ ! -d tests/browser/node_modules/playwright-core ]] && command -v npm >/dev/null; then
+  npm ci --prefix tests/browser --no-audit --no-fund --loglevel=error
 fi
 
 JOBS="${JOBS:-$(nproc)}"

@@ -2,6 +2,7 @@
 #include <CLI/CLI.hpp>
 
 #include <csignal>
+#include <cstdio>
 #include <filesystem>
 #include <memory>
 #include <thread>
@@ -11,6 +12,7 @@
 #include "core/error.h"
 #include "core/log.h"
 #include "core/runtime.h"
+#include "serve/load.h"
 #include "serve/model_host.h"
 #include "serve/server.h"
 
@@ -36,6 +38,9 @@ serve::ModelHost::Options host_options(const ServeArgs& a) {
   const auto tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
   const auto student = pick(a.student, demo / "student" / "checkpoint");
   const auto teacher = a.no_teacher ? fs::path() : pick(a.teacher, demo / "wm_posttrain" / "checkpoint");
+  if (!a.server.study.empty() && a.tokenizer.empty() && a.student.empty() && a.teacher.empty() &&
+      (tokenizer.empty() || (student.empty() && teacher.empty())))
+    return o;  // a study needs no model: its clips are rendered
   DOJO_CHECK(!tokenizer.empty(),
              "serve: no tokenizer (give --tokenizer, or --demo DIR of a finished `dojo demo`)");
   DOJO_CHECK(!student.empty() || !teacher.empty(),
@@ -77,8 +82,8 @@ int run_serve(const ServeArgs& a) {
 
   serve::Server server(a.server, host);
   const auto port = server.start();  // /health answers 503 while the models load
-  LOG_INFO("serve: listening on http://", a.server.host, ":", port, "/",
-           a.server.token.empty() ? "" : "?token=...");
+  LOG_INFO("serve: listening on ", a.server.tls_cert.empty() ? "http" : "https", "://", a.server.host, ":",
+           port, "/", a.server.token.empty() ? "" : "?token=...");
   std::thread loader([&] {
     try {
       host->load();
@@ -97,6 +102,48 @@ int run_serve(const ServeArgs& a) {
 }
 
 }  // namespace
+
+void register_serve_load(CLI::App& app) {
+  auto o = std::make_shared<serve::LoadOptions>();
+  auto json = std::make_shared<bool>(false);
+  auto* cmd = app.add_subcommand("serve-load",
+                                 "Load-test a running `dojo serve`: N concurrent sessions for a "
+                                 "bounded time; frames/s, latency percentiles, errors, server memory");
+  cmd->add_option("--host", o->host, "Server address")->capture_default_str();
+  cmd->add_option("--port", o->port, "Server port")->capture_default_str();
+  cmd->add_option("--token", o->token, "Access token");
+  cmd->add_option("--sessions,-n", o->sessions, "Concurrent sessions")
+      ->check(CLI::Range(1, 256))
+      ->capture_default_str();
+  cmd->add_option("--seconds", o->seconds, "How long each session runs")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_option("--mode", o->mode, "step (policy round trips) or live (teleoperation)")
+      ->check(CLI::IsMember({"step", "live"}))
+      ->capture_default_str();
+  cmd->add_option("--model", o->model, "Model name (default: the server's first)");
+  add_json_option(cmd, *json);
+  cmd->callback([o, json] {
+    set_action([o, json] {
+      const auto r = serve::run_load(*o);
+      if (*json) {
+        std::printf("%s\n", r.to_json().dump().c_str());
+      } else {
+        std::printf("%d %s session(s), %.0f s: frames/s per session", o->sessions, o->mode.c_str(),
+                    o->seconds);
+        for (double f : r.frames_per_second) std::printf(" %.1f", f);
+        std::printf(
+            "; latency p50 %.1f ms, p95 %.1f ms; errors %lld, failed sessions %lld, dropped frames %lld; "
+            "server RSS %.1f -> %.1f MiB\n",
+            r.latency_ms_p50, r.latency_ms_p95, static_cast<long long>(r.errors),
+            static_cast<long long>(r.failed_sessions), static_cast<long long>(r.frames_dropped),
+            r.server_rss_mib_before, r.server_rss_mib_after);
+        for (const auto& f : r.failures) std::printf("  failed: %s\n", f.c_str());
+      }
+      return r.failed_sessions == 0 && r.errors == 0 ? 0 : 1;
+    });
+  });
+}
 
 void register_serve(CLI::App& app) {
   auto a = std::make_shared<ServeArgs>();
@@ -120,6 +167,11 @@ void register_serve(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--fps", a->server.fps, "Live frame rate (0: the data's, 10 for DojoSim)")
       ->check(CLI::NonNegativeNumber);
+  cmd->add_option(
+      "--tls-cert", a->server.tls_cert,
+      "PEM certificate chain: serve HTTPS (browsers give Gamepad and WebXR only to secure pages)");
+  cmd->add_option("--tls-key", a->server.tls_key, "PEM private key of --tls-cert");
+  cmd->add_option("--study", a->server.study, "Serve this preference study at /study (dojo study create)");
   cmd->add_option("--recordings", a->server.recordings, "Where session recordings go")->capture_default_str();
   cmd->add_option("--jpeg-quality", a->server.jpeg_quality, "JPEG quality of streamed frames")
       ->check(CLI::Range(1, 100))

@@ -54,5 +54,7 @@ void register_metrics(CLI::App& app);
 void register_probe(CLI::App& app);
 void register_distill(CLI::App& app);
 void register_serve(CLI::App& app);
+void register_study(CLI::App& app);
+void register_serve_load(CLI::App& app);
 
 }  // namespace dojo::cli

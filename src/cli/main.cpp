@@ -147,6 +147,8 @@ int main(int argc, char** argv) {
   cli::register_wm(app);
   cli::register_distill(app);
   cli::register_serve(app);
+  cli::register_study(app);
+  cli::register_serve_load(app);
   cli::register_metrics(app);
   cli::register_probe(app);
 

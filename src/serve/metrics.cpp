@@ -1,6 +1,9 @@
 #include "serve/metrics.h"
 
+#include <unistd.h>
+
 #include <cstdio>
+#include <fstream>
 
 namespace dojo::serve {
 
@@ -42,6 +45,13 @@ std::string ServerMetrics::prometheus_text() const {
   std::snprintf(line, sizeof line, "dojo_step_seconds_sum %.6f\n", step_sum_us_ / 1e6);
   out += line;
   out += "dojo_step_seconds_count " + std::to_string(step_count_.load()) + "\n";
+
+  // The standard process metric, from /proc/self/statm (pages; the second field is resident).
+  long long pages_total = 0, pages_resident = 0;
+  std::ifstream statm("/proc/self/statm");
+  if (statm >> pages_total >> pages_resident)
+    metric("process_resident_memory_bytes", "gauge", "Resident memory size in bytes.",
+           pages_resident * static_cast<int64_t>(sysconf(_SC_PAGESIZE)));
   return out;
 }
 

@@ -75,7 +75,6 @@ class TeacherGenerator : public Generator {
 }  // namespace
 
 ModelHost::ModelHost(Options options) : options_(std::move(options)) {
-  DOJO_CHECK(!options_.models.empty(), "serve: no model to host");
   for (const auto& spec : options_.models) {
     auto h = std::make_shared<Hosted>();
     h->spec = spec;
@@ -112,6 +111,7 @@ void ModelHost::load() {
 
 const ModelHost::Hosted& ModelHost::find(const std::string& model) const {
   DOJO_CHECK(ready_, "serve: the models are still loading");
+  DOJO_CHECK(!hosted_.empty(), "this server hosts no model");
   if (model.empty()) return *hosted_.front();
   for (const auto& h : hosted_)
     if (h->spec.name == model) return *h;

@@ -3,10 +3,13 @@
 #include <boost/asio/dispatch.hpp>
 #include <boost/asio/ip/tcp.hpp>
 #include <boost/asio/post.hpp>
+#include <boost/asio/ssl.hpp>
 #include <boost/asio/strand.hpp>
 #include <boost/beast/core.hpp>
 #include <boost/beast/http.hpp>
+#include <boost/beast/ssl.hpp>
 #include <boost/beast/websocket.hpp>
+#include <boost/beast/websocket/ssl.hpp>
 
 #include <condition_variable>
 #include <deque>
@@ -21,6 +24,7 @@
 #include "serve/pages.h"
 #include "serve/rollout_api.h"
 #include "serve/session.h"
+#include "serve/study_api.h"
 
 namespace dojo::serve {
 
@@ -33,9 +37,11 @@ using tcp = net::ip::tcp;
 struct Server::Impl {
   ServeOptions options;
   std::shared_ptr<ModelHost> host;
+  std::unique_ptr<StudyApi> study;  // with --study
   ServerMetrics metrics;
   net::io_context ioc;
   tcp::acceptor acceptor{ioc};
+  std::optional<net::ssl::context> tls;  // with --tls-cert / --tls-key: every connection is HTTPS
   std::vector<std::thread> threads;
   std::atomic<int> sessions{0};  // WebSocket sessions and rollout jobs in flight
   std::atomic<bool> stopping{false};
@@ -109,15 +115,19 @@ std::string query_param(beast::string_view target, const std::string& key) {
 }
 
 // A WebSocket connection: carries a Session's messages. Writes go out one at a time on the
-// connection's strand; a live frame that finds the previous one still unsent replaces it.
-class WsConnection : public std::enable_shared_from_this<WsConnection> {
+// connection's strand; live frames wait in a short queue whose oldest frame is dropped when a
+// slow client lets it grow past two steps (latest frames win, memory stays bounded).
+template <class Stream>  // beast::tcp_stream, or beast::ssl_stream<beast::tcp_stream> for HTTPS
+class WsConnection : public std::enable_shared_from_this<WsConnection<Stream>> {
+  using std::enable_shared_from_this<WsConnection<Stream>>::shared_from_this;
+
  public:
-  WsConnection(tcp::socket&& socket, Server::Impl& server) : ws_(std::move(socket)), server_(server) {}
+  WsConnection(Stream&& stream, Server::Impl& server) : ws_(std::move(stream)), server_(server) {}
 
   void accept(Request req) {
     ws_.set_option(websocket::stream_base::timeout::suggested(beast::role_type::server));
     ws_.read_message_max(server_.options.max_message_bytes);
-    ws_.async_accept(req, beast::bind_front_handler(&WsConnection::on_accept, shared_from_this()));
+    ws_.async_accept(req, beast::bind_front_handler(&WsConnection<Stream>::on_accept, shared_from_this()));
   }
 
  private:
@@ -129,7 +139,7 @@ class WsConnection : public std::enable_shared_from_this<WsConnection> {
     o.jpeg_quality = server_.options.jpeg_quality;
     o.fps = server_.options.fps;
     o.recordings = server_.options.recordings;
-    std::weak_ptr<WsConnection> weak = shared_from_this();
+    std::weak_ptr<WsConnection<Stream>> weak = shared_from_this();
     session_ = std::make_unique<Session>(*server_.host, o, server_.metrics, [weak](Outgoing out) {
       if (auto self = weak.lock())
         net::post(self->ws_.get_executor(),
@@ -145,7 +155,7 @@ class WsConnection : public std::enable_shared_from_this<WsConnection> {
   }
 
   void read() {
-    ws_.async_read(buffer_, beast::bind_front_handler(&WsConnection::on_read, shared_from_this()));
+    ws_.async_read(buffer_, beast::bind_front_handler(&WsConnection<Stream>::on_read, shared_from_this()));
   }
 
   void on_read(beast::error_code ec, size_t) {
@@ -163,8 +173,11 @@ class WsConnection : public std::enable_shared_from_this<WsConnection> {
   void enqueue(Outgoing out) {
     if (released_) return;
     if (out.droppable) {
-      if (pending_frame_) server_.metrics.frames_dropped(1);  // the client is slower than the model
-      pending_frame_ = std::move(out);
+      pending_frames_.push_back(std::move(out));
+      if (pending_frames_.size() > kMaxPendingFrames) {  // the client is slower than the model
+        pending_frames_.pop_front();
+        server_.metrics.frames_dropped(1);
+      }
     } else {
       queue_.push_back(std::move(out));
     }
@@ -176,16 +189,16 @@ class WsConnection : public std::enable_shared_from_this<WsConnection> {
     if (!queue_.empty()) {
       current_ = std::move(queue_.front());
       queue_.pop_front();
-    } else if (pending_frame_) {
-      current_ = std::move(*pending_frame_);
-      pending_frame_.reset();
+    } else if (!pending_frames_.empty()) {
+      current_ = std::move(pending_frames_.front());
+      pending_frames_.pop_front();
     } else {
       return;
     }
     writing_ = true;
     ws_.binary(current_.binary);
     ws_.async_write(net::buffer(current_.data),
-                    beast::bind_front_handler(&WsConnection::on_write, shared_from_this()));
+                    beast::bind_front_handler(&WsConnection<Stream>::on_write, shared_from_this()));
   }
 
   void on_write(beast::error_code ec, size_t) {
@@ -206,7 +219,7 @@ class WsConnection : public std::enable_shared_from_this<WsConnection> {
     if (released_) return;
     released_ = true;
     queue_.clear();
-    pending_frame_.reset();
+    pending_frames_.clear();
     if (session_) {
       session_->close();
       server_.run_in_background(
@@ -216,32 +229,55 @@ class WsConnection : public std::enable_shared_from_this<WsConnection> {
     --server_.sessions;
   }
 
-  websocket::stream<beast::tcp_stream> ws_;
+  websocket::stream<Stream> ws_;
   Server::Impl& server_;
   beast::flat_buffer buffer_;
   std::unique_ptr<Session> session_;
   std::deque<Outgoing> queue_;
-  std::optional<Outgoing> pending_frame_;
+  // Live frames waiting to be written: two steps' worth; beyond that the oldest is dropped.
+  static constexpr size_t kMaxPendingFrames = 8;
+  std::deque<Outgoing> pending_frames_;
   Outgoing current_;
   bool writing_ = false, released_ = false, opened_ = false;
 };
 
-class HttpConnection : public std::enable_shared_from_this<HttpConnection> {
+template <class Stream>
+class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream>> {
+  using std::enable_shared_from_this<HttpConnection<Stream>>::shared_from_this;
+  static constexpr bool kTls = !std::is_same_v<Stream, beast::tcp_stream>;
+
  public:
-  HttpConnection(tcp::socket&& socket, Server::Impl& server) : stream_(std::move(socket)), server_(server) {}
+  HttpConnection(tcp::socket&& socket, Server::Impl& server)
+      : stream_(make(std::move(socket), server)), server_(server) {}
   void run() {
-    net::dispatch(stream_.get_executor(),
-                  beast::bind_front_handler(&HttpConnection::read, shared_from_this()));
+    net::dispatch(stream_.get_executor(), [self = shared_from_this()] {
+      if constexpr (kTls) {
+        beast::get_lowest_layer(self->stream_).expires_after(std::chrono::seconds(30));
+        self->stream_.async_handshake(net::ssl::stream_base::server, [self](beast::error_code ec) {
+          if (ec) return self->close();  // not TLS, or a certificate the client refused
+          self->read();
+        });
+      } else {
+        self->read();
+      }
+    });
   }
 
  private:
+  static Stream make(tcp::socket&& socket, Server::Impl& server) {
+    if constexpr (kTls)
+      return Stream(std::move(socket), *server.tls);
+    else
+      return Stream(std::move(socket));
+  }
+
   void read() {
     parser_.emplace();
     parser_->body_limit(server_.options.max_message_bytes);
     parser_->header_limit(16 * 1024);
-    stream_.expires_after(std::chrono::seconds(30));
+    beast::get_lowest_layer(stream_).expires_after(std::chrono::seconds(30));
     http::async_read(stream_, buffer_, *parser_,
-                     beast::bind_front_handler(&HttpConnection::on_read, shared_from_this()));
+                     beast::bind_front_handler(&HttpConnection<Stream>::on_read, shared_from_this()));
   }
 
   void on_read(beast::error_code ec, size_t) {
@@ -277,8 +313,8 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection> {
             json_error(req, http::status::service_unavailable,
                        "all " + std::to_string(server_.options.max_sessions) + " sessions are in use"));
       }
-      stream_.expires_never();
-      std::make_shared<WsConnection>(stream_.release_socket(), server_)->accept(std::move(req));
+      beast::get_lowest_layer(stream_).expires_never();
+      std::make_shared<WsConnection<Stream>>(std::move(stream_), server_)->accept(std::move(req));
       return;
     }
     route(std::move(req), path);
@@ -296,8 +332,9 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection> {
           reply(req, http::status::ok, "text/plain; version=0.0.4", server_.metrics.prometheus_text()));
     if (path == "/api/capabilities" && get)
       return write(reply(req, http::status::ok, "application/json", server_.host->capabilities().dump()));
+    const auto page_path = path == "/study" ? std::string("/study.html") : path;
     for (const auto& page : embedded_pages())
-      if (path == page.path && get)
+      if (page_path == page.path && get)
         return write(reply(req, http::status::ok, page.content_type, page.content));
     if (path == "/v1/rollout") {
       if (req.method() != http::verb::post)
@@ -321,6 +358,15 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection> {
       });
       return;
     }
+    if (StudyApi::handles(path)) {
+      if (!server_.study)
+        return write(json_error(req, http::status::not_found, "this server runs no study (--study DIR)"));
+      const auto r =
+          server_.study->handle(std::string(req.method_string()), path, query_param(req.target(), "rater"),
+                                req.body(), std::string(req[http::field::user_agent]));
+      if (r.status >= 400) server_.metrics.error();
+      return write(reply(req, static_cast<http::status>(r.status), r.content_type, r.body));
+    }
     server_.metrics.error();
     write(json_error(req, http::status::not_found, "no route " + path));
   }
@@ -328,7 +374,7 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection> {
   void write(Response res, bool close_after = false) {
     if (close_after) res.keep_alive(false);
     response_ = std::make_shared<Response>(std::move(res));
-    stream_.expires_after(std::chrono::seconds(60));
+    beast::get_lowest_layer(stream_).expires_after(std::chrono::seconds(60));
     http::async_write(stream_, *response_, [self = shared_from_this()](beast::error_code ec, size_t) {
       if (ec || !self->response_->keep_alive()) return self->close();
       self->read();
@@ -337,10 +383,10 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection> {
 
   void close() {
     beast::error_code ec;
-    stream_.socket().shutdown(tcp::socket::shutdown_send, ec);
+    beast::get_lowest_layer(stream_).socket().shutdown(tcp::socket::shutdown_send, ec);
   }
 
-  beast::tcp_stream stream_;
+  Stream stream_;
   Server::Impl& server_;
   beast::flat_buffer buffer_;
   std::optional<http::request_parser<http::string_body>> parser_;
@@ -359,7 +405,10 @@ bool Server::Impl::authorised(const http::request<http::string_body>& req) const
 void Server::Impl::accept() {
   acceptor.async_accept(net::make_strand(ioc), [this](beast::error_code ec, tcp::socket socket) {
     if (stopping) return;
-    if (!ec) std::make_shared<HttpConnection>(std::move(socket), *this)->run();
+    if (!ec && tls)
+      std::make_shared<HttpConnection<beast::ssl_stream<beast::tcp_stream>>>(std::move(socket), *this)->run();
+    else if (!ec)
+      std::make_shared<HttpConnection<beast::tcp_stream>>(std::move(socket), *this)->run();
     accept();
   });
 }
@@ -376,6 +425,21 @@ ServerMetrics& Server::metrics() { return impl_->metrics; }
 
 uint16_t Server::start() {
   auto& s = *impl_;
+  if (!s.options.study.empty()) s.study = std::make_unique<StudyApi>(s.options.study);
+  if (!s.options.tls_cert.empty() || !s.options.tls_key.empty()) {
+    DOJO_CHECK(!s.options.tls_cert.empty() && !s.options.tls_key.empty(),
+               "serve: HTTPS needs both --tls-cert and --tls-key");
+    s.tls.emplace(net::ssl::context::tls_server);
+    s.tls->set_options(net::ssl::context::default_workarounds | net::ssl::context::no_sslv2 |
+                       net::ssl::context::no_sslv3 | net::ssl::context::no_tlsv1 |
+                       net::ssl::context::no_tlsv1_1);
+    beast::error_code ec;
+    s.tls->use_certificate_chain_file(s.options.tls_cert.string(), ec);
+    DOJO_CHECK(!ec, s.options.tls_cert.string() + ": not a PEM certificate chain: " + ec.message());
+    s.tls->use_private_key_file(s.options.tls_key.string(), net::ssl::context::pem, ec);
+    DOJO_CHECK(!ec, s.options.tls_key.string() +
+                        ": not a PEM private key (or it does not match the certificate): " + ec.message());
+  }
   beast::error_code ec;
   const auto address = net::ip::make_address(s.options.host, ec);
   DOJO_CHECK(!ec, "serve: --host '" + s.options.host + "' is not an IP address");

@@ -7,6 +7,7 @@
 //   GET  /                  the teleoperation page (embedded in the binary)
 //   POST /v1/rollout        start frame + actions -> mp4 (serve/rollout_api.h)
 //   GET  /ws                WebSocket sessions: live teleop or step-by-step (serve/session.h)
+//   GET  /study             the preference study page, with --study (serve/study_api.h)
 //
 // Binds 127.0.0.1 unless told otherwise; with a token every route but /health needs it (an
 // "Authorization: Bearer" header, or ?token= where browsers cannot set headers).
@@ -33,6 +34,9 @@ struct ServeOptions {
   double fps = 0;  // live pacing in frames/s; 0: the data's rate (10 for DojoSim)
   std::filesystem::path recordings = "recordings";
   int io_threads = 2;
+  std::filesystem::path study;
+  std::filesystem::path tls_cert, tls_key;  // PEM files: serve HTTPS / WSS instead of HTTP / WS  // a study
+                                            // directory (serve/study.h): serves /study and its API
 };
 
 class Server {

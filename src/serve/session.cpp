@@ -302,6 +302,7 @@ void Session::worker() {
                    {"width", start_frame_.size(1)},
                    {"height", start_frame_.size(0)},
                    {"actions_per_step", generator_->actions_per_step()},
+                   {"fps", 1.0 / frame_dt_},
                    {"command", command_.defined() ? nlohmann::json(std::vector<float>(
                                                         command_.data_ptr<float>(),
                                                         command_.data_ptr<float>() + command_.numel()))

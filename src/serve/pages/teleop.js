@@ -63,6 +63,8 @@ function onText(m) {
     width = (m.command || []).length;
     velocity = new Array(width).fill(0);
     view.width = m.width; view.height = m.height;
+    frameIntervalMs = 1000 / (m.fps || 10);
+    playout = [];
     $("status").textContent = `${m.model}, ${m.mode}` + (m.episode ? `, ${m.episode}` : "");
     window.dojo.ready = m;
     setButtons(true);
@@ -74,13 +76,24 @@ function onText(m) {
   }
 }
 
+// Frames of one step arrive together; a playout queue shows them at the stream's frame rate
+// (skipping ahead when it holds more than two steps, so the view never lags behind).
+let playout = [], frameIntervalMs = 100, lastDrawn = 0;
 async function onFrame(buffer) {
   const header = new DataView(buffer, 0, 32);
   if (String.fromCharCode(...new Uint8Array(buffer, 0, 4)) !== "DJF1") return;
   const seq = header.getUint32(4, true), clientT = header.getFloat64(16, true);
   const bitmap = await createImageBitmap(new Blob([new Uint8Array(buffer, 32)], { type: "image/jpeg" }));
+  playout.push({ seq, clientT, bitmap });
+  if (playout.length > 8) playout.splice(0, playout.length - 8);
+}
+
+function drawNext(now) {
+  requestAnimationFrame(drawNext);
+  if (!playout.length || now - lastDrawn < frameIntervalMs * 0.9) return;
+  lastDrawn = now;
+  const { seq, clientT, bitmap } = playout.shift();
   ctx.drawImage(bitmap, 0, 0, view.width, view.height);
-  const now = performance.now();
   frameTimes.push(now);
   while (frameTimes.length && frameTimes[0] < now - 2000) frameTimes.shift();
   if (clientT > 0) { latencies.push(now - clientT); if (latencies.length > 30) latencies.shift(); }
@@ -157,4 +170,5 @@ $("xr").onclick = async () => {
   xrSession = await navigator.xr.requestSession("immersive-vr");
   xrSession.addEventListener("end", () => { xrSession = null; });
 };
+requestAnimationFrame(drawNext);
 init().catch((e) => log("cannot load capabilities: " + e));

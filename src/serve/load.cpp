@@ -1,0 +1,208 @@
+#include "serve/load.h"
+
+#include <boost/asio/ip/tcp.hpp>
+#include <boost/beast/core.hpp>
+#include <boost/beast/http.hpp>
+#include <boost/beast/websocket.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cstring>
+#include <mutex>
+#include <regex>
+#include <thread>
+
+#include "core/error.h"
+
+namespace dojo::serve {
+
+namespace beast = boost::beast;
+namespace http = beast::http;
+namespace websocket = beast::websocket;
+namespace net = boost::asio;
+using tcp = net::ip::tcp;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+std::string get(const LoadOptions& o, const std::string& target) {
+  net::io_context ioc;
+  beast::tcp_stream stream(ioc);
+  stream.connect(tcp::endpoint(net::ip::make_address(o.host), o.port));
+  http::request<http::string_body> req{http::verb::get, target, 11};
+  req.set(http::field::host, o.host);
+  if (!o.token.empty()) req.set(http::field::authorization, "Bearer " + o.token);
+  http::write(stream, req);
+  beast::flat_buffer buffer;
+  http::response<http::string_body> res;
+  http::read(stream, buffer, res);
+  return res.body();
+}
+
+double metric(const std::string& text, const std::string& name) {
+  const std::regex line("(^|\n)" + name + " ([0-9.e+]+)");
+  std::smatch m;
+  return std::regex_search(text, m, line) ? std::stod(m[2]) : 0.0;
+}
+
+double percentile(std::vector<double> xs, double p) {
+  if (xs.empty()) return 0;
+  std::sort(xs.begin(), xs.end());
+  return xs[std::min(xs.size() - 1, static_cast<size_t>(p * xs.size()))];
+}
+
+struct SessionResult {
+  int64_t frames = 0, errors = 0;
+  double seconds = 0;
+  std::vector<double> latencies_ms;
+  std::string failure;
+};
+
+// One client session, run to its deadline on the calling thread.
+SessionResult run_session(const LoadOptions& o, int index) {
+  SessionResult r;
+  try {
+    net::io_context ioc;
+    websocket::stream<beast::tcp_stream> ws(ioc);
+    beast::get_lowest_layer(ws).connect(tcp::endpoint(net::ip::make_address(o.host), o.port));
+    ws.set_option(websocket::stream_base::decorator([&](websocket::request_type& req) {
+      if (!o.token.empty()) req.set(http::field::authorization, "Bearer " + o.token);
+    }));
+    ws.handshake(o.host, "/ws");  // over the session cap: "declined" (the server answered 503)
+    const auto send = [&](const nlohmann::json& j) {
+      ws.text(true);
+      ws.write(net::buffer(j.dump()));
+    };
+    beast::flat_buffer buffer;
+    // The next message: text as JSON, a frame as {"frame": echoed client t}.
+    const auto next = [&]() -> nlohmann::json {
+      buffer.consume(buffer.size());
+      ws.read(buffer);
+      const auto data = beast::buffers_to_string(buffer.data());
+      if (ws.got_text()) {
+        auto j = nlohmann::json::parse(data);
+        if (j.value("type", "") == "error") ++r.errors;
+        return j;
+      }
+      double echoed = 0;
+      if (data.size() >= 32) std::memcpy(&echoed, data.data() + 16, 8);
+      ++r.frames;
+      return {{"frame", echoed}};
+    };
+    nlohmann::json start = {{"type", "start"}, {"mode", o.mode}, {"seed", index}};
+    if (!o.model.empty()) start["model"] = o.model;
+    send(start);
+    nlohmann::json ready;
+    while (!(ready = next()).contains("type") || ready["type"] != "ready")
+      DOJO_CHECK(ready.value("type", "") != "error",
+                 "start refused: " + ready.value("message", std::string()));
+    const int64_t per_step = ready["actions_per_step"];
+    std::vector<float> command;
+    if (ready["command"].is_array()) command = ready["command"].get<std::vector<float>>();
+    const auto t0 = Clock::now();
+    const auto ms_since = [&](Clock::time_point t) {
+      return std::chrono::duration<double, std::milli>(Clock::now() - t).count();
+    };
+    const auto deadline =
+        t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(o.seconds));
+    r.frames = 0;
+    if (o.mode == "step") {
+      for (int64_t s = 0; Clock::now() < deadline; ++s) {
+        nlohmann::json rows = nlohmann::json::array();
+        for (int64_t i = 0; i < per_step; ++i) {
+          if (command.empty()) {
+            rows.push_back(std::vector<float>(384, 0.0f));
+          } else {
+            auto row = command;
+            row[0] += 0.02f * static_cast<float>(s * per_step + i);  // a slow sweep of the first joint
+            rows.push_back(row);
+          }
+        }
+        const auto sent = Clock::now();
+        send({{"type", "step"}, {"actions", rows}});
+        nlohmann::json m;
+        while (!(m = next()).contains("type") || (m["type"] != "step_done" && m["type"] != "error")) {
+        }
+        r.latencies_ms.push_back(ms_since(sent));
+      }
+    } else {
+      // Live: a control every 100 ms carrying this clock; the server echoes the newest in every
+      // frame, so a frame's latency is now minus the echoed value.
+      auto last_control = t0 - std::chrono::seconds(1);
+      while (Clock::now() < deadline) {
+        if (Clock::now() - last_control > std::chrono::milliseconds(100) && !command.empty()) {
+          std::vector<float> velocity(command.size(), 0.0f);
+          velocity[0] = 0.3f;
+          send({{"type", "control"}, {"velocity", velocity}, {"t", ms_since(t0)}});
+          last_control = Clock::now();
+        }
+        const auto m = next();
+        if (m.contains("frame") && m["frame"].get<double>() > 0)
+          r.latencies_ms.push_back(ms_since(t0) - m["frame"].get<double>());
+      }
+    }
+    r.seconds = ms_since(t0) / 1000;
+    ws.close(websocket::close_code::normal);
+  } catch (const std::exception& e) {
+    r.failure = e.what();
+  }
+  return r;
+}
+
+}  // namespace
+
+LoadReport run_load(const LoadOptions& o) {
+  DOJO_CHECK(o.mode == "step" || o.mode == "live", "load: mode must be step or live");
+  DOJO_CHECK(o.sessions >= 1 && o.seconds > 0, "load: needs at least one session and a positive duration");
+  LoadReport report;
+  report.options = o;
+  std::string before;
+  try {
+    before = get(o, "/metrics");
+  } catch (const std::exception& e) {
+    throw Error("load: cannot reach http://" + o.host + ":" + std::to_string(o.port) +
+                "/metrics: " + e.what());
+  }
+  std::vector<SessionResult> results(o.sessions);
+  std::vector<std::thread> threads;
+  for (int i = 0; i < o.sessions; ++i) threads.emplace_back([&, i] { results[i] = run_session(o, i); });
+  for (auto& t : threads) t.join();
+  const auto after = get(o, "/metrics");
+  std::vector<double> latencies;
+  for (const auto& r : results) {
+    if (!r.failure.empty()) {
+      ++report.failed_sessions;
+      report.failures.push_back(r.failure);
+      continue;
+    }
+    report.frames.push_back(r.frames);
+    report.frames_per_second.push_back(r.seconds > 0 ? r.frames / r.seconds : 0);
+    report.errors += r.errors;
+    latencies.insert(latencies.end(), r.latencies_ms.begin(), r.latencies_ms.end());
+  }
+  report.latency_ms_p50 = percentile(latencies, 0.5);
+  report.latency_ms_p95 = percentile(latencies, 0.95);
+  report.server_rss_mib_before = metric(before, "process_resident_memory_bytes") / (1 << 20);
+  report.server_rss_mib_after = metric(after, "process_resident_memory_bytes") / (1 << 20);
+  report.frames_dropped = static_cast<int64_t>(metric(after, "dojo_frames_dropped_total") -
+                                               metric(before, "dojo_frames_dropped_total"));
+  return report;
+}
+
+nlohmann::json LoadReport::to_json() const {
+  return {{"mode", options.mode},
+          {"sessions", options.sessions},
+          {"seconds", options.seconds},
+          {"frames", frames},
+          {"frames_per_second", frames_per_second},
+          {"latency_ms_p50", latency_ms_p50},
+          {"latency_ms_p95", latency_ms_p95},
+          {"errors", errors},
+          {"failed_sessions", failed_sessions},
+          {"failures", failures},
+          {"frames_dropped", frames_dropped},
+          {"server_rss_mib_before", server_rss_mib_before},
+          {"server_rss_mib_after", server_rss_mib_after}};
+}
+
+}  // namespace dojo::serve

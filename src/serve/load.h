@@ -1,0 +1,42 @@
+// A load generator for `dojo serve` (and the load test): N concurrent WebSocket sessions against a
+// running server for a bounded time, each in step mode (send a step, wait for its frames and
+// step_done: the round trip a policy sees) or live mode (a control every 100 ms, frames as they
+// come: what a teleoperator sees). Reports frames/s per session, latency percentiles, errors and
+// the server's memory as its /metrics states it.
+#pragma once
+
+#include <cstdint>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+namespace dojo::serve {
+
+struct LoadOptions {
+  std::string host = "127.0.0.1";
+  uint16_t port = 8080;
+  std::string token;
+  int sessions = 1;
+  double seconds = 10;
+  std::string mode = "step";  // step | live
+  std::string model;          // "" = the server's first
+};
+
+struct LoadReport {
+  LoadOptions options;
+  std::vector<double> frames_per_second;  // per session
+  std::vector<int64_t> frames;            // per session
+  // step: send-to-step_done round trips; live: input-to-frame latency (the echoed control clock).
+  double latency_ms_p50 = 0, latency_ms_p95 = 0;
+  int64_t errors = 0;           // error messages the server sent
+  int64_t failed_sessions = 0;  // could not connect or start (e.g. refused at the cap)
+  std::vector<std::string> failures;
+  double server_rss_mib_before = 0, server_rss_mib_after = 0;
+  int64_t frames_dropped = 0;  // by the server for slow clients, during the run
+  nlohmann::json to_json() const;
+};
+
+// Runs the load; throws dojo::Error when the server cannot be reached at all.
+LoadReport run_load(const LoadOptions& options);
+
+}  // namespace dojo::serve
