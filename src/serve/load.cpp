@@ -54,7 +54,7 @@ double percentile(std::vector<double> xs, double p) {
 struct SessionResult {
   int64_t frames = 0, errors = 0;
   double seconds = 0;
-  std::vector<double> latencies_ms;
+  std::vector<double> latencies_ms, server_step_ms;
   std::string failure;
 };
 
@@ -124,6 +124,7 @@ SessionResult run_session(const LoadOptions& o, int index) {
         while (!(m = next()).contains("type") || (m["type"] != "step_done" && m["type"] != "error")) {
         }
         r.latencies_ms.push_back(ms_since(sent));
+        if (m.contains("ms")) r.server_step_ms.push_back(m["ms"].get<double>());
       }
     } else {
       // Live: a control every 100 ms carrying this clock; the server echoes the newest in every
@@ -168,7 +169,7 @@ LoadReport run_load(const LoadOptions& o) {
   for (int i = 0; i < o.sessions; ++i) threads.emplace_back([&, i] { results[i] = run_session(o, i); });
   for (auto& t : threads) t.join();
   const auto after = get(o, "/metrics");
-  std::vector<double> latencies;
+  std::vector<double> latencies, steps;
   for (const auto& r : results) {
     if (!r.failure.empty()) {
       ++report.failed_sessions;
@@ -179,7 +180,10 @@ LoadReport run_load(const LoadOptions& o) {
     report.frames_per_second.push_back(r.seconds > 0 ? r.frames / r.seconds : 0);
     report.errors += r.errors;
     latencies.insert(latencies.end(), r.latencies_ms.begin(), r.latencies_ms.end());
+    steps.insert(steps.end(), r.server_step_ms.begin(), r.server_step_ms.end());
   }
+  report.server_step_ms_p50 = percentile(steps, 0.5);
+  report.server_step_ms_p95 = percentile(steps, 0.95);
   report.latency_ms_p50 = percentile(latencies, 0.5);
   report.latency_ms_p95 = percentile(latencies, 0.95);
   report.server_rss_mib_before = metric(before, "process_resident_memory_bytes") / (1 << 20);
@@ -197,6 +201,8 @@ nlohmann::json LoadReport::to_json() const {
           {"frames_per_second", frames_per_second},
           {"latency_ms_p50", latency_ms_p50},
           {"latency_ms_p95", latency_ms_p95},
+          {"server_step_ms_p50", server_step_ms_p50},
+          {"server_step_ms_p95", server_step_ms_p95},
           {"errors", errors},
           {"failed_sessions", failed_sessions},
           {"failures", failures},

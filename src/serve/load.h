@@ -28,7 +28,8 @@ struct LoadReport {
   std::vector<int64_t> frames;            // per session
   // step: send-to-step_done round trips; live: input-to-frame latency (the echoed control clock).
   double latency_ms_p50 = 0, latency_ms_p95 = 0;
-  int64_t errors = 0;           // error messages the server sent
+  double server_step_ms_p50 = 0, server_step_ms_p95 = 0;  // step mode: the model step, server-side
+  int64_t errors = 0;                                     // error messages the server sent
   int64_t failed_sessions = 0;  // could not connect or start (e.g. refused at the cap)
   std::vector<std::string> failures;
   double server_rss_mib_before = 0, server_rss_mib_after = 0;

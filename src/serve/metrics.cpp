@@ -31,7 +31,9 @@ std::string ServerMetrics::prometheus_text() const {
   metric("dojo_errors_total", "counter", "Requests and messages answered with an error.", errors_);
   metric("dojo_http_requests_total", "counter", "HTTP requests served.", requests_);
 
-  out += "# HELP dojo_step_seconds Wall time of one generation step.\n# TYPE dojo_step_seconds histogram\n";
+  out +=
+      "# HELP dojo_step_seconds Wall time of one generation step (computing, not waiting for the model).\n# "
+      "TYPE dojo_step_seconds histogram\n";
   int64_t cumulative = 0;
   char line[128];
   for (size_t i = 0; i < kLatencyBuckets.size(); ++i) {

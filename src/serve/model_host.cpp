@@ -1,6 +1,7 @@
 #include "serve/model_host.h"
 
 #include <algorithm>
+#include <chrono>
 #include <set>
 
 #include "core/checkpoint.h"
@@ -34,7 +35,10 @@ class StudentGenerator : public Generator {
   int64_t actions_per_step() const override { return engine_.actions_per_step(); }
   torch::Tensor step(const torch::Tensor& actions) override {
     std::lock_guard<std::mutex> lock(turn_);
-    return engine_.step(actions.unsqueeze(0))[0];  // [4, H, W, 3]
+    const auto t0 = std::chrono::steady_clock::now();
+    auto frames = engine_.step(actions.unsqueeze(0))[0];  // [4, H, W, 3]
+    last_step_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    return frames;
   }
 
  private:
@@ -57,10 +61,12 @@ class TeacherGenerator : public Generator {
   int64_t actions_per_step() const override { return infer::WorldModel::kChunkActions; }
   torch::Tensor step(const torch::Tensor& actions) override {
     std::lock_guard<std::mutex> lock(turn_);
+    const auto t0 = std::chrono::steady_clock::now();
     const auto video = model_.predict_chunk(last_, actions.unsqueeze(0), seed_ + chunk_++,
                                             model_.trained_sampler());  // [1, 13, H, W, 3]
     const auto frames = video[0].narrow(0, 1, 12);                      // [12, H, W, 3]
     last_ = frames.narrow(0, 11, 1);
+    last_step_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     return frames;
   }
 

@@ -44,6 +44,11 @@ class Generator {
   virtual int64_t actions_per_step() const = 0;
   // actions [actions_per_step(), 384] (the model's layout) -> the next frames [n, H, W, 3] uint8.
   virtual torch::Tensor step(const torch::Tensor& actions) = 0;
+  // Seconds the last step computed, not counting its wait for the model's turn.
+  double last_step_seconds() const { return last_step_seconds_; }
+
+ protected:
+  double last_step_seconds_ = 0;
 };
 
 // Where sessions start: a dataset's episodes (first frame and the command in force there).

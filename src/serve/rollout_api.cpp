@@ -136,9 +136,8 @@ HttpReply run_rollout_request(const ModelHost& host, const std::string& body, Se
 
     std::vector<torch::Tensor> frames = {generator->reset(start.frame, request.value("seed", uint64_t{0}))};
     for (int64_t i = 0; i < layout.size(0); i += per_step) {
-      const auto t0 = std::chrono::steady_clock::now();
       frames.push_back(generator->step(layout.narrow(0, i, per_step)));  // [n, H, W, 3]
-      metrics.observe_step(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+      metrics.observe_step(generator->last_step_seconds());
       metrics.frames_generated(frames.back().size(0));
     }
     const auto video = torch::cat(frames);  // [1 + N, H, W, 3]

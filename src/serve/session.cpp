@@ -339,14 +339,16 @@ void Session::worker() {
         const auto t0 = std::chrono::steady_clock::now();
         const auto frames = generator_->step(layout);  // [n, H, W, 3]
         const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        metrics_.observe_step(seconds);
+        metrics_.observe_step(generator_->last_step_seconds());
         ++step_index_;
         if (recorder_) recorder_->add(raw, layout, frames);
         send_frames(frames, false);
-        send_text({{"type", "step_done"},
-                   {"step", step_index_},
-                   {"frames", frames.size(0)},
-                   {"ms", seconds * 1000}});
+        send_text(
+            {{"type", "step_done"},
+             {"step", step_index_},
+             {"frames", frames.size(0)},
+             {"ms", generator_->last_step_seconds() * 1000},                       // computing
+             {"queued_ms", (seconds - generator_->last_step_seconds()) * 1000}});  // other sessions' turns
       }
       bool live = false;
       {
@@ -395,9 +397,8 @@ void Session::live_step() {
   } else {
     layout = torch::zeros({n, data::kUnifiedActionDim});  // no action space: the model runs free
   }
-  const auto t0 = std::chrono::steady_clock::now();
   const auto frames = generator_->step(layout);
-  metrics_.observe_step(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  metrics_.observe_step(generator_->last_step_seconds());
   ++step_index_;
   if (recorder_) recorder_->add(raw, layout, frames);
   send_frames(frames, /*droppable=*/true);
