@@ -28,7 +28,9 @@ const args = process.argv.slice(2);
 const benchSeconds = args.includes("--bench") ? Number(args[args.indexOf("--bench") + 1]) : 0;
 const benchSessions = args.includes("--sessions") ? Number(args[args.indexOf("--sessions") + 1]) : 1;
 
+let server = null;
 function fail(message) {
+  if (server) server.kill("SIGKILL");
   console.error("FAIL: " + message);
   process.exit(1);
 }
@@ -52,7 +54,7 @@ const serverArgs = ["serve", "--student", join(reference, "wm_posttrain"), "--no
   join(reference, "tokenizer"), "--data", join(tmp, "robot"), "--split", "all", "--port", "0",
   "--recordings", join(tmp, "recordings"), "--max-sessions", String(Math.max(4, benchSessions))];
 if (!benchSeconds) serverArgs.push("--study", join(tmp, "study"));
-const server = spawn(exe, serverArgs, { stdio: ["ignore", "pipe", "pipe"] });
+server = spawn(exe, serverArgs, { stdio: ["ignore", "pipe", "pipe"] });
 let serverLog = "";
 const port = await new Promise((resolve, reject) => {
   const timer = setTimeout(() => reject(new Error("server did not start:\n" + serverLog)), 60000);
@@ -204,8 +206,9 @@ try {
   }
 } catch (e) {
   console.error(serverLog.split("\n").slice(-20).join("\n"));
-  fail(e.stack || String(e));
-} finally {
+  console.error("FAIL: " + (e.stack || String(e)));
+  process.exitCode = 1;
+} finally {  // never leave a server or a browser behind
   await browser.close();
   server.kill("SIGTERM");
   rmSync(tmp, { recursive: true, force: true });
