@@ -20,7 +20,12 @@ fi
 PORT=18765
 $DOJO serve "${MODELS[@]}" --port $PORT --max-sessions 8 --recordings "$TMP/rec" 2>"$TMP/serve.log" &
 SERVER=$!
-until curl -sf http://127.0.0.1:$PORT/health >/dev/null; do sleep 0.2; done
+for _ in $(seq 600); do  # up to 2 minutes for the models to load
+  curl -sf http://127.0.0.1:$PORT/health >/dev/null && break
+  kill -0 $SERVER 2>/dev/null || { echo "the server exited:"; cat "$TMP/serve.log"; exit 1; }
+  sleep 0.2
+done
+curl -sf http://127.0.0.1:$PORT/health >/dev/null || { echo "the server did not load"; exit 1; }
 echo "# models: ${MODELS[*]}"
 for mode in step live; do
   for n in 1 2 4; do

@@ -5,8 +5,11 @@
 #include <boost/beast/http.hpp>
 #include <boost/beast/websocket.hpp>
 
+#include <sys/socket.h>
+
 #include <algorithm>
 #include <chrono>
+#include <condition_variable>
 #include <cstring>
 #include <mutex>
 #include <regex>
@@ -58,13 +61,39 @@ struct SessionResult {
   std::string failure;
 };
 
+// The sockets of running sessions, so a watchdog can unblock a read that would wait forever (a
+// server that stalls): blocking Asio reads have no timeout, but a shut-down socket ends them.
+struct Sockets {
+  std::mutex mutex;
+  std::vector<int> fds;
+  void add(int fd) {
+    std::lock_guard<std::mutex> lock(mutex);
+    fds.push_back(fd);
+  }
+  void remove(int fd) {
+    std::lock_guard<std::mutex> lock(mutex);
+    fds.erase(std::remove(fds.begin(), fds.end(), fd), fds.end());
+  }
+  void shut_down_all() {
+    std::lock_guard<std::mutex> lock(mutex);
+    for (int fd : fds) ::shutdown(fd, SHUT_RDWR);
+  }
+};
+
 // One client session, run to its deadline on the calling thread.
-SessionResult run_session(const LoadOptions& o, int index) {
+SessionResult run_session(const LoadOptions& o, int index, Sockets& sockets) {
   SessionResult r;
   try {
     net::io_context ioc;
     websocket::stream<beast::tcp_stream> ws(ioc);
     beast::get_lowest_layer(ws).connect(tcp::endpoint(net::ip::make_address(o.host), o.port));
+    const int fd = beast::get_lowest_layer(ws).socket().native_handle();
+    sockets.add(fd);
+    struct Unregister {
+      Sockets& sockets;
+      int fd;
+      ~Unregister() { sockets.remove(fd); }
+    } unregister{sockets, fd};
     ws.set_option(websocket::stream_base::decorator([&](websocket::request_type& req) {
       if (!o.token.empty()) req.set(http::field::authorization, "Bearer " + o.token);
     }));
@@ -155,6 +184,9 @@ SessionResult run_session(const LoadOptions& o, int index) {
 LoadReport run_load(const LoadOptions& o) {
   DOJO_CHECK(o.mode == "step" || o.mode == "live", "load: mode must be step or live");
   DOJO_CHECK(o.sessions >= 1 && o.seconds > 0, "load: needs at least one session and a positive duration");
+  boost::system::error_code address_error;
+  net::ip::make_address(o.host, address_error);
+  DOJO_CHECK(!address_error, "load: --host '" + o.host + "' is not an IP address");
   LoadReport report;
   report.options = o;
   std::string before;
@@ -165,10 +197,31 @@ LoadReport run_load(const LoadOptions& o) {
                 "/metrics: " + e.what());
   }
   std::vector<SessionResult> results(o.sessions);
+  Sockets sockets;
+  std::mutex done_mutex;
+  std::condition_variable done_cv;
+  int running = o.sessions;
   std::vector<std::thread> threads;
-  for (int i = 0; i < o.sessions; ++i) threads.emplace_back([&, i] { results[i] = run_session(o, i); });
+  for (int i = 0; i < o.sessions; ++i)
+    threads.emplace_back([&, i] {
+      results[i] = run_session(o, i, sockets);
+      std::lock_guard<std::mutex> lock(done_mutex);
+      --running;
+      done_cv.notify_all();
+    });
+  {  // A minute past the deadline, whatever still waits on the server is cut off (and reported).
+    std::unique_lock<std::mutex> lock(done_mutex);
+    const auto give_up = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                            std::chrono::duration<double>(o.seconds + 60));
+    if (!done_cv.wait_until(lock, give_up, [&] { return running == 0; })) sockets.shut_down_all();
+  }
   for (auto& t : threads) t.join();
-  const auto after = get(o, "/metrics");
+  std::string after;
+  try {
+    after = get(o, "/metrics");
+  } catch (const std::exception& e) {
+    throw Error("load: the server stopped answering /metrics after the run: " + std::string(e.what()));
+  }
   std::vector<double> latencies, steps;
   for (const auto& r : results) {
     if (!r.failure.empty()) {

@@ -126,6 +126,8 @@ const ModelHost::Hosted& ModelHost::find(const std::string& model) const {
   throw Error("unknown model '" + model + "' (this server hosts: " + names + ")");
 }
 
+std::string ModelHost::resolve(const std::string& model) const { return find(model).spec.name; }
+
 int ModelHost::frame_size(const std::string& model) const {
   find(model);
   // The tokenizer and DiT accept any multiple of 16; sessions use the data's size, as trained.
@@ -191,6 +193,9 @@ torch::Tensor ModelHost::fit_image(const std::string& model, const torch::Tensor
 }
 
 nlohmann::json ModelHost::capabilities() const {
+  // load() fills what follows on its own thread; until it is done there is nothing to read.
+  if (!ready_)
+    return {{"ready", false}, {"models", nlohmann::json::array()}, {"episodes", nlohmann::json::array()}};
   nlohmann::json models = nlohmann::json::array();
   std::set<std::string> embodiments;
   for (const auto& h : hosted_) {

@@ -76,6 +76,8 @@ class ModelHost {
 
   // {models: [{name, kind, frame size, actions per step, action slots}], embodiments, episodes}.
   nlohmann::json capabilities() const;
+  // The name `model` refers to ("" = the first model's). Throws dojo::Error for an unknown name.
+  std::string resolve(const std::string& model) const;
   // A fresh generator of `model` ("" = the first). Throws dojo::Error for an unknown name.
   std::unique_ptr<Generator> make_generator(const std::string& model) const;
   // Episode `id` of the split ("" = the first) at the model's frame size.

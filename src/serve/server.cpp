@@ -11,6 +11,7 @@
 #include <boost/beast/websocket.hpp>
 #include <boost/beast/websocket/ssl.hpp>
 
+#include <algorithm>
 #include <condition_variable>
 #include <deque>
 #include <mutex>
@@ -51,7 +52,11 @@ struct Server::Impl {
   std::condition_variable background_done;
   int background_running = 0;
   std::mutex connections_mutex;
-  std::vector<std::function<void()>> closers;  // close every live WebSocket at stop()
+  struct Closer {
+    std::weak_ptr<void> connection;
+    std::function<void()> close;
+  };
+  std::vector<Closer> closers;  // close every live WebSocket at stop()
 
   void run_in_background(std::function<void()> work) {
     {
@@ -92,6 +97,12 @@ Response reply(const Request& req, http::status status, const std::string& type,
 
 Response json_error(const Request& req, http::status status, const std::string& message) {
   return reply(req, status, "application/json", nlohmann::json{{"error", message}}.dump());
+}
+
+bool is_embedded_page(const std::string& path) {
+  for (const auto& page : embedded_pages())
+    if (path == page.path) return true;
+  return false;
 }
 
 std::string path_of(beast::string_view target) {
@@ -147,9 +158,15 @@ class WsConnection : public std::enable_shared_from_this<WsConnection<Stream>> {
     });
     {
       std::lock_guard<std::mutex> lock(server_.connections_mutex);
-      server_.closers.push_back([weak] {
-        if (auto self = weak.lock()) net::post(self->ws_.get_executor(), [self] { self->shutdown(); });
-      });
+      // Closers of connections gone since are pruned here, so the list tracks live ones.
+      server_.closers.erase(
+          std::remove_if(server_.closers.begin(), server_.closers.end(),
+                         [](const Server::Impl::Closer& c) { return c.connection.expired(); }),
+          server_.closers.end());
+      server_.closers.push_back({weak, [weak] {
+                                   if (auto self = weak.lock())
+                                     net::post(self->ws_.get_executor(), [self] { self->shutdown(); });
+                                 }});
     }
     read();
   }
@@ -179,7 +196,13 @@ class WsConnection : public std::enable_shared_from_this<WsConnection<Stream>> {
         server_.metrics.frames_dropped(1);
       }
     } else {
+      queued_bytes_ += out.data.size();
       queue_.push_back(std::move(out));
+      if (queued_bytes_ > kMaxQueuedBytes) {
+        LOG_WARN("serve: a client is not reading its frames; closing its session");
+        server_.metrics.error();
+        return shutdown();
+      }
     }
     write_next();
   }
@@ -189,6 +212,7 @@ class WsConnection : public std::enable_shared_from_this<WsConnection<Stream>> {
     if (!queue_.empty()) {
       current_ = std::move(queue_.front());
       queue_.pop_front();
+      queued_bytes_ -= current_.data.size();
     } else if (!pending_frames_.empty()) {
       current_ = std::move(pending_frames_.front());
       pending_frames_.pop_front();
@@ -225,8 +249,8 @@ class WsConnection : public std::enable_shared_from_this<WsConnection<Stream>> {
       server_.run_in_background(
           [session = std::shared_ptr<Session>(std::move(session_))]() mutable { session.reset(); });
     }
+    --server_.sessions;  // first: a client that sees the session gone may open the next at once
     if (opened_) server_.metrics.session_closed();
-    --server_.sessions;
   }
 
   websocket::stream<Stream> ws_;
@@ -235,7 +259,12 @@ class WsConnection : public std::enable_shared_from_this<WsConnection<Stream>> {
   std::unique_ptr<Session> session_;
   std::deque<Outgoing> queue_;
   // Live frames waiting to be written: two steps' worth; beyond that the oldest is dropped.
-  static constexpr size_t kMaxPendingFrames = 8;
+  // (24: two teacher chunks, six student steps.)
+  static constexpr size_t kMaxPendingFrames = 24;
+  // Step-mode replies are never dropped; a client that sends steps but does not read its frames is
+  // disconnected when this much waits for it.
+  static constexpr size_t kMaxQueuedBytes = 64 << 20;
+  size_t queued_bytes_ = 0;
   std::deque<Outgoing> pending_frames_;
   Outgoing current_;
   bool writing_ = false, released_ = false, opened_ = false;
@@ -281,7 +310,8 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
   }
 
   void on_read(beast::error_code ec, size_t) {
-    if (ec == http::error::end_of_stream) return close();
+    // A TLS client that leaves without close_notify is a client leaving, not a malformed request.
+    if (ec == http::error::end_of_stream || ec == net::ssl::error::stream_truncated) return close();
     if (ec == http::error::body_limit) {
       server_.metrics.error();
       Request req;
@@ -298,7 +328,10 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
     server_.metrics.request();
     auto req = parser_->release();
     const auto path = path_of(req.target());
-    if (path != "/health" && !server_.authorised(req)) {
+    // The embedded pages and scripts hold no secrets and a browser fetches scripts without the
+    // token; everything they call (the API, the WebSocket, the clips) needs it.
+    const bool public_page = path == "/health" || path == "/study" || is_embedded_page(path);
+    if (!public_page && !server_.authorised(req)) {
       server_.metrics.error();
       return write(json_error(req, http::status::unauthorized, "missing or wrong token"));
     }
@@ -361,11 +394,18 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
     if (StudyApi::handles(path)) {
       if (!server_.study)
         return write(json_error(req, http::status::not_found, "this server runs no study (--study DIR)"));
-      const auto r =
-          server_.study->handle(std::string(req.method_string()), path, query_param(req.target(), "rater"),
-                                req.body(), std::string(req[http::field::user_agent]));
-      if (r.status >= 400) server_.metrics.error();
-      return write(reply(req, static_cast<http::status>(r.status), r.content_type, r.body));
+      // A vote waits for its fsync (synchronous=FULL); keep that off the IO threads.
+      auto self = shared_from_this();
+      server_.run_in_background([self, req = std::move(req), path]() mutable {
+        auto r = self->server_.study->handle(std::string(req.method_string()), path,
+                                             query_param(req.target(), "rater"), req.body(),
+                                             std::string(req[http::field::user_agent]));
+        if (r.status >= 400) self->server_.metrics.error();
+        auto res = reply(req, static_cast<http::status>(r.status), r.content_type, std::move(r.body));
+        net::post(self->stream_.get_executor(),
+                  [self, res = std::move(res)]() mutable { self->write(std::move(res)); });
+      });
+      return;
     }
     server_.metrics.error();
     write(json_error(req, http::status::not_found, "no route " + path));
@@ -464,7 +504,7 @@ void Server::stop() {
   });
   {
     std::lock_guard<std::mutex> lock(s.connections_mutex);
-    for (auto& close : s.closers) close();
+    for (auto& closer : s.closers) closer.close();
   }
   // Sessions close (their recordings are written), rollout jobs finish, then the IO threads stop.
   for (int waited = 0; s.sessions > 0 && waited < 300; ++waited)

@@ -190,16 +190,11 @@ void Session::handle(const nlohmann::json& m) {
   wake_.notify_all();
 }
 
-void Session::send_frames(const torch::Tensor& frames, bool droppable) {
+void Session::send_frames(const torch::Tensor& frames, bool droppable, double client_t) {
   for (int64_t i = 0; i < frames.size(0); ++i) {
     const auto jpeg = io::encode_jpeg(frames[i], options_.jpeg_quality);
     std::string message(kFrameHeaderBytes, '\0');
     const uint32_t seq = sequence_++, zero = 0;
-    double client_t = 0;
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      client_t = client_t_;
-    }
     const double server_ms = now_ms();
     std::memcpy(message.data(), "DJF1", 4);
     std::memcpy(message.data() + 4, &seq, 4);  // little-endian hosts (x86-64, arm64)
@@ -242,7 +237,7 @@ void Session::start_stream() {
   }
   if (command_min_.defined() && (!baseline_.defined() || baseline_.size(0) != command_min_.size(0)))
     baseline_ = (command_min_ + command_max_) / 2;  // an image: start from the middle of the range
-  model_ = model;
+  model_ = host_.resolve(model);
   seed_ = start.value("seed", uint64_t{0});
   std::lock_guard<std::mutex> lock(mutex_);
   mode_ = start.value("mode", std::string("live"));
@@ -260,10 +255,14 @@ void Session::worker() {
     torch::Tensor step_rows;
     {
       std::unique_lock<std::mutex> lock(mutex_);
-      wake_.wait_until(lock, next_due, [&] {
-        return stop_ || start_requested_ || reset_requested_ || record_requested_ || !steps_.empty() ||
-               (streaming_ && mode_ == "live" && std::chrono::steady_clock::now() >= next_due);
-      });
+      const auto requested = [&] {
+        return stop_ || start_requested_ || reset_requested_ || record_requested_ || !steps_.empty();
+      };
+      // Only a live stream has a clock to keep; otherwise sleep until a message wakes the worker.
+      if (streaming_ && mode_ == "live")
+        wake_.wait_until(lock, next_due, requested);
+      else
+        wake_.wait(lock, requested);
       if (stop_) break;
       start = std::exchange(start_requested_, false);
       reset = std::exchange(reset_requested_, false);
@@ -295,6 +294,12 @@ void Session::worker() {
           streaming_ = true;
         }
         step_index_ = 0;
+        if (recorder_) {  // a recording covers one stream: a reset ends it (before 'ready', so the
+                          // start frame follows 'ready' directly)
+          const auto where = recorder_->finish();
+          recorder_.reset();
+          send_text({{"type", "recorded"}, {"path", where.string()}});
+        }
         send_text({{"type", "ready"},
                    {"model", model_},
                    {"mode", mode_},
@@ -307,11 +312,6 @@ void Session::worker() {
                                                         command_.data_ptr<float>(),
                                                         command_.data_ptr<float>() + command_.numel()))
                                                   : nlohmann::json()}});
-        if (recorder_) {  // a recording covers one stream: a reset ends it
-          const auto where = recorder_->finish();
-          recorder_.reset();
-          send_text({{"type", "recorded"}, {"path", where.string()}});
-        }
         send_frames(first, false);
         next_due = std::chrono::steady_clock::now();
       }
@@ -380,12 +380,14 @@ void Session::worker() {
 void Session::live_step() {
   const int64_t n = generator_->actions_per_step();
   torch::Tensor raw, layout;
+  double client_t = 0;
   if (chunker_ && command_.defined()) {
     torch::Tensor velocity, request;
     {
       std::lock_guard<std::mutex> lock(mutex_);
       velocity = velocity_;
       request = std::exchange(command_request_, torch::Tensor());
+      client_t = client_t_;  // the newest input this step sees: its frames echo it
     }
     if (request.defined()) command_ = request.clamp(command_min_, command_max_);
     raw = torch::empty({n, command_.size(0)});
@@ -401,7 +403,7 @@ void Session::live_step() {
   metrics_.observe_step(generator_->last_step_seconds());
   ++step_index_;
   if (recorder_) recorder_->add(raw, layout, frames);
-  send_frames(frames, /*droppable=*/true);
+  send_frames(frames, /*droppable=*/true, client_t);
 }
 
 }  // namespace dojo::serve

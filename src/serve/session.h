@@ -77,7 +77,8 @@ class Session {
   void worker();
   void start_stream();  // on the worker: reset the generator at the start frame
   void live_step();
-  void send_frames(const torch::Tensor& frames, bool droppable);  // [n, H, W, 3]
+  // frames [n, H, W, 3]; client_t: the client clock of the input they answer (0: none)
+  void send_frames(const torch::Tensor& frames, bool droppable, double client_t = 0);
   void send_text(const nlohmann::json& message);
   void error(const std::string& message);
   double now_ms() const;

@@ -21,12 +21,15 @@ namespace {
 
 constexpr const char* kFormat = "dojo-study-1";
 
-// FNV-1a: a hash that is the same on every platform and build, so a rater's trial order and
-// left/right placement can be recomputed from the id alone.
+// FNV-1a, then the splitmix64 finaliser: the same on every build, and every output bit depends on
+// every input byte (FNV-1a's low bit alone is only the parity of the bytes, which would put model
+// A on the same side for every item whose id has the same parity).
 uint64_t stable_hash(const std::string& text) {
   uint64_t h = 1469598103934665603ull;
   for (const unsigned char c : text) h = (h ^ c) * 1099511628211ull;
-  return h;
+  h = (h ^ (h >> 30)) * 0xbf58476d1ce4e5b9ull;
+  h = (h ^ (h >> 27)) * 0x94d049bb133111ebull;
+  return h ^ (h >> 31);
 }
 
 bool safe_relative(const std::string& path) {
@@ -78,8 +81,9 @@ Study Study::open(const fs::path& dir) {
   const auto file = dir / "study.json";
   const auto j = read_json_file(file);
   const auto where = file.string();
-  DOJO_CHECK(j.is_object() && j.value("format", std::string()) == kFormat,
+  DOJO_CHECK(j.is_object() && j.contains("format") && j["format"].is_string() && j["format"] == kFormat,
              where + ": 'format' must be \"" + std::string(kFormat) + "\"");
+  DOJO_CHECK(!j.contains("name") || j["name"].is_string(), where + ": 'name' must be a string");
   Study s;
   s.dir = dir;
   s.name = j.value("name", dir.filename().string());
@@ -97,16 +101,22 @@ Study Study::open(const fs::path& dir) {
     DOJO_CHECK(j["questions"].is_array() && !j["questions"].empty(),
                where + ": 'questions' must be a non-empty array");
     s.questions.clear();
-    for (const auto& q : j["questions"])
-      s.questions.push_back(
-          {string_field(q, "id", where + " questions"), string_field(q, "text", where + " questions")});
+    std::set<std::string> question_ids;
+    for (size_t i = 0; i < j["questions"].size(); ++i) {
+      const auto at = where + " questions[" + std::to_string(i) + "]";
+      const auto& q = j["questions"][i];
+      s.questions.push_back({string_field(q, "id", at), string_field(q, "text", at)});
+      DOJO_CHECK(question_ids.insert(s.questions.back().id).second,
+                 at + ": id '" + s.questions.back().id + "' twice");
+    }
   }
   DOJO_CHECK(j.contains("items") && j["items"].is_array() && !j["items"].empty(),
              where + ": 'items' must be a non-empty array");
   std::set<std::string> ids;
-  for (const auto& it : j["items"]) {
+  for (size_t index = 0; index < j["items"].size(); ++index) {
+    const auto& it = j["items"][index];
     StudyItem item;
-    item.id = string_field(it, "id", where + " items");
+    item.id = string_field(it, "id", where + " items[" + std::to_string(index) + "]");
     const auto at = where + " item '" + item.id + "'";
     DOJO_CHECK(item.id.find('|') == std::string::npos && ids.insert(item.id).second,
                at + ": ids must be unique and contain no '|'");
@@ -181,15 +191,21 @@ VoteStore::VoteStore(const fs::path& file) : file_(file) {
     throw Error(file.string() + ": cannot open the vote database: " + message);
   }
   sqlite3_busy_timeout(db_, 10000);  // another process (a report) may hold the lock briefly
-  exec("PRAGMA journal_mode=WAL");
-  exec("PRAGMA synchronous=FULL");
-  exec(
-      "CREATE TABLE IF NOT EXISTS raters(id TEXT PRIMARY KEY, created_at TEXT NOT NULL, "
-      "user_agent TEXT);"
-      "CREATE TABLE IF NOT EXISTS votes(rater TEXT NOT NULL, trial TEXT NOT NULL, item TEXT NOT NULL, "
-      "model_a TEXT NOT NULL, model_b TEXT NOT NULL, left_model TEXT NOT NULL, question TEXT NOT NULL, "
-      "choice TEXT NOT NULL CHECK(choice IN ('left','right','tie')), created_at TEXT NOT NULL, "
-      "PRIMARY KEY(rater, trial, question));");
+  try {
+    exec("PRAGMA journal_mode=WAL");
+    exec("PRAGMA synchronous=FULL");
+    exec(
+        "CREATE TABLE IF NOT EXISTS raters(id TEXT PRIMARY KEY, created_at TEXT NOT NULL, "
+        "user_agent TEXT);"
+        "CREATE TABLE IF NOT EXISTS votes(rater TEXT NOT NULL, trial TEXT NOT NULL, item TEXT NOT NULL, "
+        "model_a TEXT NOT NULL, model_b TEXT NOT NULL, left_model TEXT NOT NULL, question TEXT NOT NULL, "
+        "choice TEXT NOT NULL CHECK(choice IN ('left','right','tie')), created_at TEXT NOT NULL, "
+        "PRIMARY KEY(rater, trial, question));");
+  } catch (...) {  // the destructor does not run for a constructor that throws
+    sqlite3_close(db_);
+    db_ = nullptr;
+    throw;
+  }
 }
 
 VoteStore::~VoteStore() {
@@ -366,14 +382,15 @@ nlohmann::json StudyReport::to_json() const {
   }
   nlohmann::json questions_json = nlohmann::json::array();
   for (const auto& q : questions) questions_json.push_back({{"id", q.id}, {"text", q.text}});
-  return {
-      {"name", name},
-      {"raters", raters},
-      {"votes", votes},
-      {"questions", questions_json},
-      {"pairs", pairs_json},
-      {"method",
-       "win rate of model_a over model_b, a tie counting half; 95% Wilson score interval over n answers"}};
+  return {{"name", name},
+          {"raters", raters},
+          {"votes", votes},
+          {"questions", questions_json},
+          {"pairs", pairs_json},
+          {"method",
+           "win rate of model_a over model_b, a tie counting half; 95% Wilson score interval over n answers, "
+           "which treats answers as independent (one rater's answers are not: with few raters giving many "
+           "answers the interval is too narrow)"}};
 }
 
 namespace {

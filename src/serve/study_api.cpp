@@ -60,7 +60,7 @@ HttpReply StudyApi::next(const std::string& rater) {
   const auto trials = study_.trials_for(rater);
   const auto it =
       std::find_if(trials.begin(), trials.end(), [&](const StudyTrial& t) { return !answered.count(t.id); });
-  nlohmann::json progress = {{"answered", answered.size()}, {"total", trials.size()}};
+  nlohmann::json progress = {{"answered", answered_in_study(rater)}, {"total", trials.size()}};
   if (it == trials.end()) return json_reply(200, {{"done", true}, {"progress", progress}});
   const auto left = study_.left_model(rater, *it);
   const auto right = left == it->model_a ? it->model_b : it->model_a;
@@ -73,6 +73,15 @@ HttpReply StudyApi::next(const std::string& rater) {
                           {"right", kClipPrefix + it->item->videos.at(right)},
                           {"questions", questions},
                           {"progress", progress}});
+}
+
+size_t StudyApi::answered_in_study(const std::string& rater) {
+  // Votes on trials no longer in study.json (a model or item removed) do not count.
+  const auto done = votes_->answered(rater);
+  const std::set<std::string> answered(done.begin(), done.end());
+  size_t n = 0;
+  for (const auto& t : study_.trials()) n += answered.count(t.id);
+  return n;
 }
 
 HttpReply StudyApi::vote(const std::string& body) {
@@ -108,8 +117,7 @@ HttpReply StudyApi::vote(const std::string& body) {
     return error_reply(400, "vote: 'answers' has a question this study does not ask");
   if (!votes_->add(answers))
     return error_reply(409, "vote: this rater has already answered trial '" + trial_id + "'");
-  const auto answered = votes_->answered(rater).size();
-  return json_reply(200, {{"stored", true}, {"remaining", trials.size() - answered}});
+  return json_reply(200, {{"stored", true}, {"remaining", trials.size() - answered_in_study(rater)}});
 }
 
 HttpReply StudyApi::clip(const std::string& relative) const {

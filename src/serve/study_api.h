@@ -31,6 +31,7 @@ class StudyApi {
   HttpReply next(const std::string& rater);
   HttpReply vote(const std::string& body);
   HttpReply clip(const std::string& relative) const;
+  size_t answered_in_study(const std::string& rater);
 
   Study study_;
   std::unique_ptr<VoteStore> votes_;

@@ -4,8 +4,10 @@
 #include <cstdio>
 #include <set>
 
+#include "core/atomic_file.h"
 #include "core/checkpoint.h"
 #include "core/error.h"
+#include "core/json_file.h"
 #include "core/log.h"
 #include "eval/wm_eval.h"
 #include "io/video.h"
@@ -25,6 +27,12 @@ void check_names(const std::vector<std::string>& models) {
                "study: model name '" + m + "' must be non-empty, not 'truth', without '|', '/' or spaces");
     DOJO_CHECK(seen.insert(m).second, "study: model name '" + m + "' given twice");
   }
+}
+
+std::string numbered(size_t index) {
+  char number[16];
+  std::snprintf(number, sizeof number, "%03zu", index);
+  return number;
 }
 
 // Writes a clip under a temporary name and renames it into place.
@@ -72,10 +80,19 @@ Study create_study_from_models(const StudyFromModels& o) {
     const auto& episode = episodes[e];
     StudyItem item;
     item.id = episode;
-    char number[16];
-    std::snprintf(number, sizeof number, "%03zu", e);
-    const auto folder = fs::path("videos") / number;  // episode ids may hold '/'; folders are numbered
+    const auto folder = fs::path("videos") / numbered(e);  // episode ids may hold '/'; folders are numbered
     fs::create_directories(o.dir / folder);
+    // A rerun re-uses clips only when they were made from the same episode, models and settings.
+    nlohmann::json source = {{"episode", episode}, {"data", o.data.string()},
+                             {"split", o.split},   {"chunks", o.chunks},
+                             {"seed", o.seed},     {"tokenizer", o.tokenizer.string()}};
+    for (const auto& m : o.models)
+      source["models"][m.name] = {m.checkpoint.string(), m.student, m.fast_decoder.string()};
+    const auto manifest = o.dir / folder / "source.json";
+    if (!fs::exists(manifest) || read_json_file(manifest) != source) {
+      for (const auto& entry : fs::directory_iterator(o.dir / folder)) fs::remove(entry.path());
+      write_file_atomic(manifest, source.dump(2) + "\n");
+    }
     for (const auto& m : o.models) {
       // Each model reads the clip with its own action ranges (pretrained and post-trained models
       // may normalise the same commands differently).
@@ -116,10 +133,11 @@ Study create_study_from_videos(const fs::path& dir, const fs::path& source,
   study.dir = dir;
   study.name = name.empty() ? dir.filename().string() : name;
   study.models = models;
-  for (const auto& folder : folders) {
+  for (size_t index = 0; index < folders.size(); ++index) {
+    const auto& folder = folders[index];
     StudyItem item;
     item.id = folder.filename().string();
-    const auto target = fs::path("videos") / item.id;
+    const auto target = fs::path("videos") / numbered(index);  // URLs stay plain whatever the names
     fs::create_directories(dir / target);
     const auto copy = [&](const std::string& clip) {
       const auto from = folder / (clip + ".mp4");

@@ -137,6 +137,14 @@ TEST(ServeFuzz, MutatedMessagesNeverBreakASession) {
   };
   session.on_text(R"({"type":"start","mode":"step","seed":0})");
   ASSERT_TRUE(wait_for("ready"));
+  const auto json_errors = [&] {  // errors saying a message was not a JSON object
+    std::lock_guard<std::mutex> lock(mutex);
+    int n = 0;
+    for (const auto& m : out)
+      n += !m.binary && (m.data.find("not valid JSON") != std::string::npos ||
+                         m.data.find("must be a JSON object") != std::string::npos);
+    return n;
+  };
 
   Mutator mutator(20261124);
   const auto seeds = seed_messages();
@@ -146,14 +154,22 @@ TEST(ServeFuzz, MutatedMessagesNeverBreakASession) {
     if (message.find("\"start\"") != std::string::npos || message.find("\"record\"") != std::string::npos)
       continue;  // restarts and recordings are exercised elsewhere; here they would only cost time
     const auto parsed = nlohmann::json::parse(message, nullptr, false);
-    not_objects += parsed.is_discarded() || !parsed.is_object();
+    const bool not_object = parsed.is_discarded() || !parsed.is_object();
+    not_objects += not_object;
+    const auto before = json_errors();
     EXPECT_NO_THROW(session.on_text(message));
+    // A message that is not a JSON object is answered at once, on the caller's thread.
+    if (not_object) EXPECT_EQ(json_errors(), before + 1) << message;
     if (i % 50 == 0) EXPECT_NO_THROW(session.on_binary(message));
   }
   // Deep nesting and a large junk message.
   const std::string deep = std::string(100000, '[') + std::string(100000, ']');
-  EXPECT_NO_THROW(session.on_text(deep));
-  EXPECT_NO_THROW(session.on_text(std::string(1 << 20, '{')));
+  auto before = json_errors();
+  session.on_text(deep);
+  EXPECT_EQ(json_errors(), before + 1);
+  before = json_errors();
+  session.on_text(std::string(1 << 20, '{'));
+  EXPECT_EQ(json_errors(), before + 1);
   not_objects += 2;
 
   // Every message that was not a JSON object got an error back (others may be valid or not).

@@ -6,11 +6,14 @@
 
 #include <gtest/gtest.h>
 
+#include <sys/wait.h>
 #include <boost/asio/connect.hpp>
 #include <boost/asio/ip/tcp.hpp>
 #include <boost/beast/core.hpp>
 #include <boost/beast/http.hpp>
 #include <boost/beast/websocket.hpp>
+
+#include <cstdio>
 #include <cstring>
 #include <nlohmann/json.hpp>
 
@@ -198,7 +201,12 @@ TEST_F(ServeTest, HttpRoutesTokensAndMalformedRequests) {
   const auto page = request(port, http::verb::get, "/?token=secret");
   EXPECT_EQ(page.status, 200);
   EXPECT_NE(page.body.find("teleop.js"), std::string::npos);
-  EXPECT_EQ(request(port, http::verb::get, "/teleop.js?token=secret").status, 200);
+  // The pages and scripts load without the token (a browser fetches scripts without it); what
+  // they call does not.
+  EXPECT_EQ(request(port, http::verb::get, "/teleop.js").status, 200);
+  EXPECT_EQ(request(port, http::verb::get, "/dojosim_robot.mapping.json").status, 200);
+  EXPECT_EQ(request(port, http::verb::get, "/study/clips/x.mp4").status, 401);
+  EXPECT_EQ(request(port, http::verb::post, "/v1/rollout", "{}").status, 401);
   EXPECT_EQ(request(port, http::verb::get, "/nowhere", "", "secret").status, 404);
   EXPECT_EQ(request(port, http::verb::post, "/v1/rollout", "{not json", "secret").status, 400);
 
@@ -303,6 +311,46 @@ TEST_F(ServeTest, StepModeRolloutApiAndSessionCap) {
   r = request(port, http::verb::post, "/v1/rollout", body.dump());
   EXPECT_EQ(r.status, 400);
   EXPECT_NE(r.body.find("'actions'"), std::string::npos) << r.body;
+  server.stop();
+}
+
+}  // namespace
+}  // namespace dojo::serve
+
+namespace dojo::serve {
+namespace {
+
+// examples/step_client.py (standard-library Python) drives a step-mode session end to end, and a
+// server-side error becomes its one-line message and a non-zero exit.
+TEST_F(ServeTest, PythonStepClientDrivesTheModel) {
+  Server server(options(), host());
+  const auto port = server.start();
+  const auto client = std::filesystem::path(DOJO_SOURCE_DIR) / "examples" / "step_client.py";
+  const auto out = *tmp_ / "python_frames";
+  const auto run = [&](const std::string& args, std::string& output) {
+    const auto command = "python3 " + client.string() + " --url ws://127.0.0.1:" + std::to_string(port) +
+                         "/ws " + args + " 2>&1";
+    FILE* pipe = popen(command.c_str(), "r");
+    char buffer[4096];
+    while (pipe && fgets(buffer, sizeof buffer, pipe)) output += buffer;
+    return pipe ? WEXITSTATUS(pclose(pipe)) : -1;
+  };
+  std::string output;
+  ASSERT_EQ(run("--model student --steps 2 --out " + out.string(), output), 0) << output;
+  const auto summary = nlohmann::json::parse(output.substr(output.rfind('{')));
+  EXPECT_EQ(summary["steps"], 2);
+  EXPECT_EQ(summary["frames"], 9);  // the start frame and 4 per step
+  EXPECT_EQ(summary["last_seq"], 8);
+  for (int i = 0; i < 9; ++i) {
+    char name[32];
+    std::snprintf(name, sizeof name, "frame_%05d.jpg", i);
+    const auto jpeg = test::read_file(out / name);
+    ASSERT_FALSE(jpeg.empty()) << name;
+    EXPECT_EQ(io::decode_jpeg(jpeg, name).size(0), 64);
+  }
+  std::string refused;
+  EXPECT_NE(run("--model nonesuch --steps 1", refused), 0);
+  EXPECT_NE(refused.find("unknown model 'nonesuch'"), std::string::npos) << refused;
   server.stop();
 }
 

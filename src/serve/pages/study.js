@@ -15,12 +15,12 @@ async function api(path, body) {
   const r = await fetch(withToken(path), body === undefined ? {} : {
     method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
   const json = await r.json();
-  if (!r.ok) throw new Error(json.error || r.statusText);
+  if (!r.ok) { const e = new Error(json.error || r.statusText); e.status = r.status; throw e; }
   return json;
 }
 
 async function rater() {
-  const key = "dojo-study-rater";
+  const key = "dojo-study-rater:" + location.host;
   let id = params.get("rater") || localStorage.getItem(key);
   if (!id) {
     id = (await api("/api/study/raters", {})).rater;
@@ -49,8 +49,11 @@ async function next() {
   let t;
   try {
     t = await api("/api/study/next?rater=" + encodeURIComponent(id));
-  } catch (e) {  // a rater id from another study: start a new session
-    localStorage.removeItem("dojo-study-rater");
+  } catch (e) {
+    // Only a rater id this study does not know (another study, a new vote database) starts a new
+    // rater session; a network error or a restarting server must not count one person twice.
+    if (!(e.status === 400 && /unknown rater/.test(e.message))) throw e;
+    localStorage.removeItem("dojo-study-rater:" + location.host);
     id = await rater();
     t = await api("/api/study/next?rater=" + encodeURIComponent(id));
   }
@@ -94,6 +97,7 @@ $("submit").addEventListener("click", async () => {
     log("");
     await next();
   } catch (e) {
+    if (e.status === 409) { log(""); await next(); return; }  // stored before; the reply was lost
     log(e.message);
     $("submit").disabled = false;
   }

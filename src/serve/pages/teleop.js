@@ -15,7 +15,13 @@ window.dojo = { frames: 0, lastSeq: -1, lastLatencyMs: null, ready: null, errors
 function log(text) { $("log").textContent = text; if (text) window.dojo.errors.push(text); }
 
 async function init() {
-  const caps = await (await fetch("/api/capabilities" + auth)).json();
+  let caps = await (await fetch("/api/capabilities" + auth)).json();
+  while (!caps.ready) {  // the models are still loading
+    $("status").textContent = "models loading";
+    await new Promise((r) => setTimeout(r, 1000));
+    caps = await (await fetch("/api/capabilities" + auth)).json();
+  }
+  $("status").textContent = "idle";
   for (const m of caps.models) $("model").add(new Option(`${m.name} (${m.kind})`, m.name));
   for (const e of caps.episodes) $("episode").add(new Option(e, e));
   window.dojo.capabilities = caps;
@@ -54,7 +60,12 @@ function start() {
     if (typeof event.data === "string") return onText(JSON.parse(event.data));
     onFrame(event.data);
   };
-  ws.onclose = (e) => { $("status").textContent = "closed" + (e.reason ? ": " + e.reason : ""); setButtons(false); };
+  const socket = ws;  // events of a socket replaced by a newer start are ignored
+  ws.onclose = (e) => {
+    if (socket !== ws) return;
+    $("status").textContent = "closed" + (e.reason ? ": " + e.reason : "");
+    setButtons(false);
+  };
   ws.onerror = () => log("connection failed (is the session cap reached?)");
 }
 
@@ -64,6 +75,7 @@ function onText(m) {
     velocity = new Array(width).fill(0);
     view.width = m.width; view.height = m.height;
     frameIntervalMs = 1000 / (m.fps || 10);
+    framesPerStep = m.actions_per_step || 4;
     playout = [];
     $("status").textContent = `${m.model}, ${m.mode}` + (m.episode ? `, ${m.episode}` : "");
     window.dojo.ready = m;
@@ -78,22 +90,30 @@ function onText(m) {
 
 // Frames of one step arrive together; a playout queue shows them at the stream's frame rate
 // (skipping ahead when it holds more than two steps, so the view never lags behind).
-let playout = [], frameIntervalMs = 100, lastDrawn = 0;
+let playout = [], frameIntervalMs = 100, lastDrawn = 0, framesPerStep = 4;
 async function onFrame(buffer) {
   const header = new DataView(buffer, 0, 32);
   if (String.fromCharCode(...new Uint8Array(buffer, 0, 4)) !== "DJF1") return;
   const seq = header.getUint32(4, true), clientT = header.getFloat64(16, true);
   const bitmap = await createImageBitmap(new Blob([new Uint8Array(buffer, 32)], { type: "image/jpeg" }));
-  playout.push({ seq, clientT, bitmap });
-  if (playout.length > 8) playout.splice(0, playout.length - 8);
+  // Decoding can finish out of order: keep the queue sorted by sequence number.
+  let at = playout.length;
+  while (at > 0 && playout[at - 1].seq > seq) --at;
+  playout.splice(at, 0, { seq, clientT, bitmap });
+  const cap = 2 * framesPerStep;
+  if (playout.length > cap) for (const dropped of playout.splice(0, playout.length - cap)) dropped.bitmap.close();
 }
 
 function drawNext(now) {
   requestAnimationFrame(drawNext);
-  if (!playout.length || now - lastDrawn < frameIntervalMs * 0.9) return;
-  lastDrawn = now;
+  if (!playout.length || now - lastDrawn < frameIntervalMs) return;
+  // Keep the frame clock steady (a 60 Hz display showing 40 frames/s), but never run behind it.
+  lastDrawn = Math.max(lastDrawn + frameIntervalMs, now - frameIntervalMs);
+  // Half a step more behind than one step's burst: skip ahead (latency over smoothness).
+  while (playout.length > framesPerStep + Math.ceil(framesPerStep / 2)) playout.shift().bitmap.close();
   const { seq, clientT, bitmap } = playout.shift();
   ctx.drawImage(bitmap, 0, 0, view.width, view.height);
+  bitmap.close();
   frameTimes.push(now);
   while (frameTimes.length && frameTimes[0] < now - 2000) frameTimes.shift();
   if (clientT > 0) { latencies.push(now - clientT); if (latencies.length > 30) latencies.shift(); }
