@@ -114,9 +114,14 @@ SessionResult run_session(const LoadOptions& o, int index, Sockets& sockets) {
         return j;
       }
       double echoed = 0;
-      if (data.size() >= 32) std::memcpy(&echoed, data.data() + 16, 8);
+      uint32_t step = 0, compute_us = 0;
+      if (data.size() >= 32) {
+        std::memcpy(&step, data.data() + 8, 4);
+        std::memcpy(&compute_us, data.data() + 12, 4);
+        std::memcpy(&echoed, data.data() + 16, 8);
+      }
       ++r.frames;
-      return {{"frame", echoed}};
+      return {{"frame", echoed}, {"step", step}, {"compute_ms", compute_us / 1000.0}};
     };
     nlohmann::json start = {{"type", "start"}, {"mode", o.mode}, {"seed", index}};
     if (!o.model.empty()) start["model"] = o.model;
@@ -159,6 +164,7 @@ SessionResult run_session(const LoadOptions& o, int index, Sockets& sockets) {
       // Live: a control every 100 ms carrying this clock; the server echoes the newest in every
       // frame, so a frame's latency is now minus the echoed value.
       auto last_control = t0 - std::chrono::seconds(1);
+      int64_t last_step = -1;
       while (Clock::now() < deadline) {
         if (Clock::now() - last_control > std::chrono::milliseconds(100) && !command.empty()) {
           std::vector<float> velocity(command.size(), 0.0f);
@@ -169,6 +175,11 @@ SessionResult run_session(const LoadOptions& o, int index, Sockets& sockets) {
         const auto m = next();
         if (m.contains("frame") && m["frame"].get<double>() > 0)
           r.latencies_ms.push_back(ms_since(t0) - m["frame"].get<double>());
+        // One server step time per step (its frames all carry it).
+        if (m.contains("step") && m["step"].get<int64_t>() != last_step) {
+          last_step = m["step"].get<int64_t>();
+          if (m["compute_ms"].get<double>() > 0) r.server_step_ms.push_back(m["compute_ms"].get<double>());
+        }
       }
     }
     r.seconds = ms_since(t0) / 1000;

@@ -1,5 +1,6 @@
 #include "serve/session.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <fstream>
@@ -191,15 +192,18 @@ void Session::handle(const nlohmann::json& m) {
 }
 
 void Session::send_frames(const torch::Tensor& frames, bool droppable, double client_t) {
+  // The step's model compute in microseconds: live clients see server-side step time per frame.
+  const auto compute_us =
+      static_cast<uint32_t>(generator_ ? std::min(generator_->last_step_seconds() * 1e6, 4.0e9) : 0.0);
   for (int64_t i = 0; i < frames.size(0); ++i) {
     const auto jpeg = io::encode_jpeg(frames[i], options_.jpeg_quality);
     std::string message(kFrameHeaderBytes, '\0');
-    const uint32_t seq = sequence_++, zero = 0;
+    const uint32_t seq = sequence_++;
     const double server_ms = now_ms();
     std::memcpy(message.data(), "DJF1", 4);
     std::memcpy(message.data() + 4, &seq, 4);  // little-endian hosts (x86-64, arm64)
     std::memcpy(message.data() + 8, &step_index_, 4);
-    std::memcpy(message.data() + 12, &zero, 4);
+    std::memcpy(message.data() + 12, &compute_us, 4);
     std::memcpy(message.data() + 16, &client_t, 8);
     std::memcpy(message.data() + 24, &server_ms, 8);
     message += jpeg;

@@ -16,7 +16,7 @@
 //   text  {"type":"ready", ...} | {"type":"step_done", ...} | {"type":"recorded", ...} |
 //         {"type":"error", "message":...}   (an error never ends the session)
 //   binary frames: a 32-byte little-endian header, then one JPEG:
-//     "DJF1" | u32 frame sequence | u32 step | u32 0 | f64 echoed client "t" | f64 server ms
+//     "DJF1" | u32 frame sequence | u32 step | u32 step compute µs | f64 echoed client "t" | f64 server ms
 #pragma once
 
 #include <torch/torch.h>
