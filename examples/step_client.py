@@ -144,7 +144,7 @@ class WorldModelSession:
 
     def __init__(self, url, token=None, insecure=False, timeout=300):
         self.ws = WebSocket(url, {"Authorization": f"Bearer {token}"} if token else None, insecure, timeout)
-        self.ready, self.start_frames, self.events = None, [], []
+        self.ready, self.start_frames, self.events, self.last_step_done = None, [], [], None
 
     def _send_json(self, message):
         self.ws.send(TEXT, json.dumps(message, allow_nan=False).encode())  # NaN: ValueError here
@@ -190,7 +190,8 @@ class WorldModelSession:
             m = self._next()
             if "jpeg" in m:
                 (self.start_frames if m["step"] == 0 else frames).append(m)
-            elif m.get("type") == "step_done":
+            elif m.get("type") == "step_done":  # policy evaluation: "done": true ends an episode
+                self.last_step_done = m
                 return frames
             else:
                 self.events.append(m)

@@ -142,6 +142,7 @@ int main(int argc, char** argv) {
   cli::register_tokenizer(app);
 #ifdef DOJO_WITH_SIM
   cli::register_demo(app);
+  cli::register_policy(app);
 #endif
   cli::register_lam(app);
   cli::register_wm(app);

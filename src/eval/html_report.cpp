@@ -213,6 +213,39 @@ void HtmlReport::line_chart(const std::string& title, const std::vector<Series>&
   body_ += svg;
 }
 
+void HtmlReport::unit_scatter(const std::string& title, const std::vector<std::string>& labels,
+                              const std::vector<double>& x, const std::vector<double>& y,
+                              const std::string& x_label, const std::string& y_label) {
+  constexpr double kSize = 360, kMargin = 50, kPlot = kSize - 2 * kMargin;
+  const auto px = [&](double v) { return kMargin + std::clamp(v, 0.0, 1.0) * kPlot; };
+  const auto py = [&](double v) { return kMargin + (1 - std::clamp(v, 0.0, 1.0)) * kPlot; };
+  std::string svg = "<svg width=\"" + fmt(kSize + 160) + "\" height=\"" + fmt(kSize) +
+                    "\" xmlns=\"http://www.w3.org/2000/svg\" font-family=\"sans-serif\" font-size=\"11\">";
+  svg += "<rect x=\"" + fmt(kMargin) + "\" y=\"" + fmt(kMargin) + "\" width=\"" + fmt(kPlot) +
+         "\" height=\"" + fmt(kPlot) + "\" fill=\"none\" stroke=\"#999\"/>";
+  svg += "<line x1=\"" + fmt(px(0)) + "\" y1=\"" + fmt(py(0)) + "\" x2=\"" + fmt(px(1)) + "\" y2=\"" +
+         fmt(py(1)) + "\" stroke=\"#bbb\" stroke-dasharray=\"4 3\"/>";
+  for (int i = 0; i <= 4; ++i) {
+    const double v = i / 4.0;
+    svg += "<text x=\"" + fmt(kMargin - 4) + "\" y=\"" + fmt(py(v) + 4) + "\" text-anchor=\"end\">" + fmt(v) +
+           "</text><text x=\"" + fmt(px(v)) + "\" y=\"" + fmt(kSize - kMargin + 14) +
+           "\" text-anchor=\"middle\">" + fmt(v) + "</text>";
+  }
+  svg += "<text x=\"" + fmt(kMargin + kPlot / 2) + "\" y=\"" + fmt(kSize - 10) +
+         "\" text-anchor=\"middle\">" + html_escape(x_label) + "</text>";
+  svg += "<text x=\"14\" y=\"" + fmt(kMargin + kPlot / 2) + "\" transform=\"rotate(-90 14 " +
+         fmt(kMargin + kPlot / 2) + ")\" text-anchor=\"middle\">" + html_escape(y_label) + "</text>";
+  for (size_t i = 0; i < x.size() && i < y.size(); ++i) {
+    svg += "<circle cx=\"" + fmt(px(x[i])) + "\" cy=\"" + fmt(py(y[i])) +
+           "\" r=\"4\" fill=\"#1f77b4\"><title>" + html_escape(i < labels.size() ? labels[i] : "") +
+           "</title></circle>";
+    if (i < labels.size())
+      svg += "<text x=\"" + fmt(px(x[i]) + 6) + "\" y=\"" + fmt(py(y[i]) - 4) + "\" font-size=\"9\">" +
+             html_escape(labels[i]) + "</text>";
+  }
+  body_ += "<h3>" + html_escape(title) + "</h3>\n" + svg + "</svg>\n";
+}
+
 std::string HtmlReport::html() const {
   return "<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>" + html_escape(title_) +
          "</title>\n<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 "

@@ -29,6 +29,11 @@ class HtmlReport {
   // Line chart of the series (moving average over `smooth` points when > 1), log y when asked.
   void line_chart(const std::string& title, const std::vector<Series>& series, const std::string& x_label,
                   const std::string& y_label, bool log_y = false, int smooth = 1);
+  // Points (x, y) in [0, 1] x [0, 1], each labelled, with the diagonal y = x drawn: where two
+  // measurements of the same quantity agree (per-policy success rates in two worlds).
+  void unit_scatter(const std::string& title, const std::vector<std::string>& labels,
+                    const std::vector<double>& x, const std::vector<double>& y, const std::string& x_label,
+                    const std::string& y_label);
   std::string html() const;
   void write(const std::filesystem::path& path) const;  // atomically
 

@@ -1,13 +1,13 @@
 #include "serve/model_host.h"
 
 #include <algorithm>
-#include <chrono>
 #include <set>
 
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "data/episode_source.h"
+#include "infer/generator.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
 #include "io/frame_ops.h"
@@ -21,64 +21,6 @@ struct ModelHost::Hosted {
   std::unique_ptr<infer::WorldModel> teacher;         // teacher: stateless between chunks
   std::mutex turn;                                    // one step of one session at a time
 };
-
-namespace {
-
-class StudentGenerator : public Generator {
- public:
-  StudentGenerator(infer::StreamingEngine engine, std::mutex& turn)
-      : engine_(std::move(engine)), turn_(turn) {}
-  torch::Tensor reset(const torch::Tensor& first, uint64_t seed) override {
-    std::lock_guard<std::mutex> lock(turn_);
-    return engine_.reset(first.unsqueeze(0), seed)[0];  // [1, H, W, 3]
-  }
-  int64_t actions_per_step() const override { return engine_.actions_per_step(); }
-  torch::Tensor step(const torch::Tensor& actions) override {
-    std::lock_guard<std::mutex> lock(turn_);
-    const auto t0 = std::chrono::steady_clock::now();
-    auto frames = engine_.step(actions.unsqueeze(0))[0];  // [4, H, W, 3]
-    last_step_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    return frames;
-  }
-
- private:
-  infer::StreamingEngine engine_;
-  std::mutex& turn_;
-};
-
-// The teacher streams chunk by chunk: 12 actions -> 12 frames, each chunk conditioned on the
-// last frame of the one before (its 35 sampler steps make it slow, but it is the quality path).
-class TeacherGenerator : public Generator {
- public:
-  TeacherGenerator(infer::WorldModel& model, std::mutex& turn) : model_(model), turn_(turn) {}
-  torch::Tensor reset(const torch::Tensor& first, uint64_t seed) override {
-    std::lock_guard<std::mutex> lock(turn_);
-    seed_ = seed;
-    chunk_ = 0;
-    last_ = model_.reconstruct_frames(first.unsqueeze(0));  // [1, H, W, 3]
-    return last_;
-  }
-  int64_t actions_per_step() const override { return infer::WorldModel::kChunkActions; }
-  torch::Tensor step(const torch::Tensor& actions) override {
-    std::lock_guard<std::mutex> lock(turn_);
-    const auto t0 = std::chrono::steady_clock::now();
-    const auto video = model_.predict_chunk(last_, actions.unsqueeze(0), seed_ + chunk_++,
-                                            model_.trained_sampler());  // [1, 13, H, W, 3]
-    const auto frames = video[0].narrow(0, 1, 12);                      // [12, H, W, 3]
-    last_ = frames.narrow(0, 11, 1);
-    last_step_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    return frames;
-  }
-
- private:
-  infer::WorldModel& model_;
-  std::mutex& turn_;
-  torch::Tensor last_;  // [1, H, W, 3]
-  uint64_t seed_ = 0;
-  int64_t chunk_ = 0;
-};
-
-}  // namespace
 
 ModelHost::ModelHost(Options options) : options_(std::move(options)) {
   for (const auto& spec : options_.models) {
@@ -139,9 +81,9 @@ std::unique_ptr<Generator> ModelHost::make_generator(const std::string& model) c
   std::lock_guard<std::mutex> lock(h.turn);
   if (h.prototype) {
     infer::StreamingEngine engine(h.prototype->net(), h.prototype->tokenizer(), h.prototype->options());
-    return std::make_unique<StudentGenerator>(std::move(engine), h.turn);
+    return infer::make_student_generator(std::move(engine), &h.turn);
   }
-  return std::make_unique<TeacherGenerator>(*h.teacher, h.turn);
+  return infer::make_teacher_generator(*h.teacher, &h.turn);
 }
 
 std::optional<data::ActionChunker> ModelHost::chunker(const std::string& model) const {

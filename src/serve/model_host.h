@@ -19,6 +19,7 @@
 
 #include "core/autocast.h"
 #include "data/actions.h"
+#include "infer/generator.h"
 
 namespace dojo::data {
 class EpisodeSource;
@@ -34,22 +35,8 @@ struct ModelSpec {
   std::filesystem::path fast_decoder;  // student only; empty: the Wan decoder
 };
 
-// A session's view of a model: frames in, actions in, frames out.
-class Generator {
- public:
-  virtual ~Generator() = default;
-  // first [H, W, 3] uint8 -> the frames to show first [n, H, W, 3] (the start frame as the model sees it).
-  virtual torch::Tensor reset(const torch::Tensor& first, uint64_t seed) = 0;
-  // Actions one step consumes: 4 (student) or 12 (teacher chunk).
-  virtual int64_t actions_per_step() const = 0;
-  // actions [actions_per_step(), 384] (the model's layout) -> the next frames [n, H, W, 3] uint8.
-  virtual torch::Tensor step(const torch::Tensor& actions) = 0;
-  // Seconds the last step computed, not counting its wait for the model's turn.
-  double last_step_seconds() const { return last_step_seconds_; }
-
- protected:
-  double last_step_seconds_ = 0;
-};
+// A session's view of a model: frames in, actions in, frames out (infer/generator.h).
+using Generator = infer::Generator;
 
 // Where sessions start: a dataset's episodes (first frame and the command in force there).
 struct StartFrame {

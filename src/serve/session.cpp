@@ -14,6 +14,19 @@
 
 namespace dojo::serve {
 
+std::string frame_message(std::string_view jpeg, uint32_t sequence, uint32_t step, uint32_t compute_us,
+                          double client_t, double server_ms) {
+  std::string message(kFrameHeaderBytes, '\0');
+  std::memcpy(message.data(), "DJF1", 4);
+  std::memcpy(message.data() + 4, &sequence, 4);  // little-endian hosts (x86-64, arm64)
+  std::memcpy(message.data() + 8, &step, 4);
+  std::memcpy(message.data() + 12, &compute_us, 4);
+  std::memcpy(message.data() + 16, &client_t, 8);
+  std::memcpy(message.data() + 24, &server_ms, 8);
+  message.append(jpeg);
+  return message;
+}
+
 namespace fs = std::filesystem;
 
 // A session's recording: the frames as they are sent (an mp4), every step's actions as JSON lines
@@ -62,8 +75,6 @@ class SessionRecorder {
   std::ofstream actions_;
 };
 
-namespace {
-
 torch::Tensor json_rows(const nlohmann::json& rows, const std::string& where) {  // -> [n, w] float
   DOJO_CHECK(rows.is_array() && !rows.empty() && rows.size() <= 64,
              where + " must be a non-empty array of rows");
@@ -80,6 +91,8 @@ torch::Tensor json_rows(const nlohmann::json& rows, const std::string& where) { 
   }
   return torch::tensor(values).view({static_cast<int64_t>(rows.size()), static_cast<int64_t>(width)});
 }
+
+namespace {
 
 torch::Tensor json_vector(const nlohmann::json& v, int64_t width, const std::string& where) {  // -> [w]
   DOJO_CHECK(v.is_array() && static_cast<int64_t>(v.size()) == width,
@@ -196,18 +209,10 @@ void Session::send_frames(const torch::Tensor& frames, bool droppable, double cl
   const auto compute_us =
       static_cast<uint32_t>(generator_ ? std::min(generator_->last_step_seconds() * 1e6, 4.0e9) : 0.0);
   for (int64_t i = 0; i < frames.size(0); ++i) {
-    const auto jpeg = io::encode_jpeg(frames[i], options_.jpeg_quality);
-    std::string message(kFrameHeaderBytes, '\0');
-    const uint32_t seq = sequence_++;
-    const double server_ms = now_ms();
-    std::memcpy(message.data(), "DJF1", 4);
-    std::memcpy(message.data() + 4, &seq, 4);  // little-endian hosts (x86-64, arm64)
-    std::memcpy(message.data() + 8, &step_index_, 4);
-    std::memcpy(message.data() + 12, &compute_us, 4);
-    std::memcpy(message.data() + 16, &client_t, 8);
-    std::memcpy(message.data() + 24, &server_ms, 8);
-    message += jpeg;
-    send_(Outgoing{true, std::move(message), droppable});
+    send_(Outgoing{true,
+                   frame_message(io::encode_jpeg(frames[i], options_.jpeg_quality), sequence_++, step_index_,
+                                 compute_us, client_t, now_ms()),
+                   droppable});
   }
   metrics_.frames_generated(frames.size(0));
 }

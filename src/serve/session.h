@@ -35,12 +35,21 @@
 #include <thread>
 
 #include "data/actions.h"
+#include "infer/generator.h"
 #include "serve/metrics.h"
 
 namespace dojo::serve {
 
+// A binary frame message: the 32-byte header (see the top of this file), then the JPEG.
+std::string frame_message(std::string_view jpeg, uint32_t sequence, uint32_t step, uint32_t compute_us,
+                          double client_t, double server_ms);
+inline constexpr size_t kFrameHeaderBytes = 32;
+// A message's rows of numbers ("actions": [[...], ...]) -> [n, w] float; throws dojo::Error naming
+// `where` unless it is 1..64 rows of equal width, all finite numbers.
+torch::Tensor json_rows(const nlohmann::json& rows, const std::string& where);
+
 class ModelHost;
-class Generator;
+using Generator = infer::Generator;
 class SessionRecorder;
 
 struct SessionOptions {
@@ -59,7 +68,7 @@ struct Outgoing {
 class Session {
  public:
   using Send = std::function<void(Outgoing)>;
-  static constexpr size_t kFrameHeaderBytes = 32;
+  static constexpr size_t kFrameHeaderBytes = serve::kFrameHeaderBytes;
 
   Session(const ModelHost& host, SessionOptions options, ServerMetrics& metrics, Send send);
   ~Session();  // stops the worker; a recording in progress is finished and written

@@ -26,28 +26,6 @@ torch::Tensor keypoint_probe_loss(const models::KeypointOutput& out, const torch
   return 10.0 * coord_loss + torch::binary_cross_entropy_with_logits(out.presence, present);
 }
 
-namespace {
-
-// Gaussian blur of each image [3, S, S] with its own sigma (0: untouched).
-torch::Tensor blur(const torch::Tensor& images, const torch::Tensor& sigma) {
-  constexpr int64_t kRadius = 3;
-  auto out = images.clone();
-  const auto offsets = torch::arange(-kRadius, kRadius + 1, torch::kFloat32);  // [7]
-  for (int64_t b = 0; b < images.size(0); ++b) {
-    const double s = sigma[b].item<double>();
-    if (s <= 0) continue;
-    auto k = torch::exp(-offsets.pow(2) / (2 * s * s));
-    k = (k / k.sum()).to(images.dtype());
-    const auto x = images[b].unsqueeze(1);  // [3, 1, S, S]: channels as a batch
-    const std::vector<int64_t> one = {1, 1}, pad_w = {0, kRadius}, pad_h = {kRadius, 0};
-    const auto h = torch::conv2d(x, k.view({1, 1, 1, -1}), torch::Tensor(), one, pad_w);
-    out[b] = torch::conv2d(h, k.view({1, 1, -1, 1}), torch::Tensor(), one, pad_h).squeeze(1);
-  }
-  return out;
-}
-
-}  // namespace
-
 ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
   DOJO_CHECK(!job.datasets.empty(), "probe train: no dataset given");
   DOJO_CHECK(job.batch_size > 0 && job.steps >= 0, "probe train: batch and steps must be positive");
@@ -93,7 +71,7 @@ ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
         const auto offset = (torch::rand({job.batch_size, 1, 1, 1}, gen) * 2 - 1) * job.brightness;
         const auto blurred = torch::rand({job.batch_size}, gen) < job.blur_probability;
         const auto sigma = (torch::rand({job.batch_size}, gen) * 1.2 + 0.3) * blurred.to(torch::kFloat32);
-        images = blur(images, sigma).add(offset).clamp(0, 1);
+        images = gaussian_blur(images, sigma).add(offset).clamp(0, 1);
         for (auto& group : opt.param_groups())
           static_cast<torch::optim::AdamWOptions&>(group.options())
               .lr(job.lr * std::min(1.0, static_cast<double>(s.index + 1) / 50.0));

@@ -123,4 +123,21 @@ int64_t resume_with_adamw(const std::filesystem::path& dir, torch::nn::Module& m
   return ckpt.step();
 }
 
+torch::Tensor gaussian_blur(const torch::Tensor& images, const torch::Tensor& sigma) {
+  constexpr int64_t kRadius = 3;
+  auto out = images.clone();
+  const auto offsets = torch::arange(-kRadius, kRadius + 1, torch::kFloat32);  // [7]
+  for (int64_t b = 0; b < images.size(0); ++b) {
+    const double s = sigma[b].item<double>();
+    if (s <= 0) continue;
+    auto k = torch::exp(-offsets.pow(2) / (2 * s * s));
+    k = (k / k.sum()).to(images.dtype());
+    const auto x = images[b].unsqueeze(1);  // [C, 1, S, S]: channels as a batch
+    const std::vector<int64_t> one = {1, 1}, pad_w = {0, kRadius}, pad_h = {kRadius, 0};
+    const auto h = torch::conv2d(x, k.view({1, 1, 1, -1}), torch::Tensor(), one, pad_w);
+    out[b] = torch::conv2d(h, k.view({1, 1, -1, 1}), torch::Tensor(), one, pad_h).squeeze(1);
+  }
+  return out;
+}
+
 }  // namespace dojo::train

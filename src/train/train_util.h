@@ -36,6 +36,10 @@ NamedTensors named_adamw_state(NamedTensors tensors, const torch::nn::Module& mo
 torch::Generator cpu_generator(uint64_t seed);
 torch::Generator step_generator(uint64_t seed, int64_t step);
 
+// Gaussian blur of each image of [B, C, S, S] with its own sigma [B] in pixels (0: untouched): the
+// augmentation that keeps frame classifiers reading generated frames, which are softer than renders.
+torch::Tensor gaussian_blur(const torch::Tensor& images, const torch::Tensor& sigma);
+
 // Checkpoints of the plain AdamW loops (probe, fast decoder): `data` is the model's checkpoint
 // (config and weights), to which the step and the AdamW moments are added as trainer state.
 void save_with_adamw(const std::filesystem::path& dir, CheckpointData data,

@@ -159,8 +159,12 @@ TEST(ServeFuzz, MutatedMessagesNeverBreakASession) {
     const auto before = json_errors();
     EXPECT_NO_THROW(session.on_text(message));
     // A message that is not a JSON object is answered at once, on the caller's thread.
-    if (not_object) EXPECT_EQ(json_errors(), before + 1) << message;
-    if (i % 50 == 0) EXPECT_NO_THROW(session.on_binary(message));
+    if (not_object) {
+      EXPECT_EQ(json_errors(), before + 1) << message;
+    }
+    if (i % 50 == 0) {
+      EXPECT_NO_THROW(session.on_binary(message));
+    }
   }
   // Deep nesting and a large junk message.
   const std::string deep = std::string(100000, '[') + std::string(100000, ']');

@@ -1,0 +1,433 @@
+// `dojo policy train | detector | eval`: policy evaluation in the world model against DojoSim
+// (eval/policy_eval.h, recipes/dojosim_policies.h; docs/policy_eval.md).
+#include <CLI/CLI.hpp>
+
+#include <cmath>
+#include <cstdio>
+#include <iostream>
+
+#include "cli/commands.h"
+#include "cli/options.h"
+#include "core/atomic_file.h"
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/json_file.h"
+#include "core/log.h"
+#include "core/progress.h"
+#include "core/runtime.h"
+#include "eval/policy_eval.h"
+#include "infer/generator.h"
+#include "infer/streaming.h"
+#include "infer/world_model.h"
+#include "models/bc_policy.h"
+#include "models/fast_decoder.h"
+#include "recipes/dojosim_policies.h"
+#include "serve/external_policy.h"
+#include "train/bc_train.h"
+#include "train/success_train.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::cli {
+namespace {
+
+struct DetectorArgs {
+  std::string out = "dojo_policy/detector", policies;
+  int64_t scenes = 24, steps = 800, frames = 64, settle_frames = 12;
+  uint64_t seed = 9000;
+};
+
+struct TrainArgs {
+  std::string out = "dojo_policy/bc";
+  int64_t episodes = 160, frames = 64, steps = 3000, batch = 64;
+  std::vector<int64_t> snapshots = {100, 300, 1000};
+  double noise = 0.03;
+  uint64_t seed = 20000;
+};
+
+struct EvalArgs {
+  std::string out = "dojo_policy", demo = "dojo_demo", student, teacher, tokenizer, fast_decoder, detector,
+              policies, bc;
+  std::vector<std::string> external;
+  int64_t scenes = 30, frames = 64, settle_frames = 12, detector_steps = 800, bc_steps = 3000;
+  uint64_t seed = 7000;
+  bool sim_as_world_model = false, no_bc = false;
+  double external_timeout = 120;
+  std::string device = "cpu", precision = "fp32";
+};
+
+std::vector<recipes::PolicySpec> policy_set(const std::string& file) {
+  return file.empty() ? recipes::default_policy_set() : recipes::read_policy_set(file);
+}
+
+// The policy a spec names. DojoSim's robot takes 6-value commands; a learned policy of another
+// width is refused here, before any episode runs.
+std::unique_ptr<eval::Policy> make_policy(const recipes::PolicySpec& spec, int64_t command_width,
+                                          double external_timeout) {
+  if (!spec.checkpoint.empty()) {
+    auto model = models::load_bc_policy(spec.checkpoint);
+    DOJO_CHECK(model->config().action_dim == command_width,
+               "policy '" + spec.name + "' (" + spec.checkpoint.string() + "): its commands have " +
+                   std::to_string(model->config().action_dim) + " values; the robot takes " +
+                   std::to_string(command_width));
+    return eval::make_bc_policy(spec.name, std::move(model));
+  }
+  if (!spec.command.empty()) {
+    serve::ExternalPolicyOptions o;
+    o.name = spec.name;
+    o.command = spec.command;
+    o.timeout_s = external_timeout;
+    return serve::make_external_policy(o);
+  }
+  return recipes::make_scripted_policy(spec);
+}
+
+// Generates OUT/demos.safetensors once, then trains (or resumes) OUT/checkpoint with snapshots.
+nlohmann::json train_bc(const TrainArgs& a) {
+  const fs::path out = a.out;
+  fs::create_directories(out);
+  const auto demos = out / "demos.safetensors";
+  if (!fs::exists(demos)) {
+    recipes::DemonstrationOptions o;
+    o.episodes = a.episodes;
+    o.frames = a.frames;
+    o.noise_std = a.noise;
+    o.seed = a.seed;
+    LOG_INFO("policy train: rendering ", a.episodes, " expert demonstrations in DojoSim");
+    recipes::make_demonstrations(o, demos);
+  }
+  train::BcTrainJob job;
+  job.data = demos;
+  job.out = out;
+  job.steps = a.steps;
+  job.batch_size = static_cast<int>(a.batch);
+  job.snapshots = a.snapshots;
+  const auto r = train::run_bc_training(job);
+  nlohmann::json snapshots = nlohmann::json::array();
+  for (const auto& s : r.snapshots) snapshots.push_back(s.string());
+  const nlohmann::json result = {{"steps", r.steps},
+                                 {"loss", r.loss},
+                                 {"heldout_loss", r.heldout_loss},
+                                 {"snapshots", snapshots},
+                                 {"seconds", r.seconds}};
+  write_file_atomic(out / "result.json", result.dump(2) + "\n");
+  LOG_INFO("policy train: loss ", r.loss, ", held-out ", r.heldout_loss, "; ", r.snapshots.size(),
+           " snapshots in ", (out / "snapshots").string());
+  return result;
+}
+
+// Every snapshot of a behaviour-cloning run as a policy named bc-STEP.
+std::vector<recipes::PolicySpec> bc_snapshot_specs(const fs::path& dir) {
+  std::vector<recipes::PolicySpec> specs;
+  for (const auto& snapshot : train::list_bc_snapshots(dir)) {
+    recipes::PolicySpec s;
+    s.name = "bc-" + std::to_string(std::stoll(snapshot.filename().string().substr(5)));
+    s.checkpoint = snapshot;
+    specs.push_back(s);
+  }
+  DOJO_CHECK(!specs.empty(),
+             dir.string() + ": no policy snapshots (run `dojo policy train --out " + dir.string() + "`)");
+  return specs;
+}
+
+// NAME=COMMAND
+recipes::PolicySpec external_spec(const std::string& text) {
+  const auto eq = text.find('=');
+  DOJO_CHECK(eq != std::string::npos && eq > 0 && eq + 1 < text.size(),
+             "--external: expected NAME=COMMAND, got '" + text + "'");
+  recipes::PolicySpec s;
+  s.name = text.substr(0, eq);
+  s.command = text.substr(eq + 1);
+  return s;
+}
+
+eval::PolicyEvalOptions episode_options(int64_t frames, int64_t settle_frames, int64_t per_step) {
+  DOJO_CHECK(frames > 0 && settle_frames >= 0, "policy: --frames must be positive and --settle-frames >= 0");
+  eval::PolicyEvalOptions o;
+  o.actions_per_step = per_step;
+  o.steps = (frames + per_step - 1) / per_step;
+  o.settle_steps = (settle_frames + per_step - 1) / per_step;
+  return o;
+}
+
+// Generates DIR/data.safetensors once, then trains (or resumes) DIR/checkpoint; DIR/result.json.
+nlohmann::json train_detector(const DetectorArgs& a) {
+  const fs::path out = a.out;
+  fs::create_directories(out);
+  const auto data = out / "data.safetensors";
+  if (!fs::exists(data)) {
+    recipes::SuccessDataOptions o;
+    o.scenes = a.scenes;
+    o.seed = a.seed;
+    o.episode = episode_options(a.frames, a.settle_frames, 4);
+    LOG_INFO("policy detector: rendering ", a.scenes, " scenes per policy in DojoSim");
+    auto specs = policy_set(a.policies);
+    if (std::none_of(specs.begin(), specs.end(), [](const auto& s) { return s.scripted(); }))
+      specs = recipes::default_policy_set();  // labelled episodes need scripted policies
+    recipes::make_success_data(specs, o, data);
+  }
+  train::SuccessTrainJob job;
+  job.data = data;
+  job.out = out;
+  job.steps = a.steps;
+  const auto r = train::run_success_training(job);
+  const auto accuracy = [](const train::SuccessAccuracy& s) {
+    return nlohmann::json{{"accuracy", s.accuracy},
+                          {"balanced_accuracy", s.balanced_accuracy},
+                          {"windows", s.windows},
+                          {"success_windows", s.positives}};
+  };
+  const nlohmann::json result = {{"steps", r.steps},
+                                 {"loss", r.loss},
+                                 {"train", accuracy(r.train)},
+                                 {"heldout", accuracy(r.heldout)},
+                                 {"seconds", r.seconds}};
+  write_file_atomic(out / "result.json", result.dump(2) + "\n");
+  LOG_INFO("policy detector: held-out frames: accuracy ", r.heldout.accuracy, ", balanced ",
+           r.heldout.balanced_accuracy, " (", r.heldout.windows, " windows)");
+  return result;
+}
+
+fs::path pick(const std::string& given, const fs::path& fallback) {
+  return given.empty() ? fallback : fs::path(given);
+}
+
+int run_eval(const EvalArgs& a) {
+  const fs::path out = a.out, demo = a.demo;
+  fs::create_directories(out);
+  const auto device = parse_device(a.device);
+  ScopedThreads matmul_bound(matmul_bound_command_threads("policy eval", device.is_cuda()));
+
+  // The world model: the demo's student unless told otherwise.
+  const bool teacher = !a.teacher.empty();
+  const fs::path checkpoint =
+      teacher ? fs::path(a.teacher) : pick(a.student, demo / "student" / "checkpoint");
+  const fs::path tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
+  fs::path fast_decoder = a.fast_decoder;
+  if (fast_decoder.empty() && a.student.empty() && !teacher &&
+      fs::exists(demo / "fast_decoder" / "checkpoint"))
+    fast_decoder = demo / "fast_decoder" / "checkpoint";
+  std::unique_ptr<eval::Environment> world_model;
+  std::unique_ptr<infer::WorldModel> teacher_model;
+  std::string world_model_name = "DojoSim (as the world model)";
+  nlohmann::json fingerprint;
+  int64_t per_step = infer::StreamingEngine::kActionsPerStep;
+  if (a.sim_as_world_model) {
+    world_model = std::make_unique<recipes::DojoSimEnvironment>();
+    fingerprint["world_model"] = "dojosim";
+  } else {
+    DOJO_CHECK(checkpoint_exists(checkpoint),
+               "policy eval: no world model at " + checkpoint.string() +
+                   " (give --student or --teacher, or --demo DIR of a finished `dojo demo`)");
+    DOJO_CHECK(checkpoint_exists(tokenizer), "policy eval: no tokenizer at " + tokenizer.string());
+    const fs::path detector_dir = pick(a.detector, out / "detector");
+    if (!checkpoint_exists(detector_dir / "checkpoint") && !checkpoint_exists(detector_dir)) {
+      DOJO_CHECK(a.detector.empty(), "policy eval: no success detector at " + a.detector);
+      DetectorArgs d;
+      d.out = detector_dir.string();
+      d.policies = a.policies;
+      d.steps = a.detector_steps;
+      d.frames = a.frames;
+      d.settle_frames = a.settle_frames;
+      train_detector(d);
+    }
+    auto detector = models::load_success_detector(
+        checkpoint_exists(detector_dir / "checkpoint") ? detector_dir / "checkpoint" : detector_dir);
+    std::unique_ptr<infer::Generator> generator;
+    nlohmann::json ranges;
+    if (teacher) {
+      teacher_model = std::make_unique<infer::WorldModel>(
+          infer::WorldModel::load(checkpoint, tokenizer, device, parse_precision(a.precision)));
+      ranges = teacher_model->action_ranges();
+      generator = infer::make_teacher_generator(*teacher_model);
+      per_step = infer::WorldModel::kChunkActions;
+      world_model_name = "teacher";
+    } else {
+      infer::StreamingEngine::Options o;
+      o.device = device;
+      o.precision = parse_precision(a.precision);
+      if (!fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(fast_decoder);
+      auto engine = infer::StreamingEngine::load(checkpoint, tokenizer, o);
+      ranges = engine.action_ranges();
+      generator = infer::make_student_generator(std::move(engine));
+      world_model_name = "student";
+    }
+    DOJO_CHECK(ranges.size() == 1 && ranges.contains("dojosim_robot"),
+               checkpoint.string() + ": the model's actions are " + ranges.dump() +
+                   "; DojoSim's policies command the 'dojosim_robot' slot (6 values)");
+    const auto& [slot, stats] = *ranges.items().begin();
+    data::ActionChunker chunker(data::slot_by_name(slot),
+                                data::ArrayStats::from_json(stats, "model actions." + slot),
+                                static_cast<int>(per_step));
+    world_model = std::make_unique<eval::WorldModelEnvironment>(world_model_name, std::move(generator),
+                                                                std::move(chunker), std::move(detector));
+    fingerprint = {{"world_model", fs::absolute(checkpoint).string()},
+                   {"tokenizer", fs::absolute(tokenizer).string()},
+                   {"fast_decoder", fast_decoder.empty() ? "" : fs::absolute(fast_decoder).string()},
+                   {"detector", fs::absolute(detector_dir).string()}};
+  }
+
+  recipes::PolicySceneOptions scene_options;
+  scene_options.count = a.scenes;
+  scene_options.seed = a.seed;
+  const auto scenes = recipes::make_policy_scenes(scene_options);
+  auto specs = policy_set(a.policies);
+  if (!a.no_bc) {
+    // The behaviour-cloning policy's snapshots, trained here when missing.
+    const fs::path bc = pick(a.bc, out / "bc");
+    if (train::list_bc_snapshots(bc).empty()) {
+      DOJO_CHECK(a.bc.empty(), "policy eval: no policy snapshots in " + a.bc);
+      TrainArgs t;
+      t.out = bc.string();
+      t.steps = a.bc_steps;
+      train_bc(t);
+    }
+    for (auto& s : bc_snapshot_specs(bc)) specs.push_back(std::move(s));
+  }
+  for (const auto& e : a.external) specs.push_back(external_spec(e));
+  std::vector<std::unique_ptr<eval::Policy>> owned;
+  std::vector<eval::Policy*> policies;
+  nlohmann::json names = nlohmann::json::array();
+  const int64_t width = scenes.front().command.numel();
+  for (const auto& s : specs) {
+    owned.push_back(make_policy(s, width, a.external_timeout));
+    policies.push_back(owned.back().get());
+    nlohmann::json entry = {{"name", s.name}};
+    if (!s.checkpoint.empty()) entry["checkpoint"] = fs::absolute(s.checkpoint).string();
+    if (!s.command.empty()) entry["command"] = s.command;
+    if (s.scripted()) {
+      entry["behavior"] = s.behavior;
+      entry["quality"] = s.quality;
+    }
+    names.push_back(entry);
+  }
+  const auto options = episode_options(a.frames, a.settle_frames, per_step);
+  fingerprint["policies"] = names;
+  fingerprint["scenes"] = {{"count", a.scenes}, {"seed", a.seed}};
+  fingerprint["episode"] = {
+      {"steps", options.steps}, {"settle_steps", options.settle_steps}, {"per_step", per_step}};
+
+  recipes::DojoSimEnvironment real;
+  Progress progress("policy eval", static_cast<int64_t>(policies.size() * scenes.size()), "episode");
+  const auto report =
+      eval::evaluate_policies(policies, scenes, real, *world_model, options, out / "journal.jsonl",
+                              fingerprint, [&](int64_t, int64_t) { progress.advance(); });
+  progress.finish();
+  auto json = report.to_json();
+  json["world_model"] = world_model_name;
+  json["fingerprint"] = fingerprint;
+  if (fs::exists(pick(a.detector, out / "detector") / "result.json"))
+    json["detector"] = read_json_file(pick(a.detector, out / "detector") / "result.json");
+  write_file_atomic(out / "report.json", json.dump(2) + "\n");
+  eval::write_policy_eval_html(report, out / "report.html", "DojoSim", world_model_name);
+
+  std::printf("%-14s %8s %12s\n", "policy", "DojoSim", world_model_name.substr(0, 12).c_str());
+  for (size_t i = 0; i < report.rates.names.size(); ++i)
+    std::printf("%-14s %8.3f %12.3f\n", report.rates.names[i].c_str(), report.rates.real[i],
+                report.rates.world_model[i]);
+  std::printf("pearson r %.4f  mmrv %.4f  spearman %.4f  mean |gap| %.4f\n", report.agreement.pearson,
+              report.agreement.mmrv, report.agreement.spearman, report.agreement.mean_abs_gap);
+  std::printf("episodes agreeing %.3f (open-loop replays %.3f); seconds per episode: DojoSim %.2f, %s %.2f\n",
+              report.episode_agreement, report.open_loop_agreement, report.real_seconds_per_episode,
+              world_model_name.c_str(), report.world_model_seconds_per_episode);
+  LOG_INFO("policy eval: ", (out / "report.json").string(), ", ", (out / "report.html").string());
+  return 0;
+}
+
+}  // namespace
+
+void register_policy(CLI::App& app) {
+  auto* policy =
+      app.add_subcommand("policy", "Policy evaluation: rank policies in the world model against DojoSim");
+  policy->require_subcommand(1);
+
+  auto t = std::make_shared<TrainArgs>();
+  auto* train_cmd = policy->add_subcommand(
+      "train",
+      "Render expert demonstrations in DojoSim and train the behaviour-cloning policy (frame + last "
+      "command -> 4 commands); snapshots along training are policies of graded quality (resumable)");
+  train_cmd->add_option("--out", t->out, "Output directory")->capture_default_str();
+  train_cmd->add_option("--episodes", t->episodes, "Demonstration episodes")
+      ->check(CLI::Range(2, 1000000))
+      ->capture_default_str();
+  train_cmd->add_option("--frames", t->frames, "Frames per demonstration")
+      ->check(CLI::Range(8, 100000))
+      ->capture_default_str();
+  train_cmd->add_option("--noise", t->noise, "Noise injected into the executed arm commands (rad)")
+      ->check(CLI::Range(0.0, 1.0))
+      ->capture_default_str();
+  train_cmd
+      ->add_option("--seed", t->seed, "First demonstration scene seed (keep apart from the evaluation's)")
+      ->capture_default_str();
+  train_cmd->add_option("--steps", t->steps, "Training steps")
+      ->check(CLI::Range(0, 10000000))
+      ->capture_default_str();
+  train_cmd->add_option("--batch", t->batch, "Batch size")->check(CLI::Range(1, 4096))->capture_default_str();
+  train_cmd
+      ->add_option("--snapshots", t->snapshots, "Steps whose weights are kept as policies (besides the last)")
+      ->delimiter(',')
+      ->capture_default_str();
+  train_cmd->callback([t] { set_action([t] { return train_bc(*t).is_object() ? 0 : 1; }); });
+
+  auto d = std::make_shared<DetectorArgs>();
+  auto* detector = policy->add_subcommand(
+      "detector", "Render labelled DojoSim episodes and train the success detector on them (resumable)");
+  detector->add_option("--out", d->out, "Output directory")->capture_default_str();
+  detector->add_option("--policies", d->policies, "Policy set JSON (default: the built-in 13)");
+  detector->add_option("--scenes", d->scenes, "Scenes per policy")
+      ->check(CLI::Range(2, 100000))
+      ->capture_default_str();
+  detector->add_option("--seed", d->seed, "First scene seed (use others than the evaluation's)")
+      ->capture_default_str();
+  detector->add_option("--steps", d->steps, "Training steps")
+      ->check(CLI::Range(0, 10000000))
+      ->capture_default_str();
+  detector->callback([d] { set_action([d] { return train_detector(*d).is_object() ? 0 : 1; }); });
+
+  auto e = std::make_shared<EvalArgs>();
+  auto* ev =
+      policy->add_subcommand("eval",
+                             "Run every policy closed loop in DojoSim and in the world model; Pearson r, "
+                             "MMRV, Spearman, success gap; JSON + HTML (resumable)");
+  ev->add_option("--out", e->out, "Output directory")->capture_default_str();
+  ev->add_option("--demo", e->demo, "Take the models from this `dojo demo` output")->capture_default_str();
+  ev->add_option("--student", e->student, "Student checkpoint (default: the demo's)");
+  ev->add_option("--teacher", e->teacher, "Evaluate in this teacher checkpoint instead (12-frame chunks)");
+  ev->add_option("--tokenizer", e->tokenizer, "Tokenizer checkpoint (default: the demo's)");
+  ev->add_option("--fast-decoder", e->fast_decoder, "Student's fast decoder (default: the demo's)");
+  ev->add_option("--detector", e->detector, "Success detector (default: OUT/detector, trained when missing)");
+  ev->add_option("--detector-steps", e->detector_steps, "Training steps when the detector is trained here")
+      ->capture_default_str();
+  ev->add_option("--policies", e->policies, "Policy set JSON (default: the built-in 13 scripted policies)");
+  ev->add_option("--bc", e->bc,
+                 "Add the snapshots of this `dojo policy train` run (default: OUT/bc, trained when missing)");
+  ev->add_flag("--no-bc", e->no_bc, "Leave the behaviour-cloning policies out");
+  ev->add_option("--bc-steps", e->bc_steps,
+                 "Training steps when the behaviour-cloning policy is trained here")
+      ->capture_default_str();
+  ev->add_option(
+      "--external", e->external,
+      "NAME=COMMAND: a policy in another process speaking the step protocol (docs/policy_eval.md); "
+      "repeatable");
+  ev->add_option("--external-timeout", e->external_timeout, "Seconds an external policy may take to answer")
+      ->check(CLI::Range(1.0, 1e6))
+      ->capture_default_str();
+  ev->add_option("--scenes", e->scenes, "Scenes per policy")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
+  ev->add_option("--seed", e->seed, "First scene seed")->capture_default_str();
+  ev->add_option("--frames", e->frames, "Frames each policy acts for")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
+  ev->add_option("--settle-frames", e->settle_frames,
+                 "Frames holding the last command before success is read")
+      ->check(CLI::Range(0, 100000))
+      ->capture_default_str();
+  ev->add_flag("--sim-as-world-model", e->sim_as_world_model,
+               "Plug DojoSim in as the world model too (checks the harness: r = 1, MMRV = 0)");
+  add_device_option(ev, e->device);
+  add_precision_option(ev, e->precision);
+  ev->callback([e] { set_action([e] { return run_eval(*e); }); });
+}
+
+}  // namespace dojo::cli

@@ -1,0 +1,316 @@
+#include "eval/policy_eval.h"
+
+#include <torch/torch.h>
+
+#include <chrono>
+#include <cmath>
+#include <fstream>
+#include <map>
+#include <set>
+
+#include "core/error.h"
+#include "core/log.h"
+#include "eval/html_report.h"
+#include "infer/generator.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::eval {
+
+// ------------------------------------------------------------------------------------------------
+// The world model as an environment
+
+WorldModelEnvironment::WorldModelEnvironment(std::string name, std::unique_ptr<infer::Generator> generator,
+                                             data::ActionChunker chunker, models::SuccessDetector detector,
+                                             int64_t votes)
+    : name_(std::move(name)),
+      generator_(std::move(generator)),
+      chunker_(std::move(chunker)),
+      detector_(std::move(detector)),
+      votes_(votes) {
+  DOJO_CHECK(generator_ && detector_,
+             "world-model environment: a generator and a success detector are needed");
+}
+
+WorldModelEnvironment::~WorldModelEnvironment() = default;
+
+int64_t WorldModelEnvironment::actions_per_step() const { return generator_->actions_per_step(); }
+
+torch::Tensor WorldModelEnvironment::reset(const EpisodeStart& start) {
+  DOJO_CHECK(start.command.defined() && start.command.numel() == chunker_.width(),
+             name_ + ": the start command has " +
+                 std::to_string(start.command.defined() ? start.command.numel() : 0) +
+                 " values; the model's actions have " + std::to_string(chunker_.width()));
+  chunker_.reset();
+  chunker_.set_baseline(start.command.to(torch::kFloat32));
+  frames_.clear();
+  frames_.push_back(generator_->reset(start.frame, start.seed));  // [1, H, W, 3]
+  return frames_.back()[-1];
+}
+
+torch::Tensor WorldModelEnvironment::step(const torch::Tensor& commands) {
+  DOJO_CHECK(commands.dim() == 2 && commands.size(0) == generator_->actions_per_step(),
+             name_ + ": a step takes " + std::to_string(generator_->actions_per_step()) + " commands");
+  const auto rows = chunker_.push(commands.to(torch::kFloat32));  // [n, 384]
+  frames_.push_back(generator_->step(rows));                      // [n, H, W, 3]
+  return frames_.back();
+}
+
+double WorldModelEnvironment::success() {
+  return models::success_vote(detector_, video(), votes_) > 0.5 ? 1.0 : 0.0;
+}
+
+torch::Tensor WorldModelEnvironment::video() const { return torch::cat(frames_); }
+
+// ------------------------------------------------------------------------------------------------
+// The behaviour-cloning policy
+
+namespace {
+
+class BcPolicyAdapter : public Policy {
+ public:
+  BcPolicyAdapter(std::string name, models::BcPolicy policy)
+      : name_(std::move(name)), policy_(std::move(policy)) {}
+  const std::string& name() const override { return name_; }
+  void reset(const EpisodeStart&) override {}
+  torch::Tensor act(const torch::Tensor& frames, const torch::Tensor& last_command, int64_t n) override {
+    std::vector<torch::Tensor> chunks;
+    int64_t have = 0;
+    auto last = last_command;
+    while (have < n) {
+      const auto chunk = models::bc_act(policy_, frames[-1], last);  // [chunk, w]
+      chunks.push_back(chunk);
+      have += chunk.size(0);
+      last = chunk[-1];
+    }
+    return torch::cat(chunks).narrow(0, 0, n);  // [n, w]
+  }
+
+ private:
+  std::string name_;
+  models::BcPolicy policy_;
+};
+
+}  // namespace
+
+std::unique_ptr<Policy> make_bc_policy(std::string name, models::BcPolicy policy) {
+  return std::make_unique<BcPolicyAdapter>(std::move(name), std::move(policy));
+}
+
+// ------------------------------------------------------------------------------------------------
+// Episodes
+
+double run_policy_episode(Policy& policy, Environment& env, const EpisodeStart& start,
+                          const PolicyEvalOptions& options) {
+  const int64_t n = env.actions_per_step() > 0 ? env.actions_per_step() : options.actions_per_step;
+  const int64_t width = start.command.numel();
+  auto frames = env.reset(start).unsqueeze(0);  // [1, H, W, 3]
+  policy.reset(start);
+  auto last = start.command.to(torch::kFloat32);
+  for (int64_t k = 0; k < options.steps; ++k) {
+    const auto commands = policy.act(frames, last, n);
+    DOJO_CHECK(
+        commands.defined() && commands.dim() == 2 && commands.size(0) == n && commands.size(1) == width,
+        "policy '" + policy.name() + "': expected " + std::to_string(n) + " commands of width " +
+            std::to_string(width) + " (the environment's action space), got " +
+            (commands.defined() ? "[" + std::to_string(commands.size(0)) + ", " +
+                                      std::to_string(commands.dim() > 1 ? commands.size(1) : 0) + "]"
+                                : std::string("none")));
+    const auto rows = commands.to(torch::kFloat32);
+    DOJO_CHECK(torch::isfinite(rows).all().item<bool>(),
+               "policy '" + policy.name() + "': non-finite command");
+    frames = env.step(rows);  // [n, H, W, 3]
+    last = rows[-1];
+  }
+  const auto hold = last.unsqueeze(0).expand({n, width}).contiguous();
+  for (int64_t k = 0; k < options.settle_steps; ++k) env.step(hold);
+  return env.success();
+}
+
+nlohmann::json EpisodeResult::to_json() const {
+  return {{"policy", policy},
+          {"scene", scene},
+          {"real", real},
+          {"world_model", world_model},
+          {"real_seconds", real_seconds},
+          {"world_model_seconds", world_model_seconds},
+          {"open_loop", open_loop}};
+}
+
+EpisodeResult EpisodeResult::from_json(const nlohmann::json& j) {
+  EpisodeResult r;
+  r.policy = j.at("policy").get<std::string>();
+  r.scene = j.at("scene").get<int64_t>();
+  r.real = j.at("real").get<double>();
+  r.world_model = j.at("world_model").get<double>();
+  r.real_seconds = j.value("real_seconds", 0.0);
+  r.world_model_seconds = j.value("world_model_seconds", 0.0);
+  r.open_loop = j.value("open_loop", false);
+  return r;
+}
+
+PolicyEvalReport summarize_policy_episodes(const std::vector<EpisodeResult>& episodes) {
+  PolicyEvalReport report;
+  report.episodes = episodes;
+  std::map<std::string, std::pair<double, double>> sums;
+  std::map<std::string, int64_t> counts;
+  int64_t agree = 0, open = 0, open_agree = 0;
+  for (const auto& e : episodes) {
+    if (!counts.count(e.policy)) report.rates.names.push_back(e.policy);
+    sums[e.policy].first += e.world_model;
+    sums[e.policy].second += e.real;
+    ++counts[e.policy];
+    const bool same = (e.world_model > 0.5) == (e.real > 0.5);
+    agree += same;
+    open += e.open_loop;
+    open_agree += e.open_loop && same;
+    report.real_seconds_per_episode += e.real_seconds;
+    report.world_model_seconds_per_episode += e.world_model_seconds;
+  }
+  for (const auto& name : report.rates.names) {
+    report.rates.world_model.push_back(sums[name].first / static_cast<double>(counts[name]));
+    report.rates.real.push_back(sums[name].second / static_cast<double>(counts[name]));
+  }
+  if (!episodes.empty()) {
+    const auto n = static_cast<double>(episodes.size());
+    report.episode_agreement = static_cast<double>(agree) / n;
+    report.real_seconds_per_episode /= n;
+    report.world_model_seconds_per_episode /= n;
+  }
+  report.open_loop_agreement =
+      open ? static_cast<double>(open_agree) / static_cast<double>(open) : std::nan("");
+  if (report.rates.names.size() >= 2) report.agreement = policy_agreement(report.rates);
+  return report;
+}
+
+nlohmann::json PolicyEvalReport::to_json() const {
+  nlohmann::json policies = nlohmann::json::array();
+  for (size_t i = 0; i < rates.names.size(); ++i)
+    policies.push_back(
+        {{"name", rates.names[i]}, {"world_model", rates.world_model[i]}, {"real", rates.real[i]}});
+  nlohmann::json eps = nlohmann::json::array();
+  for (const auto& e : episodes) eps.push_back(e.to_json());
+  const auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
+  return {{"policies", policies},
+          {"agreement", agreement.to_json()},
+          {"episode_agreement", number(episode_agreement)},
+          {"open_loop_agreement", number(open_loop_agreement)},
+          {"seconds_per_episode",
+           {{"real", real_seconds_per_episode}, {"world_model", world_model_seconds_per_episode}}},
+          {"episodes", eps}};
+}
+
+namespace {
+
+std::vector<EpisodeResult> read_journal(const fs::path& journal, const nlohmann::json& fingerprint) {
+  std::vector<EpisodeResult> done;
+  std::ifstream in(journal);
+  std::string line;
+  int64_t number = 0;
+  while (std::getline(in, line)) {
+    ++number;
+    if (line.empty()) continue;
+    if (number == 1) {
+      const auto header = nlohmann::json::parse(line, nullptr, false);
+      DOJO_CHECK(!header.is_discarded() && header.contains("fingerprint"),
+                 journal.string() + ":1: not a policy evaluation journal (no 'fingerprint')");
+      DOJO_CHECK(header["fingerprint"] == fingerprint,
+                 journal.string() +
+                     ": written by another evaluation (other models, scenes or options); "
+                     "use another output directory or remove it");
+      continue;
+    }
+    try {
+      done.push_back(EpisodeResult::from_json(nlohmann::json::parse(line)));
+    } catch (const std::exception& e) {
+      // A line cut short by a crash is the only one that can be bad; it is rerun.
+      LOG_WARN(journal.string(), ":", number, ": skipped an unreadable line (", e.what(), ")");
+    }
+  }
+  return done;
+}
+
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+}  // namespace
+
+PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
+                                   const std::vector<EpisodeStart>& scenes, Environment& real,
+                                   Environment& world_model, const PolicyEvalOptions& options,
+                                   const fs::path& journal, const nlohmann::json& fingerprint,
+                                   const std::function<void(int64_t, int64_t)>& on_episode) {
+  DOJO_CHECK(policies.size() >= 2, "policy eval: at least two policies are needed to compare rankings");
+  DOJO_CHECK(!scenes.empty(), "policy eval: no scenes");
+  std::set<std::string> names;
+  for (const auto* p : policies)
+    DOJO_CHECK(names.insert(p->name()).second, "policy eval: two policies are named '" + p->name() + "'");
+  std::vector<EpisodeResult> results;
+  std::set<std::pair<std::string, int64_t>> finished;
+  const bool resuming = !journal.empty() && fs::exists(journal) && fs::file_size(journal) > 0;
+  if (resuming)
+    for (auto& r : read_journal(journal, fingerprint))
+      if (names.count(r.policy) && finished.insert({r.policy, r.scene}).second)
+        results.push_back(std::move(r));
+  std::ofstream out;
+  if (!journal.empty()) {
+    out.open(journal, std::ios::app);
+    DOJO_CHECK(out.good(), journal.string() + ": cannot append to the evaluation journal");
+    if (!resuming) out << nlohmann::json{{"fingerprint", fingerprint}}.dump() << "\n" << std::flush;
+  }
+  const int64_t total = static_cast<int64_t>(policies.size() * scenes.size());
+  int64_t done = static_cast<int64_t>(results.size());
+  for (auto* policy : policies) {
+    for (const auto& start : scenes) {
+      if (finished.count({policy->name(), start.index})) continue;
+      EpisodeResult r;
+      r.policy = policy->name();
+      r.scene = start.index;
+      r.open_loop = policy->open_loop();
+      auto t0 = std::chrono::steady_clock::now();
+      r.real = run_policy_episode(*policy, real, start, options);
+      r.real_seconds = seconds_since(t0);
+      t0 = std::chrono::steady_clock::now();
+      r.world_model = run_policy_episode(*policy, world_model, start, options);
+      r.world_model_seconds = seconds_since(t0);
+      if (out.is_open()) out << r.to_json().dump() << "\n" << std::flush;
+      results.push_back(r);
+      if (on_episode) on_episode(++done, total);
+    }
+  }
+  // Report in the order of `policies`, whatever order the journal held them in.
+  std::vector<EpisodeResult> ordered;
+  for (const auto* p : policies)
+    for (const auto& r : results)
+      if (r.policy == p->name()) ordered.push_back(r);
+  return summarize_policy_episodes(ordered);
+}
+
+void write_policy_eval_html(const PolicyEvalReport& report, const fs::path& path,
+                            const std::string& real_name, const std::string& world_model_name) {
+  const auto f = [](double v, int digits = 3) {
+    if (!std::isfinite(v)) return std::string("—");
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.*f", digits, v);
+    return std::string(buf);
+  };
+  HtmlReport html("Policy evaluation: " + world_model_name + " vs " + real_name);
+  html.heading("Agreement");
+  html.table(
+      {"Pearson r", "MMRV", "Spearman ρ", "mean |gap|", "episodes agreeing", "open-loop replays agreeing"},
+      {{f(report.agreement.pearson), f(report.agreement.mmrv), f(report.agreement.spearman),
+        f(report.agreement.mean_abs_gap), f(report.episode_agreement), f(report.open_loop_agreement)}});
+  html.paragraph("Seconds per episode: " + f(report.real_seconds_per_episode, 2) + " in " + real_name + ", " +
+                 f(report.world_model_seconds_per_episode, 2) + " in " + world_model_name + ".");
+  html.unit_scatter("Success rate per policy", report.rates.names, report.rates.real,
+                    report.rates.world_model, "success in " + real_name, "success in " + world_model_name);
+  std::vector<std::vector<std::string>> rows;
+  for (size_t i = 0; i < report.rates.names.size(); ++i)
+    rows.push_back({report.rates.names[i], f(report.rates.real[i]), f(report.rates.world_model[i])});
+  html.heading("Policies");
+  html.table({"policy", real_name, world_model_name}, rows);
+  html.write(path);
+}
+
+}  // namespace dojo::eval

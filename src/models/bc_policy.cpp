@@ -1,0 +1,167 @@
+#include "models/bc_policy.h"
+
+#include <torch/torch.h>
+
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/json_file.h"
+#include "core/state_dict.h"
+#include "io/frame_ops.h"
+
+namespace dojo::models {
+
+namespace nn = torch::nn;
+
+namespace {
+
+std::vector<double> read_stats(const nlohmann::json& j, const char* key, int64_t width) {
+  if (!j.contains(key)) return {};
+  const auto& v = j[key];
+  DOJO_CHECK(v.is_array() && static_cast<int64_t>(v.size()) == width,
+             std::string("bc policy config: field '") + key + "' must be an array of action_dim numbers");
+  std::vector<double> out;
+  for (const auto& x : v) {
+    DOJO_CHECK(x.is_number(), std::string("bc policy config: field '") + key + "' must hold numbers");
+    out.push_back(x.get<double>());
+  }
+  return out;
+}
+
+// The config's statistics as a [A] tensor; `fill` where the config has none.
+torch::Tensor stats_tensor(const std::vector<double>& v, int64_t width, double fill) {
+  if (v.empty()) return torch::full({width}, fill);
+  return torch::tensor(std::vector<float>(v.begin(), v.end()));
+}
+
+// conv 3x3 (stride 2) -> SiLU -> conv 3x3 -> SiLU.
+void add_stage(nn::Sequential& seq, int64_t in, int64_t out) {
+  seq->push_back(nn::Conv2d(nn::Conv2dOptions(in, out, 3).stride(2).padding(1)));
+  seq->push_back(nn::SiLU());
+  seq->push_back(nn::Conv2d(nn::Conv2dOptions(out, out, 3).padding(1)));
+  seq->push_back(nn::SiLU());
+}
+
+}  // namespace
+
+nlohmann::json BcPolicyConfig::to_json() const {
+  nlohmann::json j = {{"size", size},     {"width", width},           {"keypoints", keypoints},
+                      {"hidden", hidden}, {"action_dim", action_dim}, {"chunk", chunk}};
+  if (!command_mean.empty()) j["command_mean"] = command_mean;
+  if (!command_scale.empty()) j["command_scale"] = command_scale;
+  if (!step_scale.empty()) j["step_scale"] = step_scale;
+  return j;
+}
+
+BcPolicyConfig BcPolicyConfig::from_json(const nlohmann::json& j) {
+  BcPolicyConfig c;
+  const JsonFields f(j, "bc policy config");
+  f.get("size", c.size);
+  f.get("width", c.width);
+  f.get("keypoints", c.keypoints);
+  f.get("hidden", c.hidden);
+  f.get("action_dim", c.action_dim);
+  f.get("chunk", c.chunk);
+  for (const auto& [key, value] :
+       std::initializer_list<std::pair<const char*, int64_t>>{{"size", c.size},
+                                                              {"width", c.width},
+                                                              {"keypoints", c.keypoints},
+                                                              {"hidden", c.hidden},
+                                                              {"action_dim", c.action_dim},
+                                                              {"chunk", c.chunk}})
+    check_positive("bc policy config", key, value);
+  DOJO_CHECK(c.size % 8 == 0, "bc policy config: field 'size' must be a multiple of 8");
+  c.command_mean = read_stats(j, "command_mean", c.action_dim);
+  c.command_scale = read_stats(j, "command_scale", c.action_dim);
+  c.step_scale = read_stats(j, "step_scale", c.action_dim);
+  return c;
+}
+
+BcPolicyImpl::BcPolicyImpl(BcPolicyConfig config) : config_(std::move(config)) {
+  const int64_t w = config_.width, A = config_.action_dim;
+  features = nn::Sequential();
+  add_stage(features, 3, w);          // S/2
+  add_stage(features, w, 2 * w);      // S/4
+  add_stage(features, 2 * w, 4 * w);  // S/8
+  register_module("features", features);
+  points = register_module("points", nn::Conv2d(nn::Conv2dOptions(4 * w, config_.keypoints, 1)));
+  const int64_t in = 2 * config_.keypoints + 4 * w + A;
+  head =
+      nn::Sequential(nn::Linear(in, config_.hidden), nn::SiLU(), nn::Linear(config_.hidden, config_.hidden),
+                     nn::SiLU(), nn::Linear(config_.hidden, config_.chunk * A));
+  register_module("head", head);
+  mean_ = register_buffer("command_mean", stats_tensor(config_.command_mean, A, 0.0));
+  scale_ = register_buffer("command_scale", stats_tensor(config_.command_scale, A, 1.0));
+  step_ = register_buffer("step_scale", stats_tensor(config_.step_scale, A, 1.0));
+}
+
+torch::Tensor BcPolicyImpl::forward(const torch::Tensor& images, const torch::Tensor& last_normalised) {
+  const int64_t s = config_.size, A = config_.action_dim;
+  DOJO_CHECK(images.dim() == 4 && images.size(1) == 3 && images.size(2) == s && images.size(3) == s,
+             "bc policy: expected images [B, 3, " + std::to_string(s) + ", " + std::to_string(s) + "]");
+  DOJO_CHECK(
+      last_normalised.dim() == 2 && last_normalised.size(0) == images.size(0) && last_normalised.size(1) == A,
+      "bc policy: expected last commands [B, " + std::to_string(A) + "]");
+  const auto f = features->forward(images * 2 - 1);  // [B, 4w, s/8, s/8]
+  const int64_t B = f.size(0), h = f.size(2), w = f.size(3);
+  // Spatial softmax: each point map's expected position on a [-1, 1] grid.
+  const auto attention = torch::softmax(points->forward(f).flatten(2), 2);  // [B, K, h w]
+  const auto ys = torch::linspace(-1, 1, h, f.options()).view({h, 1}).expand({h, w}).reshape({h * w});
+  const auto xs = torch::linspace(-1, 1, w, f.options()).view({1, w}).expand({h, w}).reshape({h * w});
+  const auto u = (attention * xs).sum(2), v = (attention * ys).sum(2);    // [B, K] each
+  const auto x = torch::cat({u, v, f.mean({2, 3}), last_normalised}, 1);  // [B, 2K + 4w + A]
+  return head->forward(x).view({B, config_.chunk, A});                    // [B, chunk, A]
+}
+
+torch::Tensor BcPolicyImpl::normalise_command(const torch::Tensor& command) const {
+  return (command - mean_) / scale_;
+}
+
+torch::Tensor BcPolicyImpl::offsets_to_commands(const torch::Tensor& offsets,
+                                                const torch::Tensor& last_command) const {
+  return last_command.unsqueeze(1) + offsets * step_;  // [B, chunk, A]
+}
+
+torch::Tensor BcPolicyImpl::commands_to_offsets(const torch::Tensor& commands,
+                                                const torch::Tensor& last_command) const {
+  return (commands - last_command.unsqueeze(1)) / step_;  // [B, chunk, A]
+}
+
+torch::Tensor bc_input(const BcPolicy& policy, const torch::Tensor& frames_u8) {
+  DOJO_CHECK(frames_u8.dim() == 4 && frames_u8.size(3) == 3 && frames_u8.scalar_type() == torch::kUInt8,
+             "bc policy: frames must be [N, H, W, 3] uint8");
+  const int64_t s = policy->config().size;
+  auto f = frames_u8;
+  if (f.size(1) != s || f.size(2) != s) f = io::resize_center_crop(f, s, s);
+  return f.permute({0, 3, 1, 2}).to(torch::kFloat32).div(255.0);  // [N, 3, s, s]
+}
+
+torch::Tensor bc_act(BcPolicy& policy, const torch::Tensor& frame_u8, const torch::Tensor& last_command) {
+  torch::NoGradGuard no_grad;
+  policy->eval();
+  const auto last = last_command.to(torch::kFloat32).reshape({1, -1});  // [1, A]
+  const auto offsets =
+      policy->forward(bc_input(policy, frame_u8.unsqueeze(0)), policy->normalise_command(last));
+  return policy->offsets_to_commands(offsets, last)[0];  // [chunk, A]
+}
+
+CheckpointData bc_policy_checkpoint(const BcPolicyImpl& policy) {
+  CheckpointData data;
+  data.config = {{"model", "bc_policy"}, {"config", policy.config().to_json()}};
+  for (const auto& [name, t] : state_dict(policy)) data.model.emplace_back("policy." + name, t);
+  return data;
+}
+
+BcPolicy load_bc_policy(const std::filesystem::path& dir) {
+  const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
+  const auto& cfg = ckpt.config();
+  DOJO_CHECK(cfg.value("model", std::string()) == "bc_policy" && cfg.contains("config"),
+             (ckpt.dir() / "config.json").string() + ": not a policy checkpoint (model != bc_policy)");
+  BcPolicy policy(BcPolicyConfig::from_json(cfg["config"]));
+  LoadOptions opts;
+  opts.prefix = "policy.";
+  load_state_dict(*policy, ckpt.model(), opts);
+  policy->eval();
+  return policy;
+}
+
+}  // namespace dojo::models

@@ -1,0 +1,339 @@
+#include "recipes/dojosim_policies.h"
+
+#include <torch/torch.h>
+
+#include <cmath>
+#include <random>
+#include <set>
+
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/json_file.h"
+#include "core/log.h"
+#include "sim/renderer.h"
+#include "sim/skills.h"
+#include "sim/task.h"
+#include "sim/world.h"
+#include "train/bc_train.h"
+#include "train/success_train.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::recipes {
+namespace {
+
+// FNV-1a: a policy's name as a seed offset that is the same on every platform.
+uint64_t name_hash(const std::string& name) {
+  uint64_t h = 1469598103934665603ull;
+  for (const unsigned char c : name) h = (h ^ c) * 1099511628211ull;
+  return h;
+}
+
+sim::SceneSpec policy_scene(uint64_t seed, int size) {
+  sim::SceneSampling sampling;
+  sampling.min_objects = sampling.max_objects = 1;  // one object: an episode succeeds or fails
+  sampling.bin_probability = 1.0;
+  sampling.width = sampling.height = size;
+  return sim::sample_scene(sim::Embodiment::kRobot, sampling, seed);
+}
+
+torch::Tensor to_frame(std::vector<uint8_t> rgb, int height, int width) {
+  return torch::from_blob(rgb.data(), {height, width, 3}, torch::kUInt8).clone();  // [H, W, 3]
+}
+
+torch::Tensor to_tensor(const std::vector<double>& v) {
+  return torch::tensor(std::vector<float>(v.begin(), v.end()), torch::kFloat32);
+}
+
+std::vector<double> to_vector(const torch::Tensor& row) {
+  const auto r = row.to(torch::kFloat64).contiguous();
+  return std::vector<double>(r.data_ptr<double>(), r.data_ptr<double>() + r.numel());
+}
+
+// The world at frame 0 of a scene.
+std::unique_ptr<sim::World> start_world(const eval::EpisodeStart& start) {
+  auto world = std::make_unique<sim::World>(sim::scene_from_json(start.scene));
+  world->hold(kSettleSteps);
+  return world;
+}
+
+sim::PolicyQuality quality_from_json(const nlohmann::json& j, const std::string& where) {
+  if (j.is_string()) return sim::PolicyQuality::preset(j.get<std::string>());
+  DOJO_CHECK(j.is_object(), where + ": 'quality' must be a preset name or an object of knobs");
+  sim::PolicyQuality q;
+  const JsonFields f(j, where + ".quality");
+  int64_t delay = q.delay_steps;
+  f.get("noise_std", q.noise_std);
+  f.get("delay_steps", delay);
+  f.get("miss_prob", q.miss_prob);
+  f.get("wrong_target_prob", q.wrong_target_prob);
+  f.get("wrong_object_prob", q.wrong_object_prob);
+  f.get("early_release_prob", q.early_release_prob);
+  f.get("speed", q.speed);
+  q.delay_steps = static_cast<int>(delay);
+  static const std::set<std::string> kKnown = {
+      "noise_std",         "delay_steps",        "miss_prob", "wrong_target_prob",
+      "wrong_object_prob", "early_release_prob", "speed"};
+  for (const auto& [key, value] : j.items())
+    DOJO_CHECK(kKnown.count(key), where + ".quality: unknown knob '" + key + "'");
+  for (double p : {q.miss_prob, q.wrong_target_prob, q.wrong_object_prob, q.early_release_prob})
+    DOJO_CHECK(p >= 0 && p <= 1, where + ".quality: probabilities must be in [0, 1]");
+  DOJO_CHECK(q.noise_std >= 0, where + ".quality: noise_std must be >= 0");
+  return q;
+}
+
+class ScriptedPolicy : public eval::Policy {
+ public:
+  explicit ScriptedPolicy(PolicySpec spec) : spec_(std::move(spec)) {
+    if (spec_.behavior != "idle") {
+      options_.behavior = sim::parse_robot_behavior(spec_.behavior);
+      options_.quality = quality_from_json(spec_.quality, "policy '" + spec_.name + "'");
+    }
+  }
+  const std::string& name() const override { return spec_.name; }
+  bool open_loop() const override { return true; }
+  void reset(const eval::EpisodeStart& start) override {
+    step_ = 0;
+    world_ = start_world(start);
+    // Each policy draws its own randomness per scene.
+    controller_ =
+        spec_.behavior == "idle"
+            ? nullptr
+            : sim::make_robot_controller(*world_, options_, start.seed * 1000003 + name_hash(spec_.name));
+  }
+  torch::Tensor act(const torch::Tensor&, const torch::Tensor& last_command, int64_t n) override {
+    if (!controller_) return last_command.unsqueeze(0).expand({n, last_command.numel()}).clone();
+    std::vector<torch::Tensor> rows;
+    for (int64_t i = 0; i < n; ++i) {
+      const auto command = controller_->act(*world_, step_++);
+      world_->step(command);  // the plan's own copy of the scene follows its commands
+      rows.push_back(to_tensor(command));
+    }
+    return torch::stack(rows);  // [n, 6]
+  }
+
+ private:
+  PolicySpec spec_;
+  sim::RobotPolicyOptions options_;
+  std::unique_ptr<sim::World> world_;
+  std::unique_ptr<sim::Controller> controller_;
+  int step_ = 0;
+};
+
+}  // namespace
+
+std::vector<eval::EpisodeStart> make_policy_scenes(const PolicySceneOptions& options) {
+  DOJO_CHECK(options.count > 0, "policy scenes: the count must be positive");
+  sim::Renderer renderer;
+  std::vector<eval::EpisodeStart> scenes;
+  for (int64_t i = 0; i < options.count; ++i) {
+    eval::EpisodeStart s;
+    s.index = i;
+    s.seed = options.seed + static_cast<uint64_t>(i);
+    const auto spec = policy_scene(s.seed, options.size);
+    s.scene = sim::to_json(spec);
+    const auto world = start_world(s);
+    s.frame = to_frame(renderer.render(*world), spec.height, spec.width);
+    s.command = to_tensor(world->last_command());
+    scenes.push_back(std::move(s));
+  }
+  return scenes;
+}
+
+DojoSimEnvironment::DojoSimEnvironment() : renderer_(std::make_unique<sim::Renderer>()) {}
+DojoSimEnvironment::~DojoSimEnvironment() = default;
+
+torch::Tensor DojoSimEnvironment::reset(const eval::EpisodeStart& start) {
+  world_ = start_world(start);
+  return to_frame(renderer_->render(*world_), world_->spec().height, world_->spec().width);
+}
+
+torch::Tensor DojoSimEnvironment::step(const torch::Tensor& commands) {
+  DOJO_CHECK(world_, "DojoSim: reset before step");
+  DOJO_CHECK(commands.dim() == 2 && commands.size(1) == world_->action_dim(),
+             "DojoSim: commands must be [n, " + std::to_string(world_->action_dim()) + "]");
+  std::vector<torch::Tensor> frames;
+  for (int64_t i = 0; i < commands.size(0); ++i) {
+    world_->step(to_vector(commands[i]));
+    frames.push_back(to_frame(renderer_->render(*world_), world_->spec().height, world_->spec().width));
+  }
+  return torch::stack(frames);  // [n, H, W, 3]
+}
+
+double DojoSimEnvironment::success() { return success_now(); }
+
+double DojoSimEnvironment::success_now() const {
+  DOJO_CHECK(world_, "DojoSim: reset before asking for success");
+  return sim::bin_success(*world_);
+}
+
+std::unique_ptr<eval::Policy> make_scripted_policy(const PolicySpec& spec) {
+  DOJO_CHECK(!spec.name.empty(), "scripted policy: a name is needed");
+  DOJO_CHECK(spec.scripted(), "policy '" + spec.name + "' is not a scripted one");
+  return std::make_unique<ScriptedPolicy>(spec);
+}
+
+std::vector<PolicySpec> default_policy_set() {
+  const auto knobs = [](std::initializer_list<std::pair<const std::string, double>> k) {
+    nlohmann::json j = nlohmann::json::object();
+    for (const auto& [key, value] : k) j[key] = value;
+    return j;
+  };
+  return {
+      {"expert", "bin_pick", "expert"},
+      {"good", "bin_pick", "good"},
+      {"medium", "bin_pick", "medium"},
+      {"poor", "bin_pick", "poor"},
+      {"slow", "bin_pick", knobs({{"speed", 0.6}})},
+      {"noisy", "bin_pick", knobs({{"noise_std", 0.05}})},
+      {"very-noisy", "bin_pick", knobs({{"noise_std", 0.1}})},
+      {"late", "bin_pick", knobs({{"delay_steps", 3}, {"noise_std", 0.02}})},
+      {"misses-half", "bin_pick", knobs({{"miss_prob", 0.5}})},
+      {"drops-half", "bin_pick", knobs({{"early_release_prob", 0.5}})},
+      {"wrong-place", "bin_pick", knobs({{"wrong_target_prob", 0.8}})},
+      {"random", "random_motion", "expert"},
+      {"idle", "idle", "expert"},
+  };
+}
+
+std::vector<PolicySpec> read_policy_set(const fs::path& path) {
+  const auto j = read_json_file(path);
+  DOJO_CHECK(j.is_object() && j.contains("policies") && j["policies"].is_array() && !j["policies"].empty(),
+             path.string() +
+                 ": expected {\"policies\": [{\"name\": ..., \"behavior\": ..., \"quality\": ...}, ...]}");
+  std::vector<PolicySpec> out;
+  std::set<std::string> names;
+  for (size_t i = 0; i < j["policies"].size(); ++i) {
+    const auto& p = j["policies"][i];
+    const auto where = path.string() + ": policies[" + std::to_string(i) + "]";
+    DOJO_CHECK(
+        p.is_object() && p.contains("name") && p["name"].is_string() && !p["name"].get<std::string>().empty(),
+        where + ": needs a non-empty string 'name'");
+    PolicySpec s;
+    s.name = p["name"].get<std::string>();
+    DOJO_CHECK(names.insert(s.name).second, where + ": the name '" + s.name + "' is used twice");
+    const int kinds =
+        p.contains("checkpoint") + p.contains("command") + (p.contains("behavior") || p.contains("quality"));
+    DOJO_CHECK(kinds <= 1, where +
+                               ": give one of 'behavior'/'quality' (scripted), 'checkpoint' (learned) "
+                               "or 'command' (external)");
+    for (const char* key : {"behavior", "checkpoint", "command"})
+      DOJO_CHECK(!p.contains(key) || (p[key].is_string() && !p[key].get<std::string>().empty()),
+                 where + ": '" + key + "' must be a non-empty string");
+    for (const auto& [key, value] : p.items())
+      DOJO_CHECK(
+          key == "name" || key == "behavior" || key == "quality" || key == "checkpoint" || key == "command",
+          where + ": unknown field '" + key + "'");
+    if (p.contains("behavior")) s.behavior = p["behavior"].get<std::string>();
+    if (p.contains("quality")) s.quality = p["quality"];
+    if (p.contains("command")) s.command = p["command"].get<std::string>();
+    if (p.contains("checkpoint")) {
+      s.checkpoint = p["checkpoint"].get<std::string>();
+      if (s.checkpoint.is_relative()) s.checkpoint = path.parent_path() / s.checkpoint;
+      DOJO_CHECK(checkpoint_exists(s.checkpoint), where + ": no checkpoint at " + s.checkpoint.string());
+    }
+    if (s.scripted()) {
+      try {
+        make_scripted_policy(s);  // checks the behaviour and the knobs
+      } catch (const std::exception& e) {
+        throw Error(where + " ('" + s.name + "'): " + e.what());
+      }
+    }
+    out.push_back(std::move(s));
+  }
+  return out;
+}
+
+void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDataOptions& options,
+                       const fs::path& path) {
+  DOJO_CHECK(!policies.empty() && options.scenes > 0, "success data: policies and scenes are needed");
+  PolicySceneOptions scene_options;
+  scene_options.count = options.scenes;
+  scene_options.seed = options.seed;
+  scene_options.size = options.size;
+  const auto scenes = make_policy_scenes(scene_options);
+  const int64_t n = options.episode.actions_per_step;
+  const int64_t steps = options.episode.steps + options.episode.settle_steps;
+  const auto heldout_from =
+      static_cast<int64_t>(std::lround(static_cast<double>(options.scenes) * (1 - options.heldout_fraction)));
+  DojoSimEnvironment env;
+  std::vector<torch::Tensor> videos, labels;
+  std::vector<uint8_t> heldout;
+  for (const auto& spec : policies) {
+    if (!spec.scripted()) continue;  // labelled episodes come from the scripted policies
+    auto policy = make_scripted_policy(spec);
+    for (const auto& start : scenes) {
+      std::vector<torch::Tensor> frames{env.reset(start).unsqueeze(0)};
+      std::vector<float> label{static_cast<float>(env.success_now() > 0.5)};
+      policy->reset(start);
+      auto last = start.command;
+      for (int64_t k = 0; k < steps; ++k) {
+        const auto commands = k < options.episode.steps ? policy->act(frames.back(), last, n)
+                                                        : last.unsqueeze(0).expand({n, -1});
+        last = commands[-1].clone();
+        // Step one command at a time so every frame gets the label of its own state.
+        for (int64_t i = 0; i < n; ++i) {
+          frames.push_back(env.step(commands.narrow(0, i, 1)));
+          label.push_back(static_cast<float>(env.success_now() > 0.5));
+        }
+      }
+      videos.push_back(torch::cat(frames));  // [T, H, W, 3]
+      labels.push_back(torch::tensor(label));
+      heldout.push_back(start.index >= heldout_from);
+    }
+    LOG_INFO("success data: ", spec.name, " done");
+  }
+  train::SuccessData data;
+  data.frames = torch::stack(videos);  // [E, T, H, W, 3]
+  data.labels = torch::stack(labels);  // [E, T]
+  data.heldout = torch::tensor(std::vector<int64_t>(heldout.begin(), heldout.end())).to(torch::kBool);
+  data.save(path);
+}
+
+void make_demonstrations(const DemonstrationOptions& options, const fs::path& path) {
+  DOJO_CHECK(options.episodes > 0 && options.frames > 0,
+             "demonstrations: episodes and frames must be positive");
+  sim::Renderer renderer;
+  sim::RobotPolicyOptions expert;
+  expert.quality = sim::PolicyQuality::preset("expert");
+  const auto heldout_from = static_cast<int64_t>(
+      std::lround(static_cast<double>(options.episodes) * (1 - options.heldout_fraction)));
+  constexpr double kNoiseMemory = 0.8;  // AR(1): noise that drifts over a few steps, like a real error
+  std::vector<torch::Tensor> videos, executed, labels;
+  std::vector<uint8_t> heldout;
+  for (int64_t e = 0; e < options.episodes; ++e) {
+    eval::EpisodeStart start;
+    start.seed = options.seed + static_cast<uint64_t>(e);
+    start.scene = sim::to_json(policy_scene(start.seed, options.size));
+    auto world = start_world(start);
+    const auto controller = sim::make_robot_controller(*world, expert, start.seed);
+    std::mt19937_64 rng(start.seed ^ 0x5eedda27ull);
+    std::normal_distribution<double> normal(0.0,
+                                            options.noise_std * std::sqrt(1 - kNoiseMemory * kNoiseMemory));
+    std::vector<double> noise(world->action_dim(), 0.0);
+    std::vector<torch::Tensor> frames, in_force, said;
+    for (int64_t t = 0; t < options.frames; ++t) {
+      frames.push_back(to_frame(renderer.render(*world), world->spec().height, world->spec().width));
+      in_force.push_back(to_tensor(world->last_command()));
+      auto command = controller->act(*world, static_cast<int>(t));
+      said.push_back(to_tensor(command));
+      for (size_t j = 0; j + 1 < command.size(); ++j) {  // the arm's joints; the gripper stays as told
+        noise[j] = options.noise_std > 0 ? kNoiseMemory * noise[j] + normal(rng) : 0.0;
+        command[j] += noise[j];
+      }
+      world->step(command);
+    }
+    videos.push_back(torch::stack(frames));  // [T, H, W, 3]
+    executed.push_back(torch::stack(in_force));
+    labels.push_back(torch::stack(said));
+    heldout.push_back(e >= heldout_from);
+  }
+  train::Demonstrations data;
+  data.frames = torch::stack(videos);      // [E, T, H, W, 3]
+  data.executed = torch::stack(executed);  // [E, T, A]
+  data.labels = torch::stack(labels);      // [E, T, A]
+  data.heldout = torch::tensor(std::vector<int64_t>(heldout.begin(), heldout.end())).to(torch::kBool);
+  data.save(path);
+}
+
+}  // namespace dojo::recipes

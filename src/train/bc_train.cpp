@@ -1,0 +1,243 @@
+#include "train/bc_train.h"
+
+#include <torch/torch.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <deque>
+#include <set>
+#include <sstream>
+
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/safetensors.h"
+#include "train/train_loop.h"
+#include "train/train_util.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::train {
+
+Demonstrations Demonstrations::load(const fs::path& path) {
+  const auto file = SafetensorsFile::open(path);
+  Demonstrations d;
+  d.frames = file.tensor("frames", true);
+  d.executed = file.tensor("executed", true).to(torch::kFloat32);
+  d.labels = file.tensor("labels", true).to(torch::kFloat32);
+  d.heldout = file.tensor("heldout", true).to(torch::kBool);
+  const auto where = path.string() + ": ";
+  DOJO_CHECK(d.frames.dim() == 5 && d.frames.size(4) == 3 && d.frames.scalar_type() == torch::kUInt8,
+             where + "'frames' must be [E, T, H, W, 3] uint8");
+  const int64_t E = d.frames.size(0), T = d.frames.size(1);
+  for (const auto& [name, t] :
+       {std::pair<const char*, const torch::Tensor&>{"executed", d.executed}, {"labels", d.labels}})
+    DOJO_CHECK(t.dim() == 3 && t.size(0) == E && t.size(1) == T,
+               where + "'" + name + "' must be [E, T, A], one row per frame");
+  DOJO_CHECK(d.executed.size(2) == d.labels.size(2), where + "'executed' and 'labels' differ in width");
+  DOJO_CHECK(d.heldout.dim() == 1 && d.heldout.size(0) == E, where + "'heldout' must be [E]");
+  return d;
+}
+
+void Demonstrations::save(const fs::path& path) const {
+  save_safetensors(path, {{"frames", frames},
+                          {"executed", executed},
+                          {"labels", labels},
+                          {"heldout", heldout.to(torch::kUInt8)}});
+}
+
+namespace {
+
+// Every (episode, frame) of episodes `which` from which a whole chunk of labels follows.
+struct Samples {
+  torch::Tensor episode, frame;  // [N] long each
+};
+
+Samples samples_of(const Demonstrations& data, const torch::Tensor& which, int64_t chunk) {
+  const int64_t T = data.frames.size(1);
+  std::vector<int64_t> episode, frame;
+  const auto mask = which.to(torch::kBool);
+  for (int64_t e = 0; e < data.frames.size(0); ++e) {
+    if (!mask[e].item<bool>()) continue;
+    for (int64_t t = 0; t + chunk <= T; ++t) {
+      episode.push_back(e);
+      frame.push_back(t);
+    }
+  }
+  return {torch::tensor(episode, torch::kLong), torch::tensor(frame, torch::kLong)};
+}
+
+struct Batch {
+  torch::Tensor frames, last, target;  // [B, H, W, 3] uint8, [B, A], [B, chunk, A] raw
+};
+
+Batch gather(const Demonstrations& data, const torch::Tensor& episode, const torch::Tensor& frame,
+             int64_t chunk) {
+  std::vector<torch::Tensor> frames, last, target;
+  for (int64_t i = 0; i < episode.size(0); ++i) {
+    const int64_t e = episode[i].item<int64_t>(), t = frame[i].item<int64_t>();
+    frames.push_back(data.frames[e][t]);
+    last.push_back(data.executed[e][t]);
+    target.push_back(data.labels[e].narrow(0, t, chunk));
+  }
+  return {torch::stack(frames), torch::stack(last), torch::stack(target)};
+}
+
+// Per-dimension statistics of the training episodes: where commands sit and how far a chunk
+// moves them (a floor keeps a dimension that never moves from dividing by zero).
+void measure_statistics(const Demonstrations& data, const Samples& train, models::BcPolicyConfig& config) {
+  const auto executed = data.executed.index({train.episode, train.frame});  // [N, A]
+  const auto batch = gather(data, train.episode, train.frame, config.chunk);
+  const auto offsets = batch.target - batch.last.unsqueeze(1);  // [N, chunk, A]
+  const auto to_vector = [](const torch::Tensor& t) {
+    const auto d = t.to(torch::kFloat64).contiguous();
+    return std::vector<double>(d.data_ptr<double>(), d.data_ptr<double>() + d.numel());
+  };
+  config.command_mean = to_vector(executed.mean(0));
+  config.command_scale = to_vector(executed.std(0).clamp_min(1e-3));
+  config.step_scale = to_vector(offsets.pow(2).mean(std::vector<int64_t>{0, 1}).sqrt().clamp_min(1e-3));
+}
+
+// Random translation by up to `shift` pixels: pad by replicating the border, crop at an offset.
+torch::Tensor random_shift(const torch::Tensor& images, int64_t shift, torch::Generator& gen) {
+  if (shift <= 0) return images;
+  const int64_t B = images.size(0), S = images.size(2);
+  const auto padded = torch::replication_pad2d(images, {shift, shift, shift, shift});
+  const auto at = torch::randint(2 * shift + 1, {B, 2}, gen);
+  std::vector<torch::Tensor> out;
+  for (int64_t b = 0; b < B; ++b)
+    out.push_back(padded[b].narrow(1, at[b][0].item<int64_t>(), S).narrow(2, at[b][1].item<int64_t>(), S));
+  return torch::stack(out);
+}
+
+fs::path snapshot_dir(const fs::path& out, int64_t step) {
+  char name[32];
+  std::snprintf(name, sizeof(name), "step-%06lld", static_cast<long long>(step));
+  return out / "snapshots" / name;
+}
+
+}  // namespace
+
+std::vector<fs::path> list_bc_snapshots(const fs::path& out) {
+  std::set<fs::path> found;
+  if (fs::exists(out / "snapshots"))
+    for (const auto& entry : fs::directory_iterator(out / "snapshots")) {
+      auto name = entry.path().filename().string();
+      // A save interrupted between its renames leaves only NAME.dojo-old (core/checkpoint.h).
+      if (name.size() > 9 && name.compare(name.size() - 9, 9, ".dojo-old") == 0) name.resize(name.size() - 9);
+      const bool step_name = name.size() == 11 && name.rfind("step-", 0) == 0 &&
+                             name.find_first_not_of("0123456789", 5) == std::string::npos;
+      if (step_name && checkpoint_exists(out / "snapshots" / name)) found.insert(out / "snapshots" / name);
+    }
+  return {found.begin(), found.end()};
+}
+
+double bc_loss(models::BcPolicy& policy, const Demonstrations& data, const torch::Tensor& which) {
+  torch::NoGradGuard no_grad;
+  policy->eval();
+  const auto samples = samples_of(data, which, policy->config().chunk);
+  const int64_t N = samples.episode.size(0);
+  if (N == 0) return std::nan("");
+  double sum = 0;
+  for (int64_t i = 0; i < N; i += 256) {
+    const int64_t n = std::min<int64_t>(256, N - i);
+    const auto b =
+        gather(data, samples.episode.narrow(0, i, n), samples.frame.narrow(0, i, n), policy->config().chunk);
+    const auto predicted =
+        policy->forward(models::bc_input(policy, b.frames), policy->normalise_command(b.last));
+    sum +=
+        (predicted - policy->commands_to_offsets(b.target, b.last)).pow(2).mean({1, 2}).sum().item<double>();
+  }
+  return sum / static_cast<double>(N);
+}
+
+BcTrainResult run_bc_training(const BcTrainJob& job) {
+  DOJO_CHECK(job.batch_size > 0 && job.steps >= 0, "bc train: batch must be positive and steps >= 0");
+  const auto data = Demonstrations::load(job.data);
+  fs::create_directories(job.out);
+  const auto ckpt_dir = job.out / "checkpoint";
+  const bool resuming = checkpoint_exists(ckpt_dir);
+  auto config = resuming ? models::BcPolicyConfig::from_json(
+                               Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config().at("config"))
+                         : job.model;
+  DOJO_CHECK(data.executed.size(2) == config.action_dim,
+             job.data.string() + ": commands have " + std::to_string(data.executed.size(2)) +
+                 " values; the policy's action_dim is " + std::to_string(config.action_dim));
+  const auto train = samples_of(data, data.heldout.logical_not(), config.chunk);
+  DOJO_CHECK(train.episode.numel() > 0,
+             job.data.string() + ": no training episode is long enough for a chunk");
+  if (!resuming) measure_statistics(data, train, config);
+  LOG_INFO("bc train: ", train.episode.numel(), " training samples from ",
+           data.heldout.logical_not().sum().item<int64_t>(), " episodes");
+
+  torch::manual_seed(job.seed);
+  models::BcPolicy policy(config);
+  torch::optim::AdamW opt(policy->parameters(), torch::optim::AdamWOptions(job.lr).weight_decay(1e-4));
+  int64_t start = 0;
+  if (resuming) {
+    start = resume_with_adamw(ckpt_dir, *policy, "policy.", opt);
+    LOG_INFO("bc train: resumed from ", ckpt_dir.string(), " at step ", start);
+  }
+  const auto save_snapshot = [&](int64_t step) {
+    save_checkpoint(snapshot_dir(job.out, step), models::bc_policy_checkpoint(*policy));
+  };
+  if (start == 0 && std::count(job.snapshots.begin(), job.snapshots.end(), 0)) save_snapshot(0);
+  policy->train();
+
+  LoopOptions loop;
+  loop.name = "bc train";
+  loop.steps = job.steps;
+  loop.time_budget_s = job.time_budget_s;
+  loop.save_every = job.save_every;
+  loop.loss_curve = job.out / "loss.csv";
+  loop.columns = {"loss"};
+  loop.unit = "frames";
+  std::deque<double> recent;
+  const auto run = run_training_loop(
+      loop, start,
+      [&](const LoopStep& s) {
+        auto gen = step_generator(job.seed, s.index);
+        const auto pick = torch::randint(train.episode.numel(), {job.batch_size}, gen);
+        const auto b = gather(data, train.episode.index_select(0, pick), train.frame.index_select(0, pick),
+                              config.chunk);
+        auto images = models::bc_input(policy, b.frames);  // [B, 3, S, S]
+        const int64_t B = images.size(0);
+        images = random_shift(images, job.shift, gen);
+        const auto offset = (torch::rand({B, 1, 1, 1}, gen) * 2 - 1) * job.brightness;
+        const auto blurred = torch::rand({B}, gen) < job.blur_probability;
+        const auto sigma = (torch::rand({B}, gen) * 1.2 + 0.3) * blurred.to(torch::kFloat32);
+        images = gaussian_blur(images, sigma).add(offset).clamp(0, 1);
+        const double warm = std::min(1.0, static_cast<double>(s.index + 1) / 50.0);
+        const double progress =
+            static_cast<double>(s.index) / static_cast<double>(std::max<int64_t>(1, job.steps));
+        const double lr = job.lr * warm * (0.1 + 0.9 * 0.5 * (1 + std::cos(M_PI * std::min(1.0, progress))));
+        for (auto& group : opt.param_groups())
+          static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
+        const auto predicted = policy->forward(images, policy->normalise_command(b.last));  // [B, chunk, A]
+        const auto loss = torch::mse_loss(predicted, policy->commands_to_offsets(b.target, b.last));
+        opt.zero_grad();
+        loss.backward();
+        opt.step();
+        const double value = loss.item<double>();
+        recent.push_back(value);
+        if (recent.size() > 20) recent.pop_front();
+        if (std::count(job.snapshots.begin(), job.snapshots.end(), s.index + 1)) save_snapshot(s.index + 1);
+        std::ostringstream note;
+        note << "loss " << value;
+        return StepRecord{{value}, B, note.str()};
+      },
+      [&](int64_t steps_done, bool) {
+        save_with_adamw(ckpt_dir, models::bc_policy_checkpoint(*policy), opt, *policy, steps_done);
+      });
+  if (!checkpoint_exists(snapshot_dir(job.out, run.end_step))) save_snapshot(run.end_step);
+  BcTrainResult r;
+  r.steps = run.end_step;
+  for (double v : recent) r.loss += v / static_cast<double>(recent.size());
+  r.seconds = run.seconds;
+  r.heldout_loss = bc_loss(policy, data, data.heldout);
+  r.snapshots = list_bc_snapshots(job.out);
+  return r;
+}
+
+}  // namespace dojo::train

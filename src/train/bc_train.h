@@ -1,0 +1,61 @@
+// Training the behaviour-cloning policy (models/bc_policy.h) on demonstrations: episodes of
+// frames, the command in force at each frame and the demonstrator's command after seeing it.
+// Snapshots at chosen steps are kept as inference checkpoints: a partly trained policy is a
+// policy of lower quality, which is what policy evaluation needs many of.
+#pragma once
+
+#include <torch/types.h>
+
+#include <cstdint>
+#include <filesystem>
+#include <vector>
+
+#include "models/bc_policy.h"
+
+namespace dojo::train {
+
+// Demonstrations, one file: "frames" [E, T, H, W, 3] uint8; "executed" [E, T, A] the command in
+// force at each frame (what the robot was last told: the policy's proprioception); "labels"
+// [E, T, A] the demonstrator's command after seeing frame t (with noise injected into the
+// executed commands, the labels stay the clean ones, so the policy learns to recover);
+// "heldout" [E] uint8 (1: never trained on).
+struct Demonstrations {
+  torch::Tensor frames, executed, labels, heldout;
+  static Demonstrations load(const std::filesystem::path& path);  // throws dojo::Error naming file and tensor
+  void save(const std::filesystem::path& path) const;             // atomically
+};
+
+struct BcTrainJob {
+  std::filesystem::path data;  // a Demonstrations file
+  std::filesystem::path out;   // out/checkpoint, out/snapshots/step-NNNNNN, out/loss.csv
+  models::BcPolicyConfig model;
+  int batch_size = 64;
+  int64_t steps = 3000;  // total (a resumed job continues up to this)
+  double time_budget_s = 0;
+  int64_t save_every = 500;
+  std::vector<int64_t> snapshots = {100, 300, 1000};  // kept besides the final one
+  double lr = 1e-3;  // AdamW, linear warm-up over 50 steps, cosine decay to a tenth
+  double blur_probability = 0.5;
+  double brightness = 0.1;
+  int64_t shift = 4;  // random translation in pixels (pad and crop)
+  uint64_t seed = 0;
+};
+
+struct BcTrainResult {
+  int64_t steps = 0;
+  double loss = 0;                               // mean of the last 20 steps (offsets in step units, squared)
+  double heldout_loss = 0;                       // the same on the held-out episodes, without augmentation
+  std::vector<std::filesystem::path> snapshots;  // every snapshot in out/snapshots, by step
+  double seconds = 0;
+};
+
+// Trains, resuming from out/checkpoint when it exists.
+BcTrainResult run_bc_training(const BcTrainJob& job);
+
+// The snapshots a run into `out` kept (out/snapshots/step-NNNNNN), in step order.
+std::vector<std::filesystem::path> list_bc_snapshots(const std::filesystem::path& out);
+
+// Mean squared offset error of `policy` on episodes `which` [E] (bool) of `data`.
+double bc_loss(models::BcPolicy& policy, const Demonstrations& data, const torch::Tensor& which);
+
+}  // namespace dojo::train

@@ -1,0 +1,186 @@
+#include "train/success_train.h"
+
+#include <torch/torch.h>
+
+#include <deque>
+#include <sstream>
+
+#include "core/checkpoint.h"
+#include "core/error.h"
+#include "core/log.h"
+#include "core/safetensors.h"
+#include "train/train_loop.h"
+#include "train/train_util.h"
+
+namespace fs = std::filesystem;
+
+namespace dojo::train {
+
+SuccessData SuccessData::load(const fs::path& path) {
+  const auto file = SafetensorsFile::open(path);
+  SuccessData d;
+  d.frames = file.tensor("frames", true);
+  d.labels = file.tensor("labels", true).to(torch::kFloat32);
+  d.heldout = file.tensor("heldout", true).to(torch::kBool);
+  const auto where = path.string() + ": ";
+  DOJO_CHECK(d.frames.dim() == 5 && d.frames.size(4) == 3 && d.frames.scalar_type() == torch::kUInt8,
+             where + "'frames' must be [E, T, H, W, 3] uint8");
+  DOJO_CHECK(
+      d.labels.dim() == 2 && d.labels.size(0) == d.frames.size(0) && d.labels.size(1) == d.frames.size(1),
+      where + "'labels' must be [E, T], one per frame");
+  DOJO_CHECK(d.heldout.dim() == 1 && d.heldout.size(0) == d.frames.size(0), where + "'heldout' must be [E]");
+  return d;
+}
+
+void SuccessData::save(const fs::path& path) const {
+  save_safetensors(path, {{"frames", frames}, {"labels", labels}, {"heldout", heldout.to(torch::kUInt8)}});
+}
+
+namespace {
+
+// All (episode, last frame) pairs of episodes `which` whose window fits, and their labels.
+struct Windows {
+  torch::Tensor episode, end, label;  // [N] long, [N] long, [N] float
+};
+
+Windows windows_of(const SuccessData& data, const torch::Tensor& which, int64_t k) {
+  const int64_t T = data.frames.size(1);
+  std::vector<int64_t> episode, end;
+  const auto mask = which.to(torch::kBool);
+  for (int64_t e = 0; e < data.frames.size(0); ++e) {
+    if (!mask[e].item<bool>()) continue;
+    for (int64_t t = k - 1; t < T; ++t) {
+      episode.push_back(e);
+      end.push_back(t);
+    }
+  }
+  Windows w;
+  w.episode = torch::tensor(episode, torch::kLong);
+  w.end = torch::tensor(end, torch::kLong);
+  w.label = w.episode.numel() ? data.labels.index({w.episode, w.end}) : torch::zeros({0});
+  return w;
+}
+
+// uint8 windows [N, k, H, W, 3] ending at the given frames.
+torch::Tensor gather_windows(const SuccessData& data, const torch::Tensor& episode, const torch::Tensor& end,
+                             int64_t k) {
+  std::vector<torch::Tensor> out;
+  for (int64_t i = 0; i < episode.size(0); ++i)
+    out.push_back(data.frames[episode[i].item<int64_t>()].narrow(0, end[i].item<int64_t>() - k + 1, k));
+  return torch::stack(out);
+}
+
+}  // namespace
+
+SuccessAccuracy success_accuracy(models::SuccessDetector& detector, const SuccessData& data,
+                                 const torch::Tensor& which) {
+  const int64_t k = detector->config().window;
+  const auto w = windows_of(data, which, k);
+  SuccessAccuracy a;
+  a.windows = w.episode.size(0);
+  if (a.windows == 0) return a;
+  std::vector<torch::Tensor> probs;
+  for (int64_t i = 0; i < a.windows; i += 256) {
+    const int64_t n = std::min<int64_t>(256, a.windows - i);
+    probs.push_back(models::success_probability(
+        detector, gather_windows(data, w.episode.narrow(0, i, n), w.end.narrow(0, i, n), k)));
+  }
+  const auto predicted = torch::cat(probs) > 0.5;  // [N]
+  const auto truth = w.label > 0.5;
+  const auto right = (predicted == truth).to(torch::kFloat64);
+  a.positives = truth.sum().item<int64_t>();
+  a.accuracy = right.mean().item<double>();
+  const auto rate = [&](const torch::Tensor& mask) {
+    return mask.any().item<bool>() ? right.index({mask}).mean().item<double>() : 1.0;
+  };
+  a.balanced_accuracy = 0.5 * (rate(truth) + rate(truth.logical_not()));
+  return a;
+}
+
+SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
+  DOJO_CHECK(job.batch_size > 1 && job.steps >= 0, "success train: batch must be > 1 and steps >= 0");
+  const auto data = SuccessData::load(job.data);
+  fs::create_directories(job.out);
+  const auto ckpt_dir = job.out / "checkpoint";
+  const bool resuming = checkpoint_exists(ckpt_dir);
+  const auto config = resuming ? models::SuccessDetectorConfig::from_json(
+                                     Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config().at("config"))
+                               : job.model;
+  const int64_t k = config.window;
+  DOJO_CHECK(data.frames.size(1) >= k,
+             job.data.string() + ": episodes are shorter than the detector's window");
+  const auto train_windows = windows_of(data, data.heldout.logical_not(), k);
+  const auto positive = torch::nonzero(train_windows.label > 0.5).flatten();
+  const auto negative = torch::nonzero(train_windows.label <= 0.5).flatten();
+  DOJO_CHECK(positive.numel() > 0 && negative.numel() > 0,
+             job.data.string() + ": the training episodes need both success and failure frames");
+  LOG_INFO("success train: ", train_windows.episode.size(0), " windows (", positive.numel(), " success)");
+
+  torch::manual_seed(job.seed);
+  models::SuccessDetector detector(config);
+  torch::optim::AdamW opt(detector->parameters(), torch::optim::AdamWOptions(job.lr).weight_decay(1e-4));
+  int64_t start = 0;
+  if (resuming) {
+    start = resume_with_adamw(ckpt_dir, *detector, "detector.", opt);
+    LOG_INFO("success train: resumed from ", ckpt_dir.string(), " at step ", start);
+  }
+  detector->train();
+
+  LoopOptions loop;
+  loop.name = "success train";
+  loop.steps = job.steps;
+  loop.time_budget_s = job.time_budget_s;
+  loop.save_every = job.save_every;
+  loop.loss_curve = job.out / "loss.csv";
+  loop.columns = {"loss"};
+  loop.unit = "windows";
+  std::deque<double> recent;
+  const int64_t half = job.batch_size / 2;
+  const auto run = run_training_loop(
+      loop, start,
+      [&](const LoopStep& s) {
+        // Half the batch success windows, half failures; everything depends on (seed, step).
+        auto gen = step_generator(job.seed, s.index);
+        const auto pick = torch::cat(
+            {positive.index_select(0, torch::randint(positive.numel(), {half}, gen)),
+             negative.index_select(0, torch::randint(negative.numel(), {job.batch_size - half}, gen))});
+        const auto episode = train_windows.episode.index_select(0, pick);
+        const auto end = train_windows.end.index_select(0, pick);
+        const auto target = train_windows.label.index_select(0, pick);                        // [B]
+        auto input = models::success_input(detector, gather_windows(data, episode, end, k));  // [B, 3k, S, S]
+        const int64_t B = input.size(0);
+        const auto offset = (torch::rand({B, 1, 1, 1}, gen) * 2 - 1) * job.brightness;
+        const auto blurred = torch::rand({B}, gen) < job.blur_probability;
+        const auto sigma = (torch::rand({B}, gen) * 1.2 + 0.3) * blurred.to(torch::kFloat32);
+        input = gaussian_blur(input, sigma).add(offset).clamp(0, 1);
+        // A mirrored scene is as successful as the original: flips double the scenes it sees.
+        const auto flip = (torch::rand({B, 1, 1, 1}, gen) < 0.5).to(input.dtype());
+        input = flip * input.flip({3}) + (1 - flip) * input;
+        for (auto& group : opt.param_groups())
+          static_cast<torch::optim::AdamWOptions&>(group.options())
+              .lr(job.lr * std::min(1.0, static_cast<double>(s.index + 1) / 50.0));
+        const auto loss = torch::binary_cross_entropy_with_logits(detector->forward(input), target);
+        opt.zero_grad();
+        loss.backward();
+        opt.step();
+        const double value = loss.item<double>();
+        recent.push_back(value);
+        if (recent.size() > 20) recent.pop_front();
+        std::ostringstream note;
+        note << "loss " << value;
+        return StepRecord{{value}, B, note.str()};
+      },
+      [&](int64_t steps_done, bool) {
+        save_with_adamw(ckpt_dir, models::success_detector_checkpoint(*detector), opt, *detector, steps_done);
+      });
+  SuccessTrainResult r;
+  r.steps = run.end_step;
+  for (double v : recent) r.loss += v / static_cast<double>(recent.size());
+  r.seconds = run.seconds;
+  detector->eval();
+  r.train = success_accuracy(detector, data, data.heldout.logical_not());
+  r.heldout = success_accuracy(detector, data, data.heldout);
+  return r;
+}
+
+}  // namespace dojo::train

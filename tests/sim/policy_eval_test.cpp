@@ -1,0 +1,204 @@
+// Policy evaluation (eval/policy_eval.h) with DojoSim's scenes and scripted policies
+// (recipes/dojosim_policies.h): the plumbing is exact when the simulator stands in for the world
+// model, journals resume, bad policies are named, the success detector learns, and a world model
+// runs a policy closed loop.
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include <fstream>
+
+#include "core/error.h"
+#include "eval/policy_eval.h"
+#include "infer/generator.h"
+#include "infer/streaming.h"
+#include "recipes/dojosim_policies.h"
+#include "test_util.h"
+#include "train/success_train.h"
+
+namespace dojo::recipes {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::vector<eval::EpisodeStart> scenes(int64_t count, uint64_t seed = 7000) {
+  PolicySceneOptions o;
+  o.count = count;
+  o.seed = seed;
+  return make_policy_scenes(o);
+}
+
+std::vector<std::unique_ptr<eval::Policy>> policies(const std::vector<std::string>& names) {
+  std::vector<std::unique_ptr<eval::Policy>> out;
+  for (const auto& spec : default_policy_set())
+    if (std::find(names.begin(), names.end(), spec.name) != names.end())
+      out.push_back(make_scripted_policy(spec));
+  return out;
+}
+
+std::vector<eval::Policy*> pointers(const std::vector<std::unique_ptr<eval::Policy>>& owned) {
+  std::vector<eval::Policy*> out;
+  for (const auto& p : owned) out.push_back(p.get());
+  return out;
+}
+
+// Counts the episodes it is asked to start.
+class CountingEnvironment : public DojoSimEnvironment {
+ public:
+  torch::Tensor reset(const eval::EpisodeStart& start) override {
+    ++resets;
+    return DojoSimEnvironment::reset(start);
+  }
+  int resets = 0;
+};
+
+TEST(PolicyEval, SimulatorAsTheWorldModelAgreesExactlyAndJournalsResume) {
+  test::OneThread one;
+  test::TempDir tmp;
+  const auto starts = scenes(3);
+  ASSERT_EQ(starts.size(), 3u);
+  EXPECT_EQ(starts[0].frame.sizes(), (std::vector<int64_t>{64, 64, 3}));
+  EXPECT_EQ(starts[0].command.numel(), 6);
+  const auto owned = policies({"expert", "poor", "idle"});
+  ASSERT_EQ(owned.size(), 3u);
+  DojoSimEnvironment real;
+  CountingEnvironment twin;
+  const eval::PolicyEvalOptions options;  // 16 steps of 4 commands, 3 settle steps
+  const nlohmann::json fingerprint = {{"test", 1}};
+  const auto report = eval::evaluate_policies(pointers(owned), starts, real, twin, options,
+                                              tmp / "journal.jsonl", fingerprint);
+  EXPECT_EQ(twin.resets, 9);
+  ASSERT_EQ(report.rates.names, (std::vector<std::string>{"expert", "poor", "idle"}));
+  EXPECT_EQ(report.rates.real, report.rates.world_model);
+  EXPECT_EQ(report.agreement.pearson, 1.0);
+  EXPECT_EQ(report.agreement.mmrv, 0.0);
+  EXPECT_EQ(report.agreement.mean_abs_gap, 0.0);
+  EXPECT_EQ(report.episode_agreement, 1.0);
+  // The expert puts the object in the bin; holding still never does.
+  EXPECT_GE(report.rates.real[0], 2.0 / 3);
+  EXPECT_EQ(report.rates.real[2], 0.0);
+
+  // A rerun with the same journal runs nothing and reports the same.
+  CountingEnvironment again;
+  const auto resumed = eval::evaluate_policies(pointers(owned), starts, real, again, options,
+                                               tmp / "journal.jsonl", fingerprint);
+  EXPECT_EQ(again.resets, 0);
+  EXPECT_EQ(resumed.rates.real, report.rates.real);
+  // A journal of another evaluation is refused.
+  const auto message = test::error_message([&] {
+    eval::evaluate_policies(pointers(owned), starts, real, again, options, tmp / "journal.jsonl",
+                            {{"test", 2}});
+  });
+  EXPECT_NE(message.find("another evaluation"), std::string::npos) << message;
+  // A torn last line (a crash mid-write) is rerun, not fatal.
+  std::ofstream(tmp / "journal.jsonl", std::ios::app) << R"({"policy": "idle", "sce)";
+  EXPECT_NO_THROW(eval::evaluate_policies(pointers(owned), starts, real, again, options,
+                                          tmp / "journal.jsonl", fingerprint));
+}
+
+// Returns commands of the wrong width.
+class WidePolicy : public eval::Policy {
+ public:
+  const std::string& name() const override { return name_; }
+  void reset(const eval::EpisodeStart&) override {}
+  torch::Tensor act(const torch::Tensor&, const torch::Tensor&, int64_t n) override {
+    return torch::zeros({n, 7});
+  }
+
+ private:
+  std::string name_ = "wide";
+};
+
+TEST(PolicyEval, BadPoliciesAndPolicyFilesGetOneLineErrors) {
+  test::TempDir tmp;
+  const auto starts = scenes(1);
+  DojoSimEnvironment env;
+  WidePolicy wide;
+  auto message = test::error_message([&] { eval::run_policy_episode(wide, env, starts[0], {}); });
+  EXPECT_NE(message.find("policy 'wide': expected 4 commands of width 6"), std::string::npos) << message;
+
+  const auto bad = [&](const std::string& text, const std::string& expected) {
+    const auto file = tmp / "policies.json";
+    std::ofstream(file) << text;
+    const auto m = test::error_message([&] { read_policy_set(file); });
+    EXPECT_NE(m.find(expected), std::string::npos) << m;
+    EXPECT_NE(m.find(file.string()), std::string::npos) << m;
+    EXPECT_EQ(m.find('\n'), std::string::npos) << m;
+  };
+  bad("[1, 2]", "expected {\"policies\"");
+  bad(R"({"policies": [{"behavior": "bin_pick"}]})", "policies[0]: needs a non-empty string 'name'");
+  bad(R"({"policies": [{"name": "a"}, {"name": "a"}]})", "policies[1]: the name 'a' is used twice");
+  bad(R"({"policies": [{"name": "a", "behavior": "dance"}]})", "unknown robot behavior 'dance'");
+  bad(R"({"policies": [{"name": "a", "quality": {"noise": 1}}]})", "unknown knob 'noise'");
+  bad(R"({"policies": [{"name": "a", "quality": "superb"}]})", "unknown policy quality 'superb'");
+  bad(R"({"policies": [{"name": "a", "quality": {"miss_prob": 2}}]})", "probabilities must be in [0, 1]");
+  std::ofstream(tmp / "good.json")
+      << R"({"policies": [{"name": "a"}, {"name": "b", "quality": {"speed": 0.8}}]})";
+  EXPECT_EQ(read_policy_set(tmp / "good.json").size(), 2u);
+  EXPECT_GE(default_policy_set().size(), 10u);
+}
+
+TEST(PolicyEval, SuccessDetectorLearnsFromLabelledFrames) {
+  test::OneThread one;
+  test::TempDir tmp;
+  SuccessDataOptions o;
+  o.scenes = 10;
+  o.heldout_fraction = 0.3;
+  std::vector<PolicySpec> specs;
+  for (const auto& s : default_policy_set())
+    if (s.name == "expert" || s.name == "idle") specs.push_back(s);
+  make_success_data(specs, o, tmp / "data.safetensors");
+  const auto data = train::SuccessData::load(tmp / "data.safetensors");
+  EXPECT_EQ(data.frames.size(0), 20);
+  EXPECT_EQ(data.frames.size(1), 1 + 4 * (16 + 3));
+  EXPECT_GT(data.labels.sum().item<double>(), 0);    // some expert frames show success
+  EXPECT_EQ(data.heldout.sum().item<int64_t>(), 6);  // 3 of 10 scenes for each policy
+
+  train::SuccessTrainJob job;
+  job.data = tmp / "data.safetensors";
+  job.out = tmp / "detector";
+  job.steps = 300;
+  job.save_every = 0;
+  const auto r = train::run_success_training(job);
+  const auto curve = test::read_file(tmp / "detector" / "loss.csv");
+  EXPECT_LT(r.loss, 0.35);  // from ln 2 = 0.69 at chance
+  EXPECT_GT(r.train.balanced_accuracy, 0.85);
+  EXPECT_GT(r.heldout.balanced_accuracy, 0.75);
+  // The saved detector reads an expert's successful ending as success, an idle ending as failure.
+  auto detector = models::load_success_detector(tmp / "detector" / "checkpoint");
+  const auto T = data.frames.size(1);
+  for (int64_t e = 0; e < data.frames.size(0); ++e) {
+    const bool success = data.labels[e][T - 1].item<double>() > 0.5;
+    if (!data.heldout[e].item<bool>()) continue;
+    EXPECT_EQ(models::success_vote(detector, data.frames[e]) > 0.5, success) << "episode " << e;
+  }
+}
+
+TEST(PolicyEval, WorldModelRunsAPolicyClosedLoop) {
+  test::OneThread one;
+  const fs::path reference = fs::path(DOJO_SOURCE_DIR) / "models" / "reference";
+  infer::StreamingEngine::Options o;
+  auto engine = infer::StreamingEngine::load(reference / "wm_posttrain", reference / "tokenizer", o);
+  const auto ranges = engine.action_ranges();
+  ASSERT_TRUE(ranges.contains("dojosim_robot"));
+  data::ActionChunker chunker(data::slot_by_name("dojosim_robot"),
+                              data::ArrayStats::from_json(ranges["dojosim_robot"], "ranges"), 4);
+  eval::WorldModelEnvironment env("student", infer::make_student_generator(std::move(engine)),
+                                  std::move(chunker),
+                                  models::SuccessDetector(models::SuccessDetectorConfig{}));
+  const auto starts = scenes(1);
+  const auto owned = policies({"expert"});
+  eval::PolicyEvalOptions options;
+  options.steps = 2;
+  options.settle_steps = 1;
+  const double success = eval::run_policy_episode(*owned[0], env, starts[0], options);
+  EXPECT_TRUE(success == 0.0 || success == 1.0);
+  EXPECT_EQ(env.video().size(0), 1 + 4 * 3);
+  EXPECT_EQ(env.video().scalar_type(), torch::kUInt8);
+  // The same policy gets the same frames: the world model's noise comes from the scene's seed.
+  const auto first = env.video().clone();
+  eval::run_policy_episode(*owned[0], env, starts[0], options);
+  EXPECT_TRUE(torch::equal(first, env.video()));
+}
+
+}  // namespace
+}  // namespace dojo::recipes

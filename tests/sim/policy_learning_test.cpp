@@ -1,0 +1,222 @@
+// The policies of policy evaluation that are not scripted: the behaviour-cloning policy learns
+// from DojoSim demonstrations and its snapshots act; an external process speaking the step
+// protocol runs closed loop in both worlds; `dojo policy train | eval` end to end with their
+// one-line errors.
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "core/checkpoint.h"
+#include "eval/policy_eval.h"
+#include "recipes/dojosim_policies.h"
+#include "serve/external_policy.h"
+#include "test_util.h"
+#include "train/bc_train.h"
+
+namespace dojo::recipes {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::vector<eval::EpisodeStart> scenes(int64_t count) {
+  PolicySceneOptions o;
+  o.count = count;
+  return make_policy_scenes(o);
+}
+
+TEST(BcPolicy, LearnsFromDemonstrationsAndItsSnapshotsAct) {
+  test::OneThread one;
+  test::TempDir tmp;
+  DemonstrationOptions o;
+  o.episodes = 10;
+  o.frames = 40;
+  o.heldout_fraction = 0.2;
+  make_demonstrations(o, tmp / "demos.safetensors");
+  const auto data = train::Demonstrations::load(tmp / "demos.safetensors");
+  ASSERT_EQ(data.frames.sizes(), (std::vector<int64_t>{10, 40, 64, 64, 3}));
+  EXPECT_EQ(data.heldout.sum().item<int64_t>(), 2);
+  // The executed commands carry the injected noise, the labels do not.
+  EXPECT_GT((data.executed.narrow(1, 1, 39) - data.labels.narrow(1, 0, 39)).abs().max().item<double>(), 1e-3);
+  // The expert moves: its labels leave the start command.
+  EXPECT_GT((data.labels - data.executed.narrow(1, 0, 1)).abs().max().item<double>(), 0.2);
+
+  train::BcTrainJob job;
+  job.data = tmp / "demos.safetensors";
+  job.out = tmp / "bc";
+  job.steps = 150;
+  job.save_every = 0;
+  job.snapshots = {0, 50};
+  job.batch_size = 32;
+  const auto r = train::run_bc_training(job);
+  ASSERT_EQ(r.snapshots.size(), 3u);  // steps 0, 50 and the last
+  EXPECT_EQ(r.snapshots.back().filename(), "step-000150");
+  auto untrained = models::load_bc_policy(r.snapshots.front());
+  auto trained = models::load_bc_policy(r.snapshots.back());
+  // It fits its demonstrations (ten episodes are too few to expect much on held-out ones, where
+  // the error still has to fall).
+  const auto seen = data.heldout.logical_not();
+  const double fit_before = train::bc_loss(untrained, data, seen),
+               fit_after = train::bc_loss(trained, data, seen);
+  EXPECT_LT(fit_after, 0.7 * fit_before) << "training offset error " << fit_after << " vs " << fit_before;
+  const double before = train::bc_loss(untrained, data, data.heldout);
+  EXPECT_LT(r.heldout_loss, before) << "held-out offset error " << r.heldout_loss << " vs " << before;
+  EXPECT_NEAR(train::bc_loss(trained, data, data.heldout), r.heldout_loss, 1e-6);
+
+  // As a policy: 4 commands a decision, 12 for a teacher-sized step, finite, from the last command.
+  const auto policy = eval::make_bc_policy("bc", trained);
+  const auto start = scenes(1)[0];
+  policy->reset(start);
+  const auto chunk = policy->act(start.frame.unsqueeze(0), start.command, 4);
+  EXPECT_EQ(chunk.sizes(), (std::vector<int64_t>{4, 6}));
+  EXPECT_TRUE(torch::isfinite(chunk).all().item<bool>());
+  EXPECT_EQ(policy->act(start.frame.unsqueeze(0), start.command, 12).size(0), 12);
+  EXPECT_LT((chunk[0] - start.command).abs().max().item<double>(), 1.0)
+      << "a chunk starts near the last command";
+}
+
+fs::path example(const std::string& name) { return fs::path(DOJO_SOURCE_DIR) / "examples" / name; }
+
+TEST(PolicyEval, ExternalProcessSpeaksTheStepProtocolInBothWorlds) {
+  test::OneThread one;
+  test::TempDir tmp;
+  const auto starts = scenes(2);
+  std::vector<std::unique_ptr<eval::Policy>> owned;
+  for (const auto& spec : default_policy_set())
+    if (spec.name == "expert" || spec.name == "idle") owned.push_back(make_scripted_policy(spec));
+  serve::ExternalPolicyOptions o;
+  o.name = "python-hold";
+  o.command = "python3 " + example("policy_client.py").string() + " --behavior hold --summary " +
+              (tmp / "summary.json").string();
+  o.timeout_s = 60;
+  owned.push_back(serve::make_external_policy(o));
+  std::vector<eval::Policy*> policies;
+  for (const auto& p : owned) policies.push_back(p.get());
+  DojoSimEnvironment real, twin;
+  const eval::PolicyEvalOptions options;  // 16 steps of 4 commands
+  const auto report = eval::evaluate_policies(policies, starts, real, twin, options);
+  owned.clear();  // closes the connection; the process writes its summary and exits
+  ASSERT_EQ(report.rates.names.back(), "python-hold");
+  // Holding the start command is the idle policy, in both worlds.
+  EXPECT_EQ(report.rates.real[2], report.rates.real[1]);
+  EXPECT_EQ(report.rates.world_model[2], report.rates.world_model[1]);
+  EXPECT_EQ(report.agreement.pearson, 1.0);
+  const auto summary = nlohmann::json::parse(test::read_file(tmp / "summary.json"));
+  EXPECT_EQ(summary.at("episodes"), 4);               // 2 scenes x 2 worlds
+  EXPECT_EQ(summary.at("steps"), 4 * 16);             // every decision went through the process
+  EXPECT_EQ(summary.at("frames"), 4 * (1 + 15 * 4));  // start frame + the frames of steps 1..15
+}
+
+TEST(PolicyEval, ExternalProcessErrorsAreOneLineAndBadMessagesAreAnswered) {
+  test::OneThread one;
+  test::TempDir tmp;
+  serve::ExternalPolicyOptions o;
+  o.name = "quits";
+  o.command = "exit 3";
+  o.timeout_s = 20;
+  auto message = test::error_message([&] { serve::make_external_policy(o); });
+  EXPECT_NE(message.find("external policy 'quits': the process exited (status 3) before connecting"),
+            std::string::npos)
+      << message;
+
+  // A client that sends junk, a step before start, a wrong-width step, then behaves; it records
+  // the errors it was sent.
+  const auto script = tmp / "client.py";
+  std::ofstream(script) << "import json, os, sys\n"
+                        << "sys.path.insert(0, " << nlohmann::json(example("").string()).dump() << ")\n"
+                        << R"(from step_client import WorldModelSession, TEXT, WorldModelError
+s = WorldModelSession(os.environ["DOJO_POLICY_URL"])
+errors = []
+def expect_error(payload):
+    s.ws.send(TEXT, payload.encode())
+    try:
+        s._next()
+    except WorldModelError as e:
+        errors.append(str(e))
+expect_error("not json")
+expect_error(json.dumps({"type": "step", "actions": [[0] * 6] * 4}))
+ready = s.start()
+expect_error(json.dumps({"type": "step", "actions": [[0] * 5] * 4}))
+expect_error(json.dumps({"type": "step", "actions": [["x"] * 6] * 4}))
+try:
+    while True:
+        s.step([ready["command"]] * ready["actions_per_step"])
+        if s.last_step_done.get("done"):
+            break
+except WorldModelError:
+    pass
+json.dump(errors, open(sys.argv[1], "w"))
+)";
+  o.name = "clumsy";
+  o.command = "python3 " + script.string() + " " + (tmp / "errors.json").string();
+  {
+    auto policy = serve::make_external_policy(o);
+    DojoSimEnvironment env;
+    eval::PolicyEvalOptions options;
+    options.steps = 3;
+    const auto start = scenes(1)[0];
+    EXPECT_EQ(eval::run_policy_episode(*policy, env, start, options), 0.0);
+  }
+  const auto errors = nlohmann::json::parse(test::read_file(tmp / "errors.json"));
+  ASSERT_EQ(errors.size(), 4u) << errors.dump();
+  EXPECT_NE(errors[0].get<std::string>().find("expected a JSON object"), std::string::npos);
+  EXPECT_NE(errors[1].get<std::string>().find("send {\"type\":\"start\"} first"), std::string::npos);
+  EXPECT_NE(errors[2].get<std::string>().find("expected 4 raw commands of 6 values, got [4, 5]"),
+            std::string::npos);
+  EXPECT_NE(errors[3].get<std::string>().find("values must be finite numbers"), std::string::npos);
+}
+
+TEST(PolicyCli, TrainThenEvaluateWithTheSimulatorAsTheWorldModel) {
+  test::TempDir tmp;
+  const auto bc = tmp / "bc";
+  auto r = test::run_dojo("--threads 1 policy train --out " + bc.string() +
+                          " --episodes 4 --frames 24 --steps 6 --batch 8 --snapshots 0,3");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(fs::exists(bc / "snapshots" / "step-000003" / "config.json"));
+  EXPECT_TRUE(fs::exists(bc / "result.json"));
+
+  std::ofstream(tmp / "set.json")
+      << R"({"policies": [{"name": "expert"}, {"name": "idle", "behavior": "idle"},
+      {"name": "late-bc", "checkpoint": "bc/snapshots/step-000006"}]})";
+  const auto out = tmp / "eval";
+  r = test::run_dojo(
+      "--threads 1 policy eval --sim-as-world-model --scenes 2 "
+      "--policies " +
+      (tmp / "set.json").string() + " --bc " + bc.string() + " --out " + out.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto report = nlohmann::json::parse(test::read_file(out / "report.json"));
+  ASSERT_EQ(report.at("policies").size(), 6u);  // 3 from the file + bc-0, bc-3, bc-6
+  EXPECT_EQ(report.at("policies")[3].at("name"), "bc-0");
+  EXPECT_EQ(report.at("agreement").at("pearson_r"), 1.0);
+  EXPECT_EQ(report.at("agreement").at("mmrv"), 0.0);
+  EXPECT_TRUE(fs::exists(out / "report.html"));
+
+  // One-line errors: a bad policy file, a policy of another action space, a missing snapshot dir.
+  const auto one_line = [](const test::CommandResult& res, const std::string& expected) {
+    EXPECT_NE(res.exit_code, 0);
+    EXPECT_NE(res.output.find(expected), std::string::npos) << res.output;
+  };
+  std::ofstream(tmp / "bad.json") << R"({"policies": [{"name": "x", "checkpoint": "nowhere"}]})";
+  one_line(test::run_dojo("policy eval --sim-as-world-model --no-bc --policies " +
+                          (tmp / "bad.json").string() + " --out " + (tmp / "e2").string()),
+           "bad.json: policies[0]: no checkpoint at");
+  std::ofstream(tmp / "both.json")
+      << R"({"policies": [{"name": "x", "command": "true", "behavior": "idle"}]})";
+  one_line(test::run_dojo("policy eval --sim-as-world-model --no-bc --policies " +
+                          (tmp / "both.json").string() + " --out " + (tmp / "e3").string()),
+           "give one of");
+  one_line(test::run_dojo("policy eval --sim-as-world-model --bc " + (tmp / "none").string() + " --out " +
+                          (tmp / "e4").string()),
+           "no policy snapshots in");
+  models::BcPolicyConfig seven;
+  seven.action_dim = 7;
+  save_checkpoint(tmp / "seven", models::bc_policy_checkpoint(*models::BcPolicy(seven)));
+  std::ofstream(tmp / "seven.json") << R"({"policies": [{"name": "x", "checkpoint": "seven"}]})";
+  one_line(test::run_dojo("policy eval --sim-as-world-model --no-bc --policies " +
+                          (tmp / "seven.json").string() + " --out " + (tmp / "e5").string()),
+           "policy 'x' (" + (tmp / "seven").string() + "): its commands have 7 values; the robot takes 6");
+}
+
+}  // namespace
+}  // namespace dojo::recipes
