@@ -13,7 +13,7 @@ policy: it gets the newest frames (JPEG bytes) and the last command, and returns
 import argparse, json, math, os, sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from step_client import WorldModelError, WorldModelSession  # noqa: E402
+from step_client import ConnectionClosed, WorldModelError, WorldModelSession  # noqa: E402
 
 
 def decide(behavior, frames, last_command, n, t):
@@ -35,7 +35,8 @@ def main():
     a = p.parse_args()
     if not a.url:
         sys.exit("policy_client: no --url and no DOJO_POLICY_URL (run me through dojo policy eval --external)")
-    session = WorldModelSession(a.url)
+    # No read timeout: the evaluation runs other policies before this one's turn comes.
+    session = WorldModelSession(a.url, timeout=None)
     episodes, steps, frames = 0, 0, 0
     try:
         while True:
@@ -51,8 +52,10 @@ def main():
                 command = actions[-1]
                 if session.last_step_done.get("done"):
                     break
-    except WorldModelError:
-        pass  # the evaluation closed the connection
+    except ConnectionClosed:
+        pass  # the evaluation is done with this policy
+    except (WorldModelError, OSError, ValueError, KeyError) as e:  # an error the evaluation sent, or I/O
+        sys.exit(f"policy_client: {type(e).__name__}: {e}")
     if a.summary:
         with open(a.summary, "w") as f:
             json.dump({"episodes": episodes, "steps": steps, "frames": frames}, f)

@@ -30,6 +30,10 @@ class WorldModelError(Exception):
     """The server answered with {"type": "error"}, or the connection broke."""
 
 
+class ConnectionClosed(WorldModelError):
+    """The server closed the connection (a policy evaluation does when it is done with the policy)."""
+
+
 class WebSocket:
     def __init__(self, url, headers=None, insecure=False, timeout=300):
         u = urllib.parse.urlsplit(url)
@@ -68,7 +72,7 @@ class WebSocket:
     def _fill(self):
         chunk = self.sock.recv(1 << 16)
         if not chunk:
-            raise WorldModelError("connection closed by the server")
+            raise ConnectionClosed("connection closed by the server")
         self.buf += chunk
 
     def _read(self, n):
@@ -118,7 +122,7 @@ class WebSocket:
                     pass
                 self.sock.close()
                 reason = data[2:].decode(errors="replace")
-                raise WorldModelError(f"server closed the connection: {code} {reason}".rstrip())
+                raise ConnectionClosed(f"server closed the connection: {code} {reason}".rstrip())
             elif op in (TEXT, BINARY, 0x0):  # 0x0: continuation of the message in progress
                 if op != 0x0:
                     opcode, parts = op, []

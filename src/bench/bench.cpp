@@ -14,6 +14,7 @@
 
 #include "core/log.h"
 #include "core/runtime.h"
+#include "core/timing.h"
 #include "data/clip_loader.h"
 #include "io/parquet.h"
 #include "io/parquet_writer.h"
@@ -53,10 +54,6 @@ BenchCase matmul_case(int64_t n, torch::Device device) {
     return 2.0 * n * n * n * iters / seconds / 1e9;
   };
   return c;
-}
-
-double seconds_since(std::chrono::steady_clock::time_point start) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
 // A scratch directory for generated inputs, removed at exit.

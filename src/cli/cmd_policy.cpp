@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdio>
 #include <iostream>
+#include <optional>
 
 #include "cli/commands.h"
 #include "cli/options.h"
@@ -192,6 +193,12 @@ fs::path pick(const std::string& given, const fs::path& fallback) {
   return given.empty() ? fallback : fs::path(given);
 }
 
+// Whether a training run in `dir` finished `steps` steps: its result.json is written at the end.
+bool finished(const fs::path& dir, int64_t steps) {
+  return fs::exists(dir / "result.json") &&
+         read_json_file(dir / "result.json").value("steps", int64_t{-1}) == steps;
+}
+
 int run_eval(const EvalArgs& a) {
   const fs::path out = a.out, demo = a.demo;
   fs::create_directories(out);
@@ -207,8 +214,8 @@ int run_eval(const EvalArgs& a) {
   if (fast_decoder.empty() && a.student.empty() && !teacher &&
       fs::exists(demo / "fast_decoder" / "checkpoint"))
     fast_decoder = demo / "fast_decoder" / "checkpoint";
+  std::unique_ptr<infer::WorldModel> teacher_model;  // before the environment that refers to it
   std::unique_ptr<eval::Environment> world_model;
-  std::unique_ptr<infer::WorldModel> teacher_model;
   std::string world_model_name = "DojoSim (as the world model)";
   nlohmann::json fingerprint;
   int64_t per_step = infer::StreamingEngine::kActionsPerStep;
@@ -221,7 +228,10 @@ int run_eval(const EvalArgs& a) {
                    " (give --student or --teacher, or --demo DIR of a finished `dojo demo`)");
     DOJO_CHECK(checkpoint_exists(tokenizer), "policy eval: no tokenizer at " + tokenizer.string());
     const fs::path detector_dir = pick(a.detector, out / "detector");
-    if (!checkpoint_exists(detector_dir / "checkpoint") && !checkpoint_exists(detector_dir)) {
+    if (a.detector.empty()
+            ? !finished(detector_dir, a.detector_steps)
+            : !checkpoint_exists(detector_dir / "checkpoint") && !checkpoint_exists(detector_dir)) {
+      // Trained here, or resumed when an earlier run was interrupted.
       DOJO_CHECK(a.detector.empty(), "policy eval: no success detector at " + a.detector);
       DetectorArgs d;
       d.out = detector_dir.string();
@@ -264,7 +274,9 @@ int run_eval(const EvalArgs& a) {
     fingerprint = {{"world_model", fs::absolute(checkpoint).string()},
                    {"tokenizer", fs::absolute(tokenizer).string()},
                    {"fast_decoder", fast_decoder.empty() ? "" : fs::absolute(fast_decoder).string()},
-                   {"detector", fs::absolute(detector_dir).string()}};
+                   {"detector", fs::absolute(detector_dir).string()},
+                   {"device", a.device},
+                   {"precision", a.precision}};
   }
 
   recipes::PolicySceneOptions scene_options;
@@ -273,10 +285,9 @@ int run_eval(const EvalArgs& a) {
   const auto scenes = recipes::make_policy_scenes(scene_options);
   auto specs = policy_set(a.policies);
   if (!a.no_bc) {
-    // The behaviour-cloning policy's snapshots, trained here when missing.
+    // The behaviour-cloning policy's snapshots, trained here when missing (or resumed).
     const fs::path bc = pick(a.bc, out / "bc");
-    if (train::list_bc_snapshots(bc).empty()) {
-      DOJO_CHECK(a.bc.empty(), "policy eval: no policy snapshots in " + a.bc);
+    if (a.bc.empty() && !finished(bc, a.bc_steps)) {
       TrainArgs t;
       t.out = bc.string();
       t.steps = a.bc_steps;
@@ -308,11 +319,14 @@ int run_eval(const EvalArgs& a) {
       {"steps", options.steps}, {"settle_steps", options.settle_steps}, {"per_step", per_step}};
 
   recipes::DojoSimEnvironment real;
-  Progress progress("policy eval", static_cast<int64_t>(policies.size() * scenes.size()), "episode");
+  std::optional<Progress> progress;  // over the episodes this run has left (a journal may hold others)
   const auto report =
       eval::evaluate_policies(policies, scenes, real, *world_model, options, out / "journal.jsonl",
-                              fingerprint, [&](int64_t, int64_t) { progress.advance(); });
-  progress.finish();
+                              fingerprint, [&](int64_t done, int64_t total) {
+                                if (!progress) progress.emplace("policy eval", total - done + 1, "episode");
+                                progress->advance();
+                              });
+  if (progress) progress->finish();
   auto json = report.to_json();
   json["world_model"] = world_model_name;
   json["fingerprint"] = fingerprint;

@@ -10,6 +10,7 @@
 
 #include "core/error.h"
 #include "core/log.h"
+#include "core/timing.h"
 #include "eval/html_report.h"
 #include "infer/generator.h"
 
@@ -230,10 +231,6 @@ std::vector<EpisodeResult> read_journal(const fs::path& journal, const nlohmann:
   return done;
 }
 
-double seconds_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-}
-
 }  // namespace
 
 PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
@@ -253,10 +250,18 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
     for (auto& r : read_journal(journal, fingerprint))
       if (names.count(r.policy) && finished.insert({r.policy, r.scene}).second)
         results.push_back(std::move(r));
+  // A crash can leave the last line torn: the next record starts on a line of its own.
+  bool torn = false;
+  if (resuming) {
+    std::ifstream in(journal, std::ios::binary);
+    in.seekg(-1, std::ios::end);
+    torn = in.get() != '\n';
+  }
   std::ofstream out;
   if (!journal.empty()) {
     out.open(journal, std::ios::app);
     DOJO_CHECK(out.good(), journal.string() + ": cannot append to the evaluation journal");
+    if (torn) out << "\n";
     if (!resuming) out << nlohmann::json{{"fingerprint", fingerprint}}.dump() << "\n" << std::flush;
   }
   const int64_t total = static_cast<int64_t>(policies.size() * scenes.size());
@@ -278,6 +283,7 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
       results.push_back(r);
       if (on_episode) on_episode(++done, total);
     }
+    policy->finish();
   }
   // Report in the order of `policies`, whatever order the journal held them in.
   std::vector<EpisodeResult> ordered;

@@ -56,6 +56,8 @@ class Policy {
   // frames [k, H, W, 3] uint8, those shown since the last decision (the newest last; at the
   // first decision the start frame), last_command [w] -> the next `n` commands [n, w].
   virtual torch::Tensor act(const torch::Tensor& frames, const torch::Tensor& last_command, int64_t n) = 0;
+  // No episode follows (the evaluation is done with this policy): release what it holds.
+  virtual void finish() {}
 };
 
 class Environment {

@@ -3,6 +3,7 @@
 #include <chrono>
 #include <optional>
 
+#include "core/timing.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
 
@@ -10,10 +11,6 @@ namespace dojo::infer {
 namespace {
 
 using Clock = std::chrono::steady_clock;
-
-double seconds_since(Clock::time_point t0) {
-  return std::chrono::duration<double>(Clock::now() - t0).count();
-}
 
 // Holds `turn` for a scope when there is one.
 class Turn {

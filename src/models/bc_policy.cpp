@@ -2,6 +2,8 @@
 
 #include <torch/torch.h>
 
+#include <cmath>
+
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/json_file.h"
@@ -73,6 +75,9 @@ BcPolicyConfig BcPolicyConfig::from_json(const nlohmann::json& j) {
   c.command_mean = read_stats(j, "command_mean", c.action_dim);
   c.command_scale = read_stats(j, "command_scale", c.action_dim);
   c.step_scale = read_stats(j, "step_scale", c.action_dim);
+  for (const auto* scale : {&c.command_scale, &c.step_scale})
+    for (const double v : *scale)
+      DOJO_CHECK(std::isfinite(v) && v > 0, "bc policy config: scales must be finite and positive");
   return c;
 }
 
@@ -154,9 +159,16 @@ CheckpointData bc_policy_checkpoint(const BcPolicyImpl& policy) {
 BcPolicy load_bc_policy(const std::filesystem::path& dir) {
   const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
   const auto& cfg = ckpt.config();
-  DOJO_CHECK(cfg.value("model", std::string()) == "bc_policy" && cfg.contains("config"),
-             (ckpt.dir() / "config.json").string() + ": not a policy checkpoint (model != bc_policy)");
-  BcPolicy policy(BcPolicyConfig::from_json(cfg["config"]));
+  const auto file = (ckpt.dir() / "config.json").string();
+  DOJO_CHECK(cfg.contains("model") && cfg["model"] == "bc_policy" && cfg.contains("config"),
+             file + ": not a policy checkpoint (model != bc_policy)");
+  BcPolicyConfig config;
+  try {
+    config = BcPolicyConfig::from_json(cfg["config"]);
+  } catch (const Error& e) {
+    throw Error(file + ": " + e.what());
+  }
+  BcPolicy policy(config);
   LoadOptions opts;
   opts.prefix = "policy.";
   load_state_dict(*policy, ckpt.model(), opts);

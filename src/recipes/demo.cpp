@@ -17,6 +17,7 @@
 #include "core/json_file.h"
 #include "core/log.h"
 #include "core/runtime.h"
+#include "core/timing.h"
 #include "data/episode_store.h"
 #include "eval/keypoint_metrics.h"
 #include "eval/wm_eval.h"
@@ -70,10 +71,6 @@ constexpr StageCost kCosts[] = {
     {"eval", 135, 0},
     {"eval_student", 65, 0},
     {"eval_reference", 135, 0}};
-
-double seconds_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-}
 
 // This machine's float32 matmul speed (GFLOP/s), from 1024^3 products under the thread layout of
 // the matmul-bound stages.

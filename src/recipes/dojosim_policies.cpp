@@ -10,6 +10,8 @@
 #include "core/error.h"
 #include "core/json_file.h"
 #include "core/log.h"
+#include "core/stable_hash.h"
+#include "sim/episode.h"
 #include "sim/renderer.h"
 #include "sim/skills.h"
 #include "sim/task.h"
@@ -21,13 +23,6 @@ namespace fs = std::filesystem;
 
 namespace dojo::recipes {
 namespace {
-
-// FNV-1a: a policy's name as a seed offset that is the same on every platform.
-uint64_t name_hash(const std::string& name) {
-  uint64_t h = 1469598103934665603ull;
-  for (const unsigned char c : name) h = (h ^ c) * 1099511628211ull;
-  return h;
-}
 
 sim::SceneSpec policy_scene(uint64_t seed, int size) {
   sim::SceneSampling sampling;
@@ -53,7 +48,7 @@ std::vector<double> to_vector(const torch::Tensor& row) {
 // The world at frame 0 of a scene.
 std::unique_ptr<sim::World> start_world(const eval::EpisodeStart& start) {
   auto world = std::make_unique<sim::World>(sim::scene_from_json(start.scene));
-  world->hold(kSettleSteps);
+  world->hold(sim::EpisodeSpec{}.settle_steps);  // as the generated datasets
   return world;
 }
 
@@ -99,7 +94,7 @@ class ScriptedPolicy : public eval::Policy {
     controller_ =
         spec_.behavior == "idle"
             ? nullptr
-            : sim::make_robot_controller(*world_, options_, start.seed * 1000003 + name_hash(spec_.name));
+            : sim::make_robot_controller(*world_, options_, start.seed * 1000003 + stable_hash(spec_.name));
   }
   torch::Tensor act(const torch::Tensor&, const torch::Tensor& last_command, int64_t n) override {
     if (!controller_) return last_command.unsqueeze(0).expand({n, last_command.numel()}).clone();

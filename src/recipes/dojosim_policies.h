@@ -3,8 +3,8 @@
 // detector learns from.
 //
 // Scenes: robot, one object of the robot's set, the bin (so an episode either succeeds or fails),
-// the training backgrounds. Frame 0 is the scene after kSettleSteps steps at the rest pose, as in
-// the generated datasets.
+// the training backgrounds. Frame 0 is the scene after sim::EpisodeSpec's settle steps at the rest pose, as
+// in the generated datasets.
 //
 // Scripted policies plan at reset: they build their own copy of the scene from its description
 // and run DojoSim's bin policy (sim/skills.h) in it, with the quality knobs set (noise, delay,
@@ -28,8 +28,6 @@ class World;
 }  // namespace dojo::sim
 
 namespace dojo::recipes {
-
-constexpr int kSettleSteps = 5;  // control steps before frame 0, as in sim::EpisodeSpec
 
 struct PolicySceneOptions {
   int64_t count = 30;

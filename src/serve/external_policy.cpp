@@ -41,36 +41,14 @@ class ExternalPolicy : public eval::Policy {
   explicit ExternalPolicy(ExternalPolicyOptions options) : options_(std::move(options)) {
     DOJO_CHECK(!options_.name.empty() && !options_.command.empty(),
                "external policy: a name and a command are needed");
-    acceptor_.open(tcp::v4());
-    acceptor_.bind({net::ip::make_address("127.0.0.1"), 0});
-    acceptor_.listen(1);
-    const auto url = "ws://127.0.0.1:" + std::to_string(acceptor_.local_endpoint().port()) + "/ws";
-    spawn(url);
-    LOG_INFO("external policy '", options_.name, "': started `", options_.command, "`, waiting at ", url);
-    try {
-      wait([&](auto handler) { acceptor_.async_accept(ws_.next_layer(), handler); }, "before connecting");
-      acceptor_.close();  // one connection per policy
-      wait([&](auto handler) { ws_.async_accept(handler); }, "during the WebSocket handshake");
-    } catch (...) {
-      stop_process();  // no destructor runs for a constructor that throws
-      throw;
-    }
-    ws_.read_message_max(1 << 20);
   }
 
-  ~ExternalPolicy() override {
-    try {
-      finish_episode();
-      wait([&](auto handler) { ws_.async_close(websocket::close_code::normal, handler); }, "closing");
-    } catch (const std::exception& e) {
-      LOG_DEBUG("external policy '", options_.name, "': ", e.what());
-    }
-    stop_process();
-  }
+  ~ExternalPolicy() override { finish(); }
 
   const std::string& name() const override { return options_.name; }
 
   void reset(const eval::EpisodeStart& start) override {
+    if (!ws_) connect();  // the process starts when its first episode does, not while others run
     finish_episode();
     start_ = start;
     started_ = false;
@@ -123,9 +101,45 @@ class ExternalPolicy : public eval::Policy {
     }
   }
 
+  // Ends the last episode, closes the connection and stops the process. Never throws.
+  void finish() override {
+    if (ws_) {
+      try {
+        finish_episode();
+        wait([&](auto handler) { ws_->async_close(websocket::close_code::normal, handler); }, "closing", 5);
+      } catch (const std::exception& e) {
+        LOG_DEBUG("external policy '", options_.name, "': ", e.what());
+      }
+      beast::error_code ignored;
+      beast::get_lowest_layer(*ws_).close(ignored);
+      ws_.reset();
+    }
+    stop_process();
+  }
+
  private:
   [[noreturn]] void fail(const std::string& what) const {
     throw Error("external policy '" + options_.name + "': " + what);
+  }
+
+  void connect() {
+    acceptor_.open(tcp::v4());
+    acceptor_.bind({net::ip::make_address("127.0.0.1"), 0});
+    acceptor_.listen(1);
+    const auto url = "ws://127.0.0.1:" + std::to_string(acceptor_.local_endpoint().port()) + "/ws";
+    spawn(url);
+    LOG_INFO("external policy '", options_.name, "': started `", options_.command, "`, waiting at ", url);
+    ws_.emplace(ioc_);
+    try {
+      wait([&](auto handler) { acceptor_.async_accept(ws_->next_layer(), handler); }, "before connecting");
+      acceptor_.close();  // one connection per policy
+      wait([&](auto handler) { ws_->async_accept(handler); }, "during the WebSocket handshake");
+    } catch (...) {
+      ws_.reset();
+      stop_process();
+      throw;
+    }
+    ws_->read_message_max(1 << 20);
   }
 
   void spawn(const std::string& url) {
@@ -138,16 +152,25 @@ class ExternalPolicy : public eval::Policy {
     envp.push_back(nullptr);
     std::string sh = "/bin/sh", flag = "-c", command = options_.command;
     std::vector<char*> argv = {sh.data(), flag.data(), command.data(), nullptr};
-    // The policy's stdout goes to our stderr: our stdout carries the evaluation's table.
     posix_spawn_file_actions_t actions;
     posix_spawn_file_actions_init(&actions);
+    // The policy's stdout goes to our stderr: our stdout carries the evaluation's table. It
+    // inherits no other descriptor of ours (the listening socket, other policies' connections).
     posix_spawn_file_actions_adddup2(&actions, STDERR_FILENO, STDOUT_FILENO);
-    const int rc = posix_spawn(&pid_, sh.c_str(), &actions, nullptr, argv.data(), envp.data());
+    posix_spawn_file_actions_addclosefrom_np(&actions, 3);
+    // Its own process group, so that stopping it reaches what the shell started too.
+    posix_spawnattr_t attributes;
+    posix_spawnattr_init(&attributes);
+    posix_spawnattr_setflags(&attributes, POSIX_SPAWN_SETPGROUP);
+    posix_spawnattr_setpgroup(&attributes, 0);
+    const int rc = posix_spawn(&pid_, sh.c_str(), &actions, &attributes, argv.data(), envp.data());
+    posix_spawnattr_destroy(&attributes);
     posix_spawn_file_actions_destroy(&actions);
     if (rc != 0) {
       pid_ = -1;
       fail("cannot start `" + options_.command + "`: " + std::strerror(rc));
     }
+    exit_.reset();
   }
 
   // The process's exit, once it has exited ("status 1", "signal 9").
@@ -163,18 +186,24 @@ class ExternalPolicy : public eval::Policy {
 
   void stop_process() {
     if (pid_ <= 0) return;
+    const pid_t group = pid_;
     // A policy that saw the connection close should leave by itself; then it is asked, then told.
-    for (const int signal : {0, SIGTERM, SIGKILL}) {
-      if (signal) kill(pid_, signal);
+    for (const int signal : {0, SIGTERM}) {
+      if (signal) kill(-group, signal);
       for (int i = 0; i < 50 && !exited(); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
-      if (pid_ <= 0) return;
+      if (pid_ <= 0) break;
+    }
+    kill(-group, SIGKILL);  // whatever of its group is left
+    if (pid_ > 0) {
+      waitpid(pid_, nullptr, 0);
+      pid_ = -1;
     }
   }
 
-  // Runs one asynchronous operation to completion, or fails after the timeout or when the process
-  // exits first. `begin(handler)` starts the operation.
+  // Runs one asynchronous operation to completion, or fails after `timeout_s` (default: the
+  // options') or when the process exits first. `begin(handler)` starts the operation.
   template <class Begin>
-  void wait(Begin begin, const std::string& what) {
+  void wait(Begin begin, const std::string& what, double timeout_s = 0) {
     bool done = false;
     beast::error_code ec;
     ioc_.restart();
@@ -182,7 +211,8 @@ class ExternalPolicy : public eval::Policy {
       done = true;
       ec = e;
     });
-    const auto deadline = Clock::now() + std::chrono::duration<double>(options_.timeout_s);
+    const double limit = timeout_s > 0 ? timeout_s : options_.timeout_s;
+    const auto deadline = Clock::now() + std::chrono::duration<double>(limit);
     std::string problem;
     while (!done) {
       ioc_.run_for(std::chrono::milliseconds(100));
@@ -190,13 +220,13 @@ class ExternalPolicy : public eval::Policy {
       if (const auto status = exited()) {
         problem = "the process exited (" + *status + ") " + what;
       } else if (Clock::now() > deadline) {
-        problem = "no answer in " + std::to_string(static_cast<int>(options_.timeout_s)) + " s " + what;
+        problem = "no answer in " + std::to_string(static_cast<int>(limit)) + " s " + what;
       }
       if (!problem.empty()) {
         // Cancel, and let the handler run while `done` and `ec` still exist.
         beast::error_code ignored;
         acceptor_.close(ignored);
-        beast::get_lowest_layer(ws_).close(ignored);
+        if (ws_) beast::get_lowest_layer(*ws_).close(ignored);
         ioc_.restart();
         ioc_.run();
         fail(problem);
@@ -209,8 +239,8 @@ class ExternalPolicy : public eval::Policy {
   nlohmann::json receive() {
     for (;;) {
       beast::flat_buffer buffer;
-      wait([&](auto handler) { ws_.async_read(buffer, handler); }, "waiting for a message");
-      if (!ws_.got_text()) {
+      wait([&](auto handler) { ws_->async_read(buffer, handler); }, "waiting for a message");
+      if (!ws_->got_text()) {
         reply_error("binary messages are not part of policy evaluation");
         continue;
       }
@@ -220,13 +250,10 @@ class ExternalPolicy : public eval::Policy {
     }
   }
 
+  // With the same deadline as a read: a policy that stops reading cannot hold the evaluation.
   void write(bool binary, const std::string& data) {
-    try {
-      ws_.binary(binary);
-      ws_.write(net::buffer(data));
-    } catch (const std::exception& e) {
-      fail(std::string("sending: ") + e.what());
-    }
+    ws_->binary(binary);
+    wait([&](auto handler) { ws_->async_write(net::buffer(data), handler); }, "while sending");
   }
   void send_text(const nlohmann::json& message) { write(false, message.dump()); }
   void reply_error(const std::string& message) { send_text({{"type", "error"}, {"message", message}}); }
@@ -238,7 +265,7 @@ class ExternalPolicy : public eval::Policy {
                                 static_cast<uint32_t>(step_), 0, 0, ms));
   }
 
-  // The episode's last step is answered when the next episode begins (or the evaluation ends).
+  // The episode's last step is answered when the next episode begins (or the policy finishes).
   void finish_episode() {
     if (!awaiting_) return;
     awaiting_ = false;
@@ -248,7 +275,7 @@ class ExternalPolicy : public eval::Policy {
   ExternalPolicyOptions options_;
   net::io_context ioc_;
   tcp::acceptor acceptor_{ioc_};
-  websocket::stream<tcp::socket> ws_{ioc_};
+  std::optional<websocket::stream<tcp::socket>> ws_;  // while connected
   pid_t pid_ = -1;
   std::optional<std::string> exit_;
   eval::EpisodeStart start_;

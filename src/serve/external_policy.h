@@ -12,8 +12,8 @@
 //   eval   -> the step's frames (binary, DJF1 header + JPEG) + {"type":"step_done", "step",
 //              "frames", "done": false}
 //   ... until the episode's last step, which is answered by {"type":"step_done", "step",
-//       "frames": 0, "done": true} when the next episode begins (or the evaluation ends); then
-//       the policy sends "start" again. The connection closes when the evaluation is over.
+//       "frames": 0, "done": true} when the next episode begins (or the policy is done); then
+//       the policy sends "start" again. The connection closes after its last episode.
 // A bad message gets {"type":"error", "message"} and the episode waits for a good one. A
 // process that exits, closes the connection or stays silent past the timeout fails the
 // evaluation with a one-line error naming the policy (a rerun resumes from the journal).
@@ -33,8 +33,8 @@ struct ExternalPolicyOptions {
   int jpeg_quality = 90;
 };
 
-// Starts the process and waits for its connection; throws dojo::Error naming the policy when it
-// does not connect in time or exits first.
+// The process starts at the policy's first episode (reset), which throws dojo::Error naming the
+// policy when it does not connect in time or exits first; finish() (or destruction) ends it.
 std::unique_ptr<eval::Policy> make_external_policy(const ExternalPolicyOptions& options);
 
 }  // namespace dojo::serve

@@ -12,6 +12,7 @@
 #include "core/atomic_file.h"
 #include "core/error.h"
 #include "core/json_file.h"
+#include "core/stable_hash.h"
 
 namespace dojo::serve {
 
@@ -20,17 +21,6 @@ namespace fs = std::filesystem;
 namespace {
 
 constexpr const char* kFormat = "dojo-study-1";
-
-// FNV-1a, then the splitmix64 finaliser: the same on every build, and every output bit depends on
-// every input byte (FNV-1a's low bit alone is only the parity of the bytes, which would put model
-// A on the same side for every item whose id has the same parity).
-uint64_t stable_hash(const std::string& text) {
-  uint64_t h = 1469598103934665603ull;
-  for (const unsigned char c : text) h = (h ^ c) * 1099511628211ull;
-  h = (h ^ (h >> 30)) * 0xbf58476d1ce4e5b9ull;
-  h = (h ^ (h >> 27)) * 0x94d049bb133111ebull;
-  return h ^ (h >> 31);
-}
 
 bool safe_relative(const std::string& path) {
   if (path.empty() || path.front() == '/' || path.find('\\') != std::string::npos) return false;

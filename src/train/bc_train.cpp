@@ -87,9 +87,9 @@ Batch gather(const Demonstrations& data, const torch::Tensor& episode, const tor
 // Per-dimension statistics of the training episodes: where commands sit and how far a chunk
 // moves them (a floor keeps a dimension that never moves from dividing by zero).
 void measure_statistics(const Demonstrations& data, const Samples& train, models::BcPolicyConfig& config) {
-  const auto executed = data.executed.index({train.episode, train.frame});  // [N, A]
-  const auto batch = gather(data, train.episode, train.frame, config.chunk);
-  const auto offsets = batch.target - batch.last.unsqueeze(1);  // [N, chunk, A]
+  const auto executed = data.executed.index({train.episode, train.frame});     // [N, A]
+  const auto chunks = data.labels.unfold(1, config.chunk, 1).transpose(2, 3);  // [E, T-c+1, c, A]
+  const auto offsets = chunks.index({train.episode, train.frame}) - executed.unsqueeze(1);  // [N, chunk, A]
   const auto to_vector = [](const torch::Tensor& t) {
     const auto d = t.to(torch::kFloat64).contiguous();
     return std::vector<double>(d.data_ptr<double>(), d.data_ptr<double>() + d.numel());
@@ -158,9 +158,7 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint";
   const bool resuming = checkpoint_exists(ckpt_dir);
-  auto config = resuming ? models::BcPolicyConfig::from_json(
-                               Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config().at("config"))
-                         : job.model;
+  auto config = resuming ? models::load_bc_policy(ckpt_dir)->config() : job.model;
   DOJO_CHECK(data.executed.size(2) == config.action_dim,
              job.data.string() + ": commands have " + std::to_string(data.executed.size(2)) +
                  " values; the policy's action_dim is " + std::to_string(config.action_dim));
@@ -204,10 +202,7 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
         auto images = models::bc_input(policy, b.frames);  // [B, 3, S, S]
         const int64_t B = images.size(0);
         images = random_shift(images, job.shift, gen);
-        const auto offset = (torch::rand({B, 1, 1, 1}, gen) * 2 - 1) * job.brightness;
-        const auto blurred = torch::rand({B}, gen) < job.blur_probability;
-        const auto sigma = (torch::rand({B}, gen) * 1.2 + 0.3) * blurred.to(torch::kFloat32);
-        images = gaussian_blur(images, sigma).add(offset).clamp(0, 1);
+        images = soften_like_generated(images, job.blur_probability, job.brightness, gen);
         const double warm = std::min(1.0, static_cast<double>(s.index + 1) / 50.0);
         const double progress =
             static_cast<double>(s.index) / static_cast<double>(std::max<int64_t>(1, job.steps));
@@ -230,9 +225,13 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
       [&](int64_t steps_done, bool) {
         save_with_adamw(ckpt_dir, models::bc_policy_checkpoint(*policy), opt, *policy, steps_done);
       });
-  if (!checkpoint_exists(snapshot_dir(job.out, run.end_step))) save_snapshot(run.end_step);
+  // The finished policy is a snapshot too; a run stopped early by its time budget leaves none
+  // (it would become a policy of its own).
+  if (run.end_step == job.steps && !checkpoint_exists(snapshot_dir(job.out, run.end_step)))
+    save_snapshot(run.end_step);
   BcTrainResult r;
   r.steps = run.end_step;
+  r.loss = recent.empty() ? std::nan("") : 0.0;  // nothing trained in this call: no loss to report
   for (double v : recent) r.loss += v / static_cast<double>(recent.size());
   r.seconds = run.seconds;
   r.heldout_loss = bc_loss(policy, data, data.heldout);

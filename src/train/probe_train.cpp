@@ -68,10 +68,7 @@ ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
         const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
         auto images = frames.frames.index_select(0, idx).permute({0, 3, 1, 2}).to(torch::kFloat32).div(255.0);
         const auto target = targets.index_select(0, idx);
-        const auto offset = (torch::rand({job.batch_size, 1, 1, 1}, gen) * 2 - 1) * job.brightness;
-        const auto blurred = torch::rand({job.batch_size}, gen) < job.blur_probability;
-        const auto sigma = (torch::rand({job.batch_size}, gen) * 1.2 + 0.3) * blurred.to(torch::kFloat32);
-        images = gaussian_blur(images, sigma).add(offset).clamp(0, 1);
+        images = soften_like_generated(images, job.blur_probability, job.brightness, gen);
         for (auto& group : opt.param_groups())
           static_cast<torch::optim::AdamWOptions&>(group.options())
               .lr(job.lr * std::min(1.0, static_cast<double>(s.index + 1) / 50.0));

@@ -149,10 +149,7 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
         const auto target = train_windows.label.index_select(0, pick);                        // [B]
         auto input = models::success_input(detector, gather_windows(data, episode, end, k));  // [B, 3k, S, S]
         const int64_t B = input.size(0);
-        const auto offset = (torch::rand({B, 1, 1, 1}, gen) * 2 - 1) * job.brightness;
-        const auto blurred = torch::rand({B}, gen) < job.blur_probability;
-        const auto sigma = (torch::rand({B}, gen) * 1.2 + 0.3) * blurred.to(torch::kFloat32);
-        input = gaussian_blur(input, sigma).add(offset).clamp(0, 1);
+        input = soften_like_generated(input, job.blur_probability, job.brightness, gen);
         // A mirrored scene is as successful as the original: flips double the scenes it sees.
         const auto flip = (torch::rand({B, 1, 1, 1}, gen) < 0.5).to(input.dtype());
         input = flip * input.flip({3}) + (1 - flip) * input;

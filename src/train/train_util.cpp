@@ -140,4 +140,13 @@ torch::Tensor gaussian_blur(const torch::Tensor& images, const torch::Tensor& si
   return out;
 }
 
+torch::Tensor soften_like_generated(const torch::Tensor& images, double blur_probability, double brightness,
+                                    torch::Generator& gen) {
+  const int64_t B = images.size(0);
+  const auto offset = (torch::rand({B, 1, 1, 1}, gen) * 2 - 1) * brightness;
+  const auto blurred = torch::rand({B}, gen) < blur_probability;
+  const auto sigma = (torch::rand({B}, gen) * 1.2 + 0.3) * blurred.to(torch::kFloat32);
+  return gaussian_blur(images, sigma).add(offset).clamp(0, 1);
+}
+
 }  // namespace dojo::train

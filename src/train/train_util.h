@@ -39,6 +39,11 @@ torch::Generator step_generator(uint64_t seed, int64_t step);
 // Gaussian blur of each image of [B, C, S, S] with its own sigma [B] in pixels (0: untouched): the
 // augmentation that keeps frame classifiers reading generated frames, which are softer than renders.
 torch::Tensor gaussian_blur(const torch::Tensor& images, const torch::Tensor& sigma);
+// The augmentation of frame readers that must read generated video (probe, success detector,
+// policy): a brightness offset in [-brightness, brightness] per image, and with probability
+// `blur_probability` a Gaussian blur of sigma 0.3-1.5 px; images [B, C, S, S] in [0, 1].
+torch::Tensor soften_like_generated(const torch::Tensor& images, double blur_probability, double brightness,
+                                    torch::Generator& gen);
 
 // Checkpoints of the plain AdamW loops (probe, fast decoder): `data` is the model's checkpoint
 // (config and weights), to which the step and the AdamW moments are added as trainer state.

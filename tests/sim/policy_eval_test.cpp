@@ -89,10 +89,20 @@ TEST(PolicyEval, SimulatorAsTheWorldModelAgreesExactlyAndJournalsResume) {
                             {{"test", 2}});
   });
   EXPECT_NE(message.find("another evaluation"), std::string::npos) << message;
-  // A torn last line (a crash mid-write) is rerun, not fatal.
-  std::ofstream(tmp / "journal.jsonl", std::ios::app) << R"({"policy": "idle", "sce)";
-  EXPECT_NO_THROW(eval::evaluate_policies(pointers(owned), starts, real, again, options,
-                                          tmp / "journal.jsonl", fingerprint));
+  // A crash while writing the last record leaves it torn: that episode is run again, once, and
+  // the journal reads whole afterwards.
+  auto text = test::read_file(tmp / "journal.jsonl");
+  text.resize(text.rfind('\n', text.size() - 2) + 1);  // drop the last record ...
+  std::ofstream(tmp / "journal.jsonl", std::ios::trunc)
+      << text << R"({"policy": "idle", "sce)";  // ... half written
+  CountingEnvironment rerun;
+  const auto mended = eval::evaluate_policies(pointers(owned), starts, real, rerun, options,
+                                              tmp / "journal.jsonl", fingerprint);
+  EXPECT_EQ(rerun.resets, 1);
+  EXPECT_EQ(mended.rates.real, report.rates.real);
+  CountingEnvironment none;
+  eval::evaluate_policies(pointers(owned), starts, real, none, options, tmp / "journal.jsonl", fingerprint);
+  EXPECT_EQ(none.resets, 0);
 }
 
 // Returns commands of the wrong width.
@@ -191,7 +201,7 @@ TEST(PolicyEval, WorldModelRunsAPolicyClosedLoop) {
   options.steps = 2;
   options.settle_steps = 1;
   const double success = eval::run_policy_episode(*owned[0], env, starts[0], options);
-  EXPECT_TRUE(success == 0.0 || success == 1.0);
+  EXPECT_TRUE(success == 0.0 || success == 1.0) << "an episode's vote is a verdict";
   EXPECT_EQ(env.video().size(0), 1 + 4 * 3);
   EXPECT_EQ(env.video().scalar_type(), torch::kUInt8);
   // The same policy gets the same frames: the world model's noise comes from the scene's seed.
