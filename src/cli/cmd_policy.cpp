@@ -40,7 +40,7 @@ struct DetectorArgs {
 
 struct TrainArgs {
   std::string out = "dojo_policy/bc";
-  int64_t episodes = 160, frames = 64, steps = 3000, batch = 64;
+  int64_t episodes = 160, frames = 64, steps = 3000, batch = 64, shift = 0;
   std::vector<int64_t> snapshots = {100, 300, 1000};
   double noise = 0.03;
   uint64_t seed = 20000;
@@ -50,7 +50,7 @@ struct EvalArgs {
   std::string out = "dojo_policy", demo = "dojo_demo", student, teacher, tokenizer, fast_decoder, detector,
               policies, bc;
   std::vector<std::string> external;
-  int64_t scenes = 30, frames = 64, settle_frames = 12, detector_steps = 800, bc_steps = 3000;
+  int64_t scenes = 30, frames = 64, settle_frames = 12, detector_steps = 800, bc_steps = 3000, videos = 1;
   uint64_t seed = 7000;
   bool sim_as_world_model = false, no_bc = false;
   double external_timeout = 120;
@@ -103,6 +103,7 @@ nlohmann::json train_bc(const TrainArgs& a) {
   job.steps = a.steps;
   job.batch_size = static_cast<int>(a.batch);
   job.snapshots = a.snapshots;
+  job.shift = a.shift;
   const auto r = train::run_bc_training(job);
   nlohmann::json snapshots = nlohmann::json::array();
   for (const auto& s : r.snapshots) snapshots.push_back(s.string());
@@ -312,7 +313,9 @@ int run_eval(const EvalArgs& a) {
     }
     names.push_back(entry);
   }
-  const auto options = episode_options(a.frames, a.settle_frames, per_step);
+  auto options = episode_options(a.frames, a.settle_frames, per_step);
+  options.videos = a.videos;
+  options.video_dir = out / "videos";
   fingerprint["policies"] = names;
   fingerprint["scenes"] = {{"count", a.scenes}, {"seed", a.seed}};
   fingerprint["episode"] = {
@@ -333,7 +336,7 @@ int run_eval(const EvalArgs& a) {
   if (fs::exists(pick(a.detector, out / "detector") / "result.json"))
     json["detector"] = read_json_file(pick(a.detector, out / "detector") / "result.json");
   write_file_atomic(out / "report.json", json.dump(2) + "\n");
-  eval::write_policy_eval_html(report, out / "report.html", "DojoSim", world_model_name);
+  eval::write_policy_eval_html(report, out / "report.html", "DojoSim", world_model_name, options.video_dir);
 
   std::printf("%-14s %8s %12s\n", "policy", "DojoSim", world_model_name.substr(0, 12).c_str());
   for (size_t i = 0; i < report.rates.names.size(); ++i)
@@ -377,6 +380,9 @@ void register_policy(CLI::App& app) {
       ->check(CLI::Range(0, 10000000))
       ->capture_default_str();
   train_cmd->add_option("--batch", t->batch, "Batch size")->check(CLI::Range(1, 4096))->capture_default_str();
+  train_cmd->add_option("--shift", t->shift, "Random frame translation in pixels (augmentation)")
+      ->check(CLI::Range(0, 16))
+      ->capture_default_str();
   train_cmd
       ->add_option("--snapshots", t->snapshots, "Steps whose weights are kept as policies (besides the last)")
       ->delimiter(',')
@@ -435,6 +441,10 @@ void register_policy(CLI::App& app) {
       ->capture_default_str();
   ev->add_option("--settle-frames", e->settle_frames,
                  "Frames holding the last command before success is read")
+      ->check(CLI::Range(0, 100000))
+      ->capture_default_str();
+  ev->add_option("--videos", e->videos,
+                 "Scenes per policy written as side-by-side videos (OUT/videos, in the report)")
       ->check(CLI::Range(0, 100000))
       ->capture_default_str();
   ev->add_flag("--sim-as-world-model", e->sim_as_world_model,

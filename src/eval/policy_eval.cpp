@@ -13,6 +13,7 @@
 #include "core/timing.h"
 #include "eval/html_report.h"
 #include "infer/generator.h"
+#include "io/video.h"
 
 namespace fs = std::filesystem;
 
@@ -102,10 +103,11 @@ std::unique_ptr<Policy> make_bc_policy(std::string name, models::BcPolicy policy
 // Episodes
 
 double run_policy_episode(Policy& policy, Environment& env, const EpisodeStart& start,
-                          const PolicyEvalOptions& options) {
+                          const PolicyEvalOptions& options, std::vector<torch::Tensor>* shown) {
   const int64_t n = env.actions_per_step() > 0 ? env.actions_per_step() : options.actions_per_step;
   const int64_t width = start.command.numel();
   auto frames = env.reset(start).unsqueeze(0);  // [1, H, W, 3]
+  if (shown) shown->push_back(frames);
   policy.reset(start);
   auto last = start.command.to(torch::kFloat32);
   for (int64_t k = 0; k < options.steps; ++k) {
@@ -121,10 +123,14 @@ double run_policy_episode(Policy& policy, Environment& env, const EpisodeStart& 
     DOJO_CHECK(torch::isfinite(rows).all().item<bool>(),
                "policy '" + policy.name() + "': non-finite command");
     frames = env.step(rows);  // [n, H, W, 3]
+    if (shown) shown->push_back(frames);
     last = rows[-1];
   }
   const auto hold = last.unsqueeze(0).expand({n, width}).contiguous();
-  for (int64_t k = 0; k < options.settle_steps; ++k) env.step(hold);
+  for (int64_t k = 0; k < options.settle_steps; ++k) {
+    const auto settled = env.step(hold);
+    if (shown) shown->push_back(settled);
+  }
   return env.success();
 }
 
@@ -231,6 +237,24 @@ std::vector<EpisodeResult> read_journal(const fs::path& journal, const nlohmann:
   return done;
 }
 
+std::string outcome(double success) { return success > 0.5 ? "success" : "failure"; }
+
+fs::path episode_video(const fs::path& dir, const std::string& policy, int64_t scene) {
+  return dir / (policy + "-scene-" + std::to_string(scene) + ".mp4");
+}
+
+void write_episode_video(const fs::path& dir, const EpisodeResult& r, const std::string& real_name,
+                         const std::string& world_model_name, const std::vector<torch::Tensor>& real_frames,
+                         const std::vector<torch::Tensor>& world_model_frames) {
+  fs::create_directories(dir);
+  constexpr int64_t kEnlarge = 4;
+  io::write_comparison_video(
+      episode_video(dir, r.policy, r.scene).string(),
+      {io::upscale_nearest(torch::cat(real_frames), kEnlarge),
+       io::upscale_nearest(torch::cat(world_model_frames), kEnlarge)},
+      {real_name + ": " + outcome(r.real), world_model_name + ": " + outcome(r.world_model)}, 10.0);
+}
+
 }  // namespace
 
 PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
@@ -273,12 +297,18 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
       r.policy = policy->name();
       r.scene = start.index;
       r.open_loop = policy->open_loop();
+      const bool filmed = start.index < options.videos && !options.video_dir.empty();
+      std::vector<torch::Tensor> real_frames, world_model_frames;
       auto t0 = std::chrono::steady_clock::now();
-      r.real = run_policy_episode(*policy, real, start, options);
+      r.real = run_policy_episode(*policy, real, start, options, filmed ? &real_frames : nullptr);
       r.real_seconds = seconds_since(t0);
       t0 = std::chrono::steady_clock::now();
-      r.world_model = run_policy_episode(*policy, world_model, start, options);
+      r.world_model =
+          run_policy_episode(*policy, world_model, start, options, filmed ? &world_model_frames : nullptr);
       r.world_model_seconds = seconds_since(t0);
+      if (filmed)
+        write_episode_video(options.video_dir, r, real.name(), world_model.name(), real_frames,
+                            world_model_frames);
       if (out.is_open()) out << r.to_json().dump() << "\n" << std::flush;
       results.push_back(r);
       if (on_episode) on_episode(++done, total);
@@ -294,7 +324,8 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
 }
 
 void write_policy_eval_html(const PolicyEvalReport& report, const fs::path& path,
-                            const std::string& real_name, const std::string& world_model_name) {
+                            const std::string& real_name, const std::string& world_model_name,
+                            const fs::path& video_dir) {
   const auto f = [](double v, int digits = 3) {
     if (!std::isfinite(v)) return std::string("—");
     char buf[32];
@@ -316,6 +347,15 @@ void write_policy_eval_html(const PolicyEvalReport& report, const fs::path& path
     rows.push_back({report.rates.names[i], f(report.rates.real[i]), f(report.rates.world_model[i])});
   html.heading("Policies");
   html.table({"policy", real_name, world_model_name}, rows);
+  bool heading = false;
+  for (const auto& e : report.episodes) {
+    const auto mp4 = episode_video(video_dir, e.policy, e.scene);
+    if (video_dir.empty() || !fs::exists(mp4)) continue;
+    if (!heading) html.heading("Episodes: " + real_name + " | " + world_model_name);
+    heading = true;
+    html.video(mp4, e.policy + ", scene " + std::to_string(e.scene) + ": " + outcome(e.real) + " in " +
+                        real_name + ", " + outcome(e.world_model) + " in " + world_model_name);
+  }
   html.write(path);
 }
 

@@ -104,6 +104,10 @@ struct PolicyEvalOptions {
   int64_t steps = 16;        // policy decisions per episode (x n actions: 64 frames for the student)
   int64_t settle_steps = 3;  // steps holding the last command before success is read
   int64_t actions_per_step = 4;
+  // Scenes 0 .. videos-1 of every policy are written as side-by-side videos (the real world | the
+  // world model, enlarged 4x, each labelled with its outcome) into video_dir/POLICY-scene-K.mp4.
+  int64_t videos = 0;
+  std::filesystem::path video_dir;
 };
 
 struct EpisodeResult {
@@ -127,15 +131,17 @@ struct PolicyEvalReport {
   nlohmann::json to_json() const;
 };
 
-// The behaviour-cloning policy (models/bc_policy.h) as a policy: it decides on the newest frame.
-// A step longer than its chunk (the teacher's 12 commands) is filled by deciding again on the
-// same frame from the chunk's end, open loop.
+// The behaviour-cloning policy (models/bc_policy.h) as a policy: it decides on the newest frame
+// and executes the first commands of its chunk. A step longer than its chunk is filled by
+// deciding again on the same frame from the chunk's end, open loop.
 std::unique_ptr<Policy> make_bc_policy(std::string name, models::BcPolicy policy);
 
 // One episode of `policy` in `env` from `start` (see the top of this file). Throws dojo::Error
 // naming the policy when it returns commands of the wrong shape or non-finite values.
+// With `frames`, every frame the episode showed is appended to it ([k, H, W, 3] pieces, the start
+// frame first).
 double run_policy_episode(Policy& policy, Environment& env, const EpisodeStart& start,
-                          const PolicyEvalOptions& options);
+                          const PolicyEvalOptions& options, std::vector<torch::Tensor>* frames = nullptr);
 
 // Every policy on every scene in both worlds. With `journal`, finished episodes are appended to
 // it (one JSON line each, flushed) and a rerun with the same journal skips them: a crashed
@@ -153,8 +159,9 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
 PolicyEvalReport summarize_policy_episodes(const std::vector<EpisodeResult>& episodes);
 
 // The report as a self-contained HTML page: the agreement numbers, a scatter of per-policy
-// success (real vs world model) and the per-policy table.
+// success (real vs world model), the per-policy table and the episode videos in `video_dir`.
 void write_policy_eval_html(const PolicyEvalReport& report, const std::filesystem::path& path,
-                            const std::string& real_name, const std::string& world_model_name);
+                            const std::string& real_name, const std::string& world_model_name,
+                            const std::filesystem::path& video_dir = {});
 
 }  // namespace dojo::eval

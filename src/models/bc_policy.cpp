@@ -46,8 +46,8 @@ void add_stage(nn::Sequential& seq, int64_t in, int64_t out) {
 }  // namespace
 
 nlohmann::json BcPolicyConfig::to_json() const {
-  nlohmann::json j = {{"size", size},     {"width", width},           {"keypoints", keypoints},
-                      {"hidden", hidden}, {"action_dim", action_dim}, {"chunk", chunk}};
+  nlohmann::json j = {
+      {"size", size}, {"width", width}, {"hidden", hidden}, {"action_dim", action_dim}, {"chunk", chunk}};
   if (!command_mean.empty()) j["command_mean"] = command_mean;
   if (!command_scale.empty()) j["command_scale"] = command_scale;
   if (!step_scale.empty()) j["step_scale"] = step_scale;
@@ -59,14 +59,12 @@ BcPolicyConfig BcPolicyConfig::from_json(const nlohmann::json& j) {
   const JsonFields f(j, "bc policy config");
   f.get("size", c.size);
   f.get("width", c.width);
-  f.get("keypoints", c.keypoints);
   f.get("hidden", c.hidden);
   f.get("action_dim", c.action_dim);
   f.get("chunk", c.chunk);
   for (const auto& [key, value] :
        std::initializer_list<std::pair<const char*, int64_t>>{{"size", c.size},
                                                               {"width", c.width},
-                                                              {"keypoints", c.keypoints},
                                                               {"hidden", c.hidden},
                                                               {"action_dim", c.action_dim},
                                                               {"chunk", c.chunk}})
@@ -82,17 +80,15 @@ BcPolicyConfig BcPolicyConfig::from_json(const nlohmann::json& j) {
 }
 
 BcPolicyImpl::BcPolicyImpl(BcPolicyConfig config) : config_(std::move(config)) {
-  const int64_t w = config_.width, A = config_.action_dim;
+  const int64_t w = config_.width, A = config_.action_dim, cells = (config_.size / 8) * (config_.size / 8);
   features = nn::Sequential();
-  add_stage(features, 3, w);          // S/2
+  add_stage(features, 3 + 2, w);      // S/2; the pixel's own (x, y) as two more channels
   add_stage(features, w, 2 * w);      // S/4
   add_stage(features, 2 * w, 4 * w);  // S/8
   register_module("features", features);
-  points = register_module("points", nn::Conv2d(nn::Conv2dOptions(4 * w, config_.keypoints, 1)));
-  const int64_t in = 2 * config_.keypoints + 4 * w + A;
-  head =
-      nn::Sequential(nn::Linear(in, config_.hidden), nn::SiLU(), nn::Linear(config_.hidden, config_.hidden),
-                     nn::SiLU(), nn::Linear(config_.hidden, config_.chunk * A));
+  head = nn::Sequential(nn::Linear(4 * w * cells + A, config_.hidden), nn::SiLU(),
+                        nn::Linear(config_.hidden, config_.hidden), nn::SiLU(),
+                        nn::Linear(config_.hidden, config_.chunk * A));
   register_module("head", head);
   mean_ = register_buffer("command_mean", stats_tensor(config_.command_mean, A, 0.0));
   scale_ = register_buffer("command_scale", stats_tensor(config_.command_scale, A, 1.0));
@@ -106,15 +102,13 @@ torch::Tensor BcPolicyImpl::forward(const torch::Tensor& images, const torch::Te
   DOJO_CHECK(
       last_normalised.dim() == 2 && last_normalised.size(0) == images.size(0) && last_normalised.size(1) == A,
       "bc policy: expected last commands [B, " + std::to_string(A) + "]");
-  const auto f = features->forward(images * 2 - 1);  // [B, 4w, s/8, s/8]
-  const int64_t B = f.size(0), h = f.size(2), w = f.size(3);
-  // Spatial softmax: each point map's expected position on a [-1, 1] grid.
-  const auto attention = torch::softmax(points->forward(f).flatten(2), 2);  // [B, K, h w]
-  const auto ys = torch::linspace(-1, 1, h, f.options()).view({h, 1}).expand({h, w}).reshape({h * w});
-  const auto xs = torch::linspace(-1, 1, w, f.options()).view({1, w}).expand({h, w}).reshape({h * w});
-  const auto u = (attention * xs).sum(2), v = (attention * ys).sum(2);    // [B, K] each
-  const auto x = torch::cat({u, v, f.mean({2, 3}), last_normalised}, 1);  // [B, 2K + 4w + A]
-  return head->forward(x).view({B, config_.chunk, A});                    // [B, chunk, A]
+  const int64_t B = images.size(0);
+  const auto grid = torch::linspace(-1, 1, s, images.options());
+  const auto gy = grid.view({1, 1, s, 1}).expand({B, 1, s, s}),
+             gx = grid.view({1, 1, 1, s}).expand({B, 1, s, s});
+  const auto f = features->forward(torch::cat({images * 2 - 1, gx, gy}, 1));  // [B, 4w, s/8, s/8]
+  const auto x = torch::cat({f.flatten(1), last_normalised}, 1);              // [B, 4w (s/8)^2 + A]
+  return head->forward(x).view({B, config_.chunk, A});                        // [B, chunk, A]
 }
 
 torch::Tensor BcPolicyImpl::normalise_command(const torch::Tensor& command) const {

@@ -4,11 +4,13 @@
 // simulator state (eval/policy_eval.h). Trained by train/bc_train.h on scripted demonstrations;
 // its snapshots along training are policies of graded quality.
 //
-// Layout: frame [B, 3, S, S] in [0, 1] -> three stride-2 stages of 3x3 convolutions (S/8 x S/8
-// features) -> a spatial softmax over `keypoints` feature maps (expected (u, v) of each: where
-// things are, which is what reaching needs) beside mean-pooled features -> with the normalised
+// Layout: frame [B, 3, S, S] in [0, 1], with each pixel's (x, y) as two more channels -> three
+// stride-2 stages of 3x3 convolutions (S/8 x S/8) -> the feature map flattened, not pooled (where
+// the object lies is what reaching needs, and pooling would throw it away) -> with the normalised
 // last command, an MLP -> the chunk as offsets from the last command, in units of the
-// demonstrations' per-dimension step size [B, chunk, A].
+// demonstrations' per-dimension step size [B, chunk, A]. The chunk is longer than a decision's 4
+// commands (only those are executed): predicting where the arm will be 16 steps on makes the
+// network find the object it reaches for, which the next few steps alone barely depend on.
 #pragma once
 
 #include <torch/nn/module.h>
@@ -31,10 +33,9 @@ namespace dojo::models {
 struct BcPolicyConfig {
   int64_t size = 64;       // frames are resized to size x size (a multiple of 8)
   int64_t width = 32;      // channels of the first stage; doubled at each of the next two
-  int64_t keypoints = 32;  // spatial-softmax feature points
   int64_t hidden = 256;    // MLP width
   int64_t action_dim = 6;  // the embodiment's command width
-  int64_t chunk = 4;       // commands predicted at once
+  int64_t chunk = 16;      // commands predicted at once (a decision executes the first few)
   // Normalisation, measured on the demonstrations: commands as (c - mean) / scale, offsets from
   // the last command as d / step. Empty: identity (an untrained policy).
   std::vector<double> command_mean, command_scale, step_scale;
@@ -59,7 +60,6 @@ class BcPolicyImpl : public torch::nn::Module {
 
   const BcPolicyConfig& config() const { return config_; }
   torch::nn::Sequential features{nullptr};
-  torch::nn::Conv2d points{nullptr};
   torch::nn::Sequential head{nullptr};
 
  private:

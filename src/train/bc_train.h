@@ -37,7 +37,9 @@ struct BcTrainJob {
   double lr = 1e-3;  // AdamW, linear warm-up over 50 steps, cosine decay to a tenth
   double blur_probability = 0.5;
   double brightness = 0.1;
-  int64_t shift = 4;  // random translation in pixels (pad and crop)
+  // Random translation in pixels (pad and crop). 0 by default: the camera is fixed and commands
+  // are absolute joint targets, so a shifted frame teaches a wrong target (4 px is ~4 cm here).
+  int64_t shift = 0;
   uint64_t seed = 0;
 };
 

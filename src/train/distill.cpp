@@ -153,6 +153,18 @@ DistillStage parse_distill_stage(const std::string& text) {
 
 namespace {
 
+// The student settings recorded in `source` (a checkpoint being resumed, or the warmed-up student
+// Self-Forcing starts from) win over the command line's: the network was trained with them. Said
+// once when they differ, so a --window that does nothing does not pass unnoticed.
+infer::StudentConfig resumed_student_settings(const nlohmann::json& saved, const infer::StudentConfig& asked,
+                                              const std::filesystem::path& source) {
+  auto settings = infer::StudentConfig::from_json(saved, source.string() + "/config.json");
+  if (settings.to_json() != asked.to_json())
+    LOG_WARN("distill: ", source.string(), " was trained with student settings ", settings.to_json().dump(),
+             "; they are kept (the command line asked for ", asked.to_json().dump(), ")");
+  return settings;
+}
+
 struct TeacherData {
   nlohmann::json config, action_ranges, fingerprint;
   double shift = 5;
@@ -214,6 +226,13 @@ DistillResult run_warmup(const DistillJob& job) {
 
   // The student starts as the teacher (its weights, its architecture); a resumed run from its own.
   const bool resuming = checkpoint_exists(ckpt_dir);
+  // A resumed run keeps the student settings it was started with (window, hops).
+  auto settings = job.student;
+  if (resuming) {
+    const auto saved = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config();
+    if (saved.contains("student"))
+      settings = resumed_student_settings(saved["student"], job.student, ckpt_dir);
+  }
   torch::manual_seed(job.seed);
   models::ActionDit student =
       resuming ? models::ActionDit(models::DitConfig::from_json(
@@ -221,7 +240,7 @@ DistillResult run_warmup(const DistillJob& job) {
                : teacher;
   WmTrainer trainer(student, job.options);
   trainer.set_config_extras(
-      {{"actions", action_ranges}, {"student", job.student.to_json()}, {"teacher", fingerprint["teacher"]}});
+      {{"actions", action_ranges}, {"student", settings.to_json()}, {"teacher", fingerprint["teacher"]}});
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("distill: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
@@ -235,7 +254,7 @@ DistillResult run_warmup(const DistillJob& job) {
   const auto fixed_batch_loss = [&] {
     torch::NoGradGuard no_grad;
     return warmup_loss(*trainer.ema(), probe_points, probe_actions, trajectories.timesteps,
-                       job.student.window_frames, cpu_generator(job.seed + 777))
+                       settings.window_frames, cpu_generator(job.seed + 777))
         .item<double>();
   };
   DistillResult result;
@@ -264,7 +283,7 @@ DistillResult run_warmup(const DistillJob& job) {
         const auto pts = trajectories.points.index_select(0, idx),
                    acts = trajectories.actions.index_select(0, idx);
         const auto s = trainer.step_loss([&](models::ActionDitImpl& net) {
-          return warmup_loss(net, pts, acts, trajectories.timesteps, job.student.window_frames, gen);
+          return warmup_loss(net, pts, acts, trajectories.timesteps, settings.window_frames, gen);
         });
         recent.push_back(s.loss);
         if (recent.size() > 20) recent.pop_front();
@@ -294,7 +313,7 @@ DistillResult run_warmup(const DistillJob& job) {
                                   {"fixed_batch_loss_start", result.fixed_batch_loss_start},
                                   {"fixed_batch_loss_end", result.fixed_batch_loss_end},
                                   {"seconds", result.seconds},
-                                  {"student", job.student.to_json()},
+                                  {"student", settings.to_json()},
                                   {"options", job.options.to_json()}};
   write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
   return result;
@@ -317,10 +336,10 @@ DistillResult run_self_forcing(const DistillJob& job) {
              "distill --stage self-forcing needs --init (the warmed-up student)");
   const auto student_source = resuming ? ckpt_dir : job.init;
   const auto student_config_json = Checkpoint::open(resolve_checkpoint_dir(student_source)).config();
-  const auto student = student_config_json.contains("student")
-                           ? infer::StudentConfig::from_json(student_config_json["student"],
-                                                             student_source.string() + "/config.json")
-                           : job.student;
+  const auto student =
+      student_config_json.contains("student")
+          ? resumed_student_settings(student_config_json["student"], job.student, student_source)
+          : job.student;
   auto teacher = models::load_world_model(job.teacher);
   for (auto& p : teacher->parameters()) p.set_requires_grad(false);
   torch::manual_seed(job.seed);

@@ -219,7 +219,12 @@ TEST(PolicyCli, TrainThenEvaluateWithTheSimulatorAsTheWorldModel) {
   EXPECT_EQ(report.at("policies")[3].at("name"), "bc-0");
   EXPECT_EQ(report.at("agreement").at("pearson_r"), 1.0);
   EXPECT_EQ(report.at("agreement").at("mmrv"), 0.0);
-  EXPECT_TRUE(fs::exists(out / "report.html"));
+  // One filmed scene per policy (the default), both worlds side by side, in the report too.
+  EXPECT_TRUE(fs::exists(out / "videos" / "bc-3-scene-0.mp4"));
+  EXPECT_FALSE(fs::exists(out / "videos" / "bc-3-scene-1.mp4"));
+  const auto html = test::read_file(out / "report.html");
+  EXPECT_NE(html.find("<video"), std::string::npos);
+  EXPECT_NE(html.find("bc-3, scene 0: "), std::string::npos);
 
   // One-line errors: a bad policy file, a policy of another action space, a missing snapshot dir.
   const auto one_line = [](const test::CommandResult& res, const std::string& expected) {
