@@ -40,8 +40,8 @@ struct DetectorArgs {
 
 struct TrainArgs {
   std::string out = "dojo_policy/bc";
-  int64_t episodes = 160, frames = 64, steps = 3000, batch = 64, shift = 0;
-  std::vector<int64_t> snapshots = {100, 300, 1000};
+  int64_t episodes = 400, frames = 64, steps = 3000, batch = 64, shift = 0;
+  std::vector<int64_t> snapshots = {200, 500, 1000};
   double noise = 0.03;
   uint64_t seed = 20000;
 };

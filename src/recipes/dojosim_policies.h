@@ -97,7 +97,7 @@ void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDat
 // the real state. Smooth noise is injected into the executed arm commands while the labels stay
 // the expert's (DART), so the cloned policy sees, and learns to leave, states off the expert's path.
 struct DemonstrationOptions {
-  int64_t episodes = 160;
+  int64_t episodes = 400;
   uint64_t seed = 20000;
   int size = 64;
   int64_t frames = 64;      // control steps per episode

@@ -33,7 +33,7 @@ struct BcTrainJob {
   int64_t steps = 3000;  // total (a resumed job continues up to this)
   double time_budget_s = 0;
   int64_t save_every = 500;
-  std::vector<int64_t> snapshots = {100, 300, 1000};  // kept besides the final one
+  std::vector<int64_t> snapshots = {200, 500, 1000};  // kept besides the final one
   double lr = 1e-3;  // AdamW, linear warm-up over 50 steps, cosine decay to a tenth
   double blur_probability = 0.5;
   double brightness = 0.1;
