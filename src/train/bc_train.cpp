@@ -5,9 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
-#include <deque>
 #include <set>
-#include <sstream>
 
 #include "core/checkpoint.h"
 #include "core/error.h"
@@ -171,59 +169,36 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
 
   torch::manual_seed(job.seed);
   models::BcPolicy policy(config);
-  torch::optim::AdamW opt(policy->parameters(), torch::optim::AdamWOptions(job.lr).weight_decay(1e-4));
-  int64_t start = 0;
-  if (resuming) {
-    start = resume_with_adamw(ckpt_dir, *policy, "policy.", opt);
-    LOG_INFO("bc train: resumed from ", ckpt_dir.string(), " at step ", start);
-  }
   const auto save_snapshot = [&](int64_t step) {
     save_checkpoint(snapshot_dir(job.out, step), models::bc_policy_checkpoint(*policy));
   };
-  if (start == 0 && std::count(job.snapshots.begin(), job.snapshots.end(), 0)) save_snapshot(0);
-  policy->train();
-
-  LoopOptions loop;
+  if (!resuming && std::count(job.snapshots.begin(), job.snapshots.end(), 0)) save_snapshot(0);
+  AdamwLoop loop;
   loop.name = "bc train";
+  loop.unit = "frames";
+  loop.out = job.out;
+  loop.prefix = "policy.";
   loop.steps = job.steps;
   loop.time_budget_s = job.time_budget_s;
   loop.save_every = job.save_every;
-  loop.loss_curve = job.out / "loss.csv";
-  loop.columns = {"loss"};
-  loop.unit = "frames";
-  std::deque<double> recent;
-  const auto run = run_training_loop(
-      loop, start,
-      [&](const LoopStep& s) {
-        auto gen = step_generator(job.seed, s.index);
+  loop.lr = job.lr;
+  loop.cosine = true;
+  loop.seed = job.seed;
+  const auto run = run_adamw_loop(
+      *policy, loop, [&] { return models::bc_policy_checkpoint(*policy); },
+      [&](const LoopStep&, torch::Generator& gen) {
         const auto pick = torch::randint(train.episode.numel(), {job.batch_size}, gen);
         const auto b = gather(data, train.episode.index_select(0, pick), train.frame.index_select(0, pick),
                               config.chunk);
         auto images = models::bc_input(policy, b.frames);  // [B, 3, S, S]
-        const int64_t B = images.size(0);
         images = random_shift(images, job.shift, gen);
         images = soften_like_generated(images, job.blur_probability, job.brightness, gen);
-        const double warm = std::min(1.0, static_cast<double>(s.index + 1) / 50.0);
-        const double progress =
-            static_cast<double>(s.index) / static_cast<double>(std::max<int64_t>(1, job.steps));
-        const double lr = job.lr * warm * (0.1 + 0.9 * 0.5 * (1 + std::cos(M_PI * std::min(1.0, progress))));
-        for (auto& group : opt.param_groups())
-          static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
         const auto predicted = policy->forward(images, policy->normalise_command(b.last));  // [B, chunk, A]
-        const auto loss = torch::mse_loss(predicted, policy->commands_to_offsets(b.target, b.last));
-        opt.zero_grad();
-        loss.backward();
-        opt.step();
-        const double value = loss.item<double>();
-        recent.push_back(value);
-        if (recent.size() > 20) recent.pop_front();
-        if (std::count(job.snapshots.begin(), job.snapshots.end(), s.index + 1)) save_snapshot(s.index + 1);
-        std::ostringstream note;
-        note << "loss " << value;
-        return StepRecord{{value}, B, note.str()};
+        return AdamwStep{
+            torch::mse_loss(predicted, policy->commands_to_offsets(b.target, b.last)), images.size(0), {}};
       },
-      [&](int64_t steps_done, bool) {
-        save_with_adamw(ckpt_dir, models::bc_policy_checkpoint(*policy), opt, *policy, steps_done);
+      [&](int64_t steps_done) {
+        if (std::count(job.snapshots.begin(), job.snapshots.end(), steps_done)) save_snapshot(steps_done);
       });
   // The finished policy is a snapshot too; a run stopped early by its time budget leaves none
   // (it would become a policy of its own).
@@ -231,8 +206,7 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
     save_snapshot(run.end_step);
   BcTrainResult r;
   r.steps = run.end_step;
-  r.loss = recent.empty() ? std::nan("") : 0.0;  // nothing trained in this call: no loss to report
-  for (double v : recent) r.loss += v / static_cast<double>(recent.size());
+  r.loss = run.loss;  // NaN when this call had nothing left to train
   r.seconds = run.seconds;
   r.heldout_loss = bc_loss(policy, data, data.heldout);
   r.snapshots = list_bc_snapshots(job.out);

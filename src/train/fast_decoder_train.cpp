@@ -4,8 +4,6 @@
 #include <torch/torch.h>
 
 #include <cmath>
-#include <deque>
-#include <sstream>
 
 #include "core/atomic_file.h"
 #include "core/checkpoint.h"
@@ -68,12 +66,6 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
       resuming ? models::FastDecoderConfig::from_json(
                      Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config().at("config"))
                : job.model);
-  torch::optim::AdamW opt(decoder->parameters(), torch::optim::AdamWOptions(job.lr).weight_decay(1e-4));
-  int64_t start = 0;
-  if (resuming) {
-    start = resume_with_adamw(ckpt_dir, *decoder, "decoder.", opt);
-    LOG_INFO("fast decoder: resumed from ", ckpt_dir.string(), " at step ", start);
-  }
   const auto heldout_idx = torch::arange(train_n, n);
   const auto heldout_psnr = [&] {
     torch::NoGradGuard no_grad;
@@ -83,45 +75,30 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
     return p;
   };
 
-  LoopOptions loop;
+  AdamwLoop loop;
   loop.name = "fast decoder";
+  loop.unit = "clips";
+  loop.out = job.out;
+  loop.prefix = "decoder.";
   loop.steps = job.steps;
   loop.time_budget_s = job.time_budget_s;
   loop.save_every = job.save_every;
-  loop.loss_curve = job.out / "loss.csv";
-  loop.columns = {"loss", "lr", "heldout_psnr"};
-  std::deque<double> recent;
-  decoder->train();
-  const auto run = run_training_loop(
-      loop, start,
-      [&](const LoopStep& s) {
-        auto gen = step_generator(job.seed, s.index);
+  loop.lr = job.lr;
+  loop.cosine = true;
+  loop.seed = job.seed;
+  loop.extra_columns = {"heldout_psnr"};
+  const auto run = run_adamw_loop(
+      *decoder, loop, [&] { return models::fast_decoder_checkpoint(*decoder); },
+      [&](const LoopStep& s, torch::Generator& gen) {
         const auto idx = torch::randint(train_n, {job.batch_size}, gen, torch::kLong);
-        const double warm = std::min(1.0, static_cast<double>(s.index + 1) / 50.0);
-        const double progress =
-            static_cast<double>(s.index) / static_cast<double>(std::max<int64_t>(1, job.steps));
-        const double lr = job.lr * warm * (0.1 + 0.45 * (1 + std::cos(M_PI * std::min(1.0, progress))));
-        for (auto& group : opt.param_groups())
-          static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
         const auto loss = (decoder->decode(clips.latents.index_select(0, idx)) - target(idx)).pow(2).mean();
-        opt.zero_grad();
-        loss.backward();
-        opt.step();
-        const double value = loss.item<double>();
-        recent.push_back(value);
-        if (recent.size() > 20) recent.pop_front();
-        std::ostringstream note;
-        note << "loss " << value;
-        return StepRecord{{value, lr, s.saves ? heldout_psnr() : std::nan("")}, job.batch_size, note.str()};
-      },
-      [&](int64_t steps_done, bool) {
-        save_with_adamw(ckpt_dir, models::fast_decoder_checkpoint(*decoder), opt, *decoder, steps_done);
+        return AdamwStep{loss, job.batch_size, {s.saves ? heldout_psnr() : std::nan("")}};
       });
   FastDecoderResult r;
   r.steps = run.end_step;
   r.clips = train_n;
   r.heldout_clips = heldout;
-  for (double v : recent) r.loss += v / static_cast<double>(recent.size());
+  r.loss = run.loss;
   r.heldout_psnr = heldout_psnr();
   r.seconds = run.seconds;
   write_file_atomic(job.out / "train_summary.json", nlohmann::json{{"steps", r.steps},

@@ -3,9 +3,6 @@
 #include <ATen/CPUGeneratorImpl.h>
 #include <torch/torch.h>
 
-#include <deque>
-#include <sstream>
-
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
@@ -42,53 +39,29 @@ ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
 
   torch::manual_seed(job.seed);
   models::KeypointProbe probe(config);
-  torch::optim::AdamW opt(probe->parameters(), torch::optim::AdamWOptions(job.lr).weight_decay(1e-4));
-  int64_t start = 0;
-  if (resuming) {
-    start = resume_with_adamw(ckpt_dir, *probe, "probe.", opt);
-    LOG_INFO("probe train: resumed from ", ckpt_dir.string(), " at step ", start);
-  }
-  probe->train();
-
-  LoopOptions loop;
+  AdamwLoop loop;
   loop.name = "probe train";
+  loop.unit = "frames";
+  loop.out = job.out;
+  loop.prefix = "probe.";
   loop.steps = job.steps;
   loop.time_budget_s = job.time_budget_s;
   loop.save_every = job.save_every;
-  loop.loss_curve = job.out / "loss.csv";
-  loop.columns = {"loss"};
-  loop.unit = "frames";
-  std::deque<double> recent;
-  const auto run = run_training_loop(
-      loop, start,
-      [&](const LoopStep& s) {
-        // The batch, its augmentation and nothing else depend on (seed, step): resumes continue
-        // the same stream.
-        auto gen = step_generator(job.seed, s.index);
+  loop.lr = job.lr;
+  loop.seed = job.seed;
+  const auto run = run_adamw_loop(
+      *probe, loop, [&] { return models::keypoint_probe_checkpoint(*probe); },
+      [&](const LoopStep&, torch::Generator& gen) {
+        // The batch, its augmentation and nothing else depend on (seed, step).
         const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
         auto images = frames.frames.index_select(0, idx).permute({0, 3, 1, 2}).to(torch::kFloat32).div(255.0);
         const auto target = targets.index_select(0, idx);
         images = soften_like_generated(images, job.blur_probability, job.brightness, gen);
-        for (auto& group : opt.param_groups())
-          static_cast<torch::optim::AdamWOptions&>(group.options())
-              .lr(job.lr * std::min(1.0, static_cast<double>(s.index + 1) / 50.0));
-        const auto loss = keypoint_probe_loss(probe->forward(images), target);
-        opt.zero_grad();
-        loss.backward();
-        opt.step();
-        const double value = loss.item<double>();
-        recent.push_back(value);
-        if (recent.size() > 20) recent.pop_front();
-        std::ostringstream note;
-        note << "loss " << value;
-        return StepRecord{{value}, job.batch_size, note.str()};
-      },
-      [&](int64_t steps_done, bool) {
-        save_with_adamw(ckpt_dir, models::keypoint_probe_checkpoint(*probe), opt, *probe, steps_done);
+        return AdamwStep{keypoint_probe_loss(probe->forward(images), target), job.batch_size, {}};
       });
   ProbeTrainResult r;
   r.steps = run.end_step;
-  for (double v : recent) r.loss += v / static_cast<double>(recent.size());
+  r.loss = run.loss;
   r.seconds = run.seconds;
   r.frames_per_second = run.items_per_second;
   probe->eval();

@@ -2,9 +2,6 @@
 
 #include <torch/torch.h>
 
-#include <deque>
-#include <sstream>
-
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
@@ -118,29 +115,21 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
 
   torch::manual_seed(job.seed);
   models::SuccessDetector detector(config);
-  torch::optim::AdamW opt(detector->parameters(), torch::optim::AdamWOptions(job.lr).weight_decay(1e-4));
-  int64_t start = 0;
-  if (resuming) {
-    start = resume_with_adamw(ckpt_dir, *detector, "detector.", opt);
-    LOG_INFO("success train: resumed from ", ckpt_dir.string(), " at step ", start);
-  }
-  detector->train();
-
-  LoopOptions loop;
+  AdamwLoop loop;
   loop.name = "success train";
+  loop.unit = "windows";
+  loop.out = job.out;
+  loop.prefix = "detector.";
   loop.steps = job.steps;
   loop.time_budget_s = job.time_budget_s;
   loop.save_every = job.save_every;
-  loop.loss_curve = job.out / "loss.csv";
-  loop.columns = {"loss"};
-  loop.unit = "windows";
-  std::deque<double> recent;
+  loop.lr = job.lr;
+  loop.seed = job.seed;
   const int64_t half = job.batch_size / 2;
-  const auto run = run_training_loop(
-      loop, start,
-      [&](const LoopStep& s) {
+  const auto run = run_adamw_loop(
+      *detector, loop, [&] { return models::success_detector_checkpoint(*detector); },
+      [&](const LoopStep&, torch::Generator& gen) {
         // Half the batch success windows, half failures; everything depends on (seed, step).
-        auto gen = step_generator(job.seed, s.index);
         const auto pick = torch::cat(
             {positive.index_select(0, torch::randint(positive.numel(), {half}, gen)),
              negative.index_select(0, torch::randint(negative.numel(), {job.batch_size - half}, gen))});
@@ -153,26 +142,11 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
         // A mirrored scene is as successful as the original: flips double the scenes it sees.
         const auto flip = (torch::rand({B, 1, 1, 1}, gen) < 0.5).to(input.dtype());
         input = flip * input.flip({3}) + (1 - flip) * input;
-        for (auto& group : opt.param_groups())
-          static_cast<torch::optim::AdamWOptions&>(group.options())
-              .lr(job.lr * std::min(1.0, static_cast<double>(s.index + 1) / 50.0));
-        const auto loss = torch::binary_cross_entropy_with_logits(detector->forward(input), target);
-        opt.zero_grad();
-        loss.backward();
-        opt.step();
-        const double value = loss.item<double>();
-        recent.push_back(value);
-        if (recent.size() > 20) recent.pop_front();
-        std::ostringstream note;
-        note << "loss " << value;
-        return StepRecord{{value}, B, note.str()};
-      },
-      [&](int64_t steps_done, bool) {
-        save_with_adamw(ckpt_dir, models::success_detector_checkpoint(*detector), opt, *detector, steps_done);
+        return AdamwStep{torch::binary_cross_entropy_with_logits(detector->forward(input), target), B, {}};
       });
   SuccessTrainResult r;
   r.steps = run.end_step;
-  for (double v : recent) r.loss += v / static_cast<double>(recent.size());
+  r.loss = run.loss;
   r.seconds = run.seconds;
   detector->eval();
   r.train = success_accuracy(detector, data, data.heldout.logical_not());

@@ -2,12 +2,17 @@
 
 #include <ATen/CPUGeneratorImpl.h>
 
+#include <cmath>
+#include <deque>
 #include <fstream>
 #include <map>
+#include <sstream>
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/log.h"
 #include "core/state_dict.h"
+#include "train/train_loop.h"
 
 namespace dojo::train {
 namespace {
@@ -147,6 +152,66 @@ torch::Tensor soften_like_generated(const torch::Tensor& images, double blur_pro
   const auto blurred = torch::rand({B}, gen) < blur_probability;
   const auto sigma = (torch::rand({B}, gen) * 1.2 + 0.3) * blurred.to(torch::kFloat32);
   return gaussian_blur(images, sigma).add(offset).clamp(0, 1);
+}
+
+AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
+                        const std::function<CheckpointData()>& checkpoint,
+                        const std::function<AdamwStep(const LoopStep&, torch::Generator&)>& step,
+                        const std::function<void(int64_t)>& after_step) {
+  const auto ckpt_dir = loop.out / "checkpoint";
+  torch::optim::AdamW opt(model.parameters(),
+                          torch::optim::AdamWOptions(loop.lr).weight_decay(loop.weight_decay));
+  int64_t start = 0;
+  if (checkpoint_exists(ckpt_dir)) {
+    start = resume_with_adamw(ckpt_dir, model, loop.prefix, opt);
+    LOG_INFO(loop.name, ": resumed from ", ckpt_dir.string(), " at step ", start);
+  }
+  model.train();
+
+  LoopOptions options;
+  options.name = loop.name;
+  options.steps = loop.steps;
+  options.time_budget_s = loop.time_budget_s;
+  options.save_every = loop.save_every;
+  options.loss_curve = loop.out / "loss.csv";
+  options.columns = {"loss", "lr"};
+  options.columns.insert(options.columns.end(), loop.extra_columns.begin(), loop.extra_columns.end());
+  options.unit = loop.unit;
+  std::deque<double> recent;
+  const auto run = run_training_loop(
+      options, start,
+      [&](const LoopStep& s) {
+        auto gen = step_generator(loop.seed, s.index);
+        const double warm = std::min(1.0, static_cast<double>(s.index + 1) /
+                                              static_cast<double>(std::max<int64_t>(1, loop.warmup_steps)));
+        const double progress = std::min(
+            1.0, static_cast<double>(s.index) / static_cast<double>(std::max<int64_t>(1, loop.steps)));
+        const double lr = loop.lr * warm * (loop.cosine ? 0.1 + 0.45 * (1 + std::cos(M_PI * progress)) : 1.0);
+        for (auto& group : opt.param_groups())
+          static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
+        const auto r = step(s, gen);
+        opt.zero_grad();
+        r.loss.backward();
+        opt.step();
+        const double value = r.loss.item<double>();
+        recent.push_back(value);
+        if (recent.size() > 20) recent.pop_front();
+        if (after_step) after_step(s.index + 1);
+        std::vector<double> values = {value, lr};
+        values.insert(values.end(), r.extra.begin(), r.extra.end());
+        std::ostringstream note;
+        note << "loss " << value;
+        return StepRecord{values, r.items, note.str()};
+      },
+      [&](int64_t steps_done, bool) { save_with_adamw(ckpt_dir, checkpoint(), opt, model, steps_done); });
+  AdamwRun out;
+  out.start_step = run.start_step;
+  out.end_step = run.end_step;
+  out.loss = recent.empty() ? std::nan("") : 0.0;
+  for (double v : recent) out.loss += v / static_cast<double>(recent.size());
+  out.seconds = run.seconds;
+  out.items_per_second = run.items_per_second;
+  return out;
 }
 
 }  // namespace dojo::train

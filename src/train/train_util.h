@@ -8,11 +8,13 @@
 
 #include <chrono>
 #include <filesystem>
+#include <functional>
 #include <string>
 #include <vector>
 
 #include "core/checkpoint.h"
 #include "core/safetensors.h"
+#include "train/train_loop.h"
 
 namespace dojo::train {
 
@@ -53,6 +55,41 @@ void save_with_adamw(const std::filesystem::path& dir, CheckpointData data,
 // into `optimizer`. Returns the step.
 int64_t resume_with_adamw(const std::filesystem::path& dir, torch::nn::Module& module,
                           const std::string& prefix, torch::optim::AdamW& optimizer);
+
+// The plain AdamW loop of the small models (keypoint probe, success detector, policy, fast
+// decoder) on top of run_training_loop: the optimizer, resuming from out/checkpoint (weights under
+// `prefix` and the moments, save_with_adamw), a linear warm-up then a constant rate or a cosine
+// decay to a tenth, the loss curve out/loss.csv ("loss", "lr", then `extra_columns`), saves, and
+// the mean loss of the last 20 steps. The model is built by the caller (from the checkpoint's
+// config when resuming) and left in train mode.
+struct AdamwLoop {
+  std::string name;  // progress label and log prefix, e.g. "probe train"
+  std::string unit = "items";
+  std::filesystem::path out;  // out/checkpoint, out/loss.csv
+  std::string prefix;         // the model's weight prefix in its checkpoint, e.g. "probe."
+  int64_t steps = 0;          // total; a resumed run continues up to this
+  int64_t save_every = 0;
+  double time_budget_s = 0;
+  double lr = 1e-3, weight_decay = 1e-4;
+  int64_t warmup_steps = 50;
+  bool cosine = false;
+  uint64_t seed = 0;  // every step draws from step_generator(seed, step): resumes continue the stream
+  std::vector<std::string> extra_columns;
+};
+struct AdamwStep {
+  torch::Tensor loss;         // the scalar to minimise
+  int64_t items = 0;          // samples in the batch, for throughput
+  std::vector<double> extra;  // one per extra column (NaN: empty cell)
+};
+struct AdamwRun {
+  int64_t start_step = 0, end_step = 0;
+  double loss = 0;  // mean of the last 20 steps of this run; NaN when it ran none
+  double seconds = 0, items_per_second = 0;
+};
+AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
+                        const std::function<CheckpointData()>& checkpoint,
+                        const std::function<AdamwStep(const LoopStep&, torch::Generator&)>& step,
+                        const std::function<void(int64_t steps_done)>& after_step = {});
 
 // A CSV loss curve: header row plus one row per step, rewritten atomically. Opening an existing
 // file keeps rows up to `resume_step` (rows written after the last checkpoint are dropped, so a

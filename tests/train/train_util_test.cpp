@@ -7,6 +7,8 @@
 #include "core/state_dict.h"
 #include "test_util.h"
 
+#include <cmath>
+
 namespace dojo::train {
 namespace {
 
@@ -41,6 +43,53 @@ TEST(TrainUtil, AdamwCheckpointsResumeExactly) {
   run_steps(b, opt_b, 2);
   EXPECT_TRUE(torch::allclose(a->weight, b->weight, 0, 1e-7));
   EXPECT_TRUE(torch::allclose(a->bias, b->bias, 0, 1e-7));
+}
+
+// run_adamw_loop that crashes at step 6 (last saved at 4) and is run again ends where an unbroken
+// run does: the batches come from (seed, step), the rate from the step, the moments from the
+// checkpoint.
+TEST(TrainUtil, AdamwLoopResumesExactlyWithItsSchedule) {
+  test::OneThread one;
+  const auto train = [](const std::filesystem::path& out, int64_t crash_at) {
+    torch::manual_seed(0);
+    torch::nn::Linear net(3, 2);
+    AdamwLoop loop;
+    loop.name = "test";
+    loop.out = out;
+    loop.prefix = "net.";
+    loop.steps = 8;
+    loop.save_every = 4;
+    loop.lr = 1e-2;
+    loop.warmup_steps = 3;
+    loop.cosine = true;
+    loop.seed = 7;
+    const auto checkpoint = [&] {
+      CheckpointData data;
+      data.config = {{"model", "linear"}};
+      for (const auto& [name, t] : state_dict(*net)) data.model.emplace_back("net." + name, t);
+      return data;
+    };
+    const auto run = run_adamw_loop(*net, loop, checkpoint, [&](const LoopStep& s, torch::Generator& gen) {
+      if (s.index == crash_at) throw std::runtime_error("crash");
+      const auto x = torch::randn({4, 3}, gen);
+      return AdamwStep{(net(x) - 1).pow(2).mean(), 4, {}};
+    });
+    return std::make_pair(net->weight.detach().clone(), run);
+  };
+  test::TempDir tmp;
+  const auto [whole, whole_run] = train(tmp / "whole", -1);
+  EXPECT_THROW(train(tmp / "split", 6), std::runtime_error);
+  const auto [resumed, resumed_run] = train(tmp / "split", -1);
+  EXPECT_EQ(resumed_run.start_step, 4);
+  EXPECT_EQ(resumed_run.end_step, 8);
+  EXPECT_TRUE(torch::allclose(whole, resumed, 0, 1e-6)) << whole << resumed;
+  // The curve has loss and lr columns.
+  const auto curve = test::read_file(tmp / "whole" / "loss.csv");
+  EXPECT_EQ(curve.substr(0, curve.find('\n')), "step,loss,lr");
+  // A finished run asked again trains nothing and reports no loss.
+  const auto [again, again_run] = train(tmp / "whole", -1);
+  EXPECT_TRUE(std::isnan(again_run.loss));
+  EXPECT_TRUE(torch::equal(again, whole));
 }
 
 }  // namespace
