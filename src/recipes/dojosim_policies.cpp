@@ -169,7 +169,8 @@ std::unique_ptr<eval::Policy> make_scripted_policy(const PolicySpec& spec) {
 }
 
 std::vector<PolicySpec> default_policy_set() {
-  const auto knobs = [](std::initializer_list<std::pair<const std::string, double>> k) {
+  // JSON values, not doubles: delay_steps must stay an integer to read back.
+  const auto knobs = [](std::initializer_list<std::pair<const std::string, nlohmann::json>> k) {
     nlohmann::json j = nlohmann::json::object();
     for (const auto& [key, value] : k) j[key] = value;
     return j;

@@ -140,8 +140,9 @@ SessionResult run_session(const LoadOptions& o, int index, Sockets& sockets) {
     const auto deadline =
         t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(o.seconds));
     r.frames = 0;
+    const auto running = [&] { return Clock::now() < deadline || r.frames < o.min_frames; };
     if (o.mode == "step") {
-      for (int64_t s = 0; Clock::now() < deadline; ++s) {
+      for (int64_t s = 0; running(); ++s) {
         nlohmann::json rows = nlohmann::json::array();
         for (int64_t i = 0; i < per_step; ++i) {
           if (command.empty()) {
@@ -165,7 +166,7 @@ SessionResult run_session(const LoadOptions& o, int index, Sockets& sockets) {
       // frame, so a frame's latency is now minus the echoed value.
       auto last_control = t0 - std::chrono::seconds(1);
       int64_t last_step = -1;
-      while (Clock::now() < deadline) {
+      while (running()) {
         if (Clock::now() - last_control > std::chrono::milliseconds(100) && !command.empty()) {
           std::vector<float> velocity(command.size(), 0.0f);
           velocity[0] = 0.3f;

@@ -20,6 +20,9 @@ struct LoadOptions {
   double seconds = 10;
   std::string mode = "step";  // step | live
   std::string model;          // "" = the server's first
+  // A session also runs on past `seconds` until it has this many frames (up to a minute more):
+  // the load test asserts behaviour (every session streams) whatever the machine's speed.
+  int64_t min_frames = 0;
 };
 
 struct LoadReport {

@@ -43,6 +43,7 @@ TEST(ServeLoad, ConcurrentSessionsStepAndLiveThenOverTheCap) {
   LoadOptions load;
   load.port = server.start();
   load.seconds = 3;
+  load.min_frames = 8;  // two steps: how many fit in 3 s depends on the machine, not the server
 
   load.sessions = 4;
   load.mode = "step";
@@ -50,7 +51,7 @@ TEST(ServeLoad, ConcurrentSessionsStepAndLiveThenOverTheCap) {
   EXPECT_EQ(step.failed_sessions, 0) << step.to_json().dump();
   EXPECT_EQ(step.errors, 0);
   ASSERT_EQ(step.frames.size(), 4u);
-  for (const auto f : step.frames) EXPECT_GE(f, 4) << step.to_json().dump();
+  for (const auto f : step.frames) EXPECT_GE(f, 8) << step.to_json().dump();
   EXPECT_GT(step.latency_ms_p50, 0);
   EXPECT_GT(step.server_rss_mib_after, 0);
 
@@ -71,6 +72,7 @@ TEST(ServeLoad, ConcurrentSessionsStepAndLiveThenOverTheCap) {
   ASSERT_TRUE(drained());
   load.sessions = 6;  // two over the cap: refused with a 503, the others run
   load.seconds = 1;
+  load.min_frames = 4;
   load.mode = "step";
   const auto over = run_load(load);
   EXPECT_EQ(over.failed_sessions, 2) << over.to_json().dump();

@@ -145,6 +145,8 @@ TEST(PolicyEval, BadPoliciesAndPolicyFilesGetOneLineErrors) {
       << R"({"policies": [{"name": "a"}, {"name": "b", "quality": {"speed": 0.8}}]})";
   EXPECT_EQ(read_policy_set(tmp / "good.json").size(), 2u);
   EXPECT_GE(default_policy_set().size(), 10u);
+  for (const auto& spec : default_policy_set())  // every default policy builds from its knobs
+    EXPECT_NE(make_scripted_policy(spec), nullptr) << spec.name;
 }
 
 TEST(PolicyEval, SuccessDetectorLearnsFromLabelledFrames) {
