@@ -226,18 +226,15 @@ DistillResult run_warmup(const DistillJob& job) {
 
   // The student starts as the teacher (its weights, its architecture); a resumed run from its own.
   const bool resuming = checkpoint_exists(ckpt_dir);
-  // A resumed run keeps the student settings it was started with (window, hops).
-  auto settings = job.student;
-  if (resuming) {
-    const auto saved = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config();
-    if (saved.contains("student"))
-      settings = resumed_student_settings(saved["student"], job.student, ckpt_dir);
-  }
+  // A resumed run keeps the architecture and the student settings (window, hops) it was started with.
+  const auto saved =
+      resuming ? Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config() : nlohmann::json();
+  const auto settings = resuming && saved.contains("student")
+                            ? resumed_student_settings(saved["student"], job.student, ckpt_dir)
+                            : job.student;
   torch::manual_seed(job.seed);
   models::ActionDit student =
-      resuming ? models::ActionDit(models::DitConfig::from_json(
-                     Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config().at("config")))
-               : teacher;
+      resuming ? models::ActionDit(models::DitConfig::from_json(saved.at("config"))) : teacher;
   WmTrainer trainer(student, job.options);
   trainer.set_config_extras(
       {{"actions", action_ranges}, {"student", settings.to_json()}, {"teacher", fingerprint["teacher"]}});
