@@ -27,6 +27,7 @@ TEST(Autocast, ParsesPrecisionsWithAClearError) {
 }
 
 TEST(Autocast, GuardTurnsCpuAutocastOnAndRestoresItWhenNested) {
+  torch::manual_seed(0);  // fixed inputs: the bf16 error below depends on the draw
   const auto a = torch::randn({8, 32}), b = torch::randn({32, 4});
   const auto exact = torch::matmul(a, b);
   ASSERT_FALSE(AutocastGuard::is_enabled(torch::kCPU));
@@ -39,7 +40,10 @@ TEST(Autocast, GuardTurnsCpuAutocastOnAndRestoresItWhenNested) {
     EXPECT_EQ(AutocastGuard::dtype(torch::kCPU), torch::kBFloat16);
     const auto low = torch::matmul(a, b);
     EXPECT_EQ(low.scalar_type(), torch::kBFloat16);
-    EXPECT_LT(((low.to(torch::kFloat32) - exact).norm() / exact.norm()).item<double>(), 1e-2);
+    // bf16 keeps 8 significant bits (unit roundoff 2^-8 = 0.0039): the inputs and the output are
+    // each rounded once, so the relative error is a few roundoffs, not fp32's 1e-7. An unseeded
+    // draw once reached 0.0115; the bound is 5 roundoffs.
+    EXPECT_LT(((low.to(torch::kFloat32) - exact).norm() / exact.norm()).item<double>(), 5.0 / 256);
     {
       // fp32 = enabled false: autocast off inside an autocast region, as torch.autocast(enabled=False).
       AutocastGuard off(torch::kCPU, Precision::kFloat32);
