@@ -144,7 +144,7 @@ TEST(Lam, PatchifyRoundTripAndLayout) {
 
 TEST(Lam, RotaryMatchesInterleavedFormula) {
   LamRotary rot(8);
-  torch::manual_seed(0);  // fixed inputs: the 1e-6 bound below is for values of this size
+  torch::manual_seed(0);                   // fixed inputs: the 1e-6 bound below is for values of this size
   const auto x = torch::randn({3, 2, 8});  // [N, T = 2, D]
   const auto y = rot->rotate(x);
   for (int64_t t = 0; t < 2; ++t)
