@@ -10,6 +10,7 @@
 
 #include "serve/model_host.h"
 #include "serve/server.h"
+#include "sessions_drained.h"
 #include "synthetic_data.h"
 #include "test_util.h"
 
@@ -55,12 +56,8 @@ TEST(ServeLoad, ConcurrentSessionsStepAndLiveThenOverTheCap) {
   EXPECT_GT(step.latency_ms_p50, 0);
   EXPECT_GT(step.server_rss_mib_after, 0);
 
-  // A server frees a session just after its client has gone: wait for that between phases.
-  const auto drained = [&] {
-    for (int i = 0; i < 500 && server.metrics().sessions_active() > 0; ++i)
-      std::this_thread::sleep_for(std::chrono::milliseconds(10));
-    return server.metrics().sessions_active() == 0;
-  };
+  // Between phases every session of the last one must be gone.
+  const auto drained = [&] { return test::sessions_drained(server); };
   ASSERT_TRUE(drained());
   load.sessions = 2;
   load.mode = "live";
