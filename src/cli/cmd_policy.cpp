@@ -32,10 +32,19 @@ namespace fs = std::filesystem;
 namespace dojo::cli {
 namespace {
 
+// Which world model: the demo's student unless told otherwise (policy eval and the detector's
+// generated-video mode).
+struct WorldModelArgs {
+  std::string demo = "dojo_demo", student, teacher, tokenizer, fast_decoder;
+  std::string device = "cpu", precision = "fp32";
+};
+
 struct DetectorArgs {
   std::string out = "dojo_policy/detector", policies;
   int64_t scenes = 24, steps = 800, frames = 64, settle_frames = 12;
   uint64_t seed = 9000;
+  bool world_model = false;  // frames from the world model's replays, labels from DojoSim
+  WorldModelArgs wm;
 };
 
 struct TrainArgs {
@@ -47,14 +56,14 @@ struct TrainArgs {
 };
 
 struct EvalArgs {
-  std::string out = "dojo_policy", demo = "dojo_demo", student, teacher, tokenizer, fast_decoder, detector,
-              policies, bc;
+  std::string out = "dojo_policy", detector, policies, bc;
+  WorldModelArgs wm;
   std::vector<std::string> external;
   int64_t scenes = 30, frames = 64, settle_frames = 12, detector_steps = 800, bc_steps = 3000, videos = 1;
   uint64_t seed = 7000;
+  std::string detector_frames = "dojosim";  // what the detector trained here learns from
   bool sim_as_world_model = false, no_bc = false;
   double external_timeout = 120;
-  std::string device = "cpu", precision = "fp32";
 };
 
 std::vector<recipes::PolicySpec> policy_set(const std::string& file) {
@@ -152,22 +161,106 @@ eval::PolicyEvalOptions episode_options(int64_t frames, int64_t settle_frames, i
   return o;
 }
 
-// Generates DIR/data.safetensors once, then trains (or resumes) DIR/checkpoint; DIR/result.json.
+fs::path pick(const std::string& given, const fs::path& fallback) {
+  return given.empty() ? fallback : fs::path(given);
+}
+
+// A world model as an environment, with what it was loaded from.
+struct LoadedWorldModel {
+  std::unique_ptr<infer::WorldModel> teacher;  // first: the environment refers to it
+  std::unique_ptr<eval::WorldModelEnvironment> environment;
+  int64_t per_step = infer::StreamingEngine::kActionsPerStep;  // commands per step
+  nlohmann::json fingerprint;
+};
+
+// Loads the student (or the teacher) that `a` names; `detector` may be empty (frames only).
+LoadedWorldModel load_world_model(const WorldModelArgs& a, models::SuccessDetector detector) {
+  const fs::path demo = a.demo;
+  const bool teacher = !a.teacher.empty();
+  const fs::path checkpoint =
+      teacher ? fs::path(a.teacher) : pick(a.student, demo / "student" / "checkpoint");
+  const fs::path tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
+  fs::path fast_decoder = a.fast_decoder;
+  if (fast_decoder.empty() && a.student.empty() && !teacher &&
+      fs::exists(demo / "fast_decoder" / "checkpoint"))
+    fast_decoder = demo / "fast_decoder" / "checkpoint";
+  DOJO_CHECK(checkpoint_exists(checkpoint),
+             "policy: no world model at " + checkpoint.string() +
+                 " (give --student or --teacher, or --demo DIR of a finished `dojo demo`)");
+  DOJO_CHECK(checkpoint_exists(tokenizer), "policy: no tokenizer at " + tokenizer.string());
+  const auto device = parse_device(a.device);
+  LoadedWorldModel loaded;
+  std::unique_ptr<infer::Generator> generator;
+  nlohmann::json ranges;
+  std::string name = "student";
+  if (teacher) {
+    loaded.teacher = std::make_unique<infer::WorldModel>(
+        infer::WorldModel::load(checkpoint, tokenizer, device, parse_precision(a.precision)));
+    ranges = loaded.teacher->action_ranges();
+    generator = infer::make_teacher_generator(*loaded.teacher);
+    loaded.per_step = infer::WorldModel::kChunkActions;
+    name = "teacher";
+  } else {
+    infer::StreamingEngine::Options o;
+    o.device = device;
+    o.precision = parse_precision(a.precision);
+    if (!fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(fast_decoder);
+    auto engine = infer::StreamingEngine::load(checkpoint, tokenizer, o);
+    ranges = engine.action_ranges();
+    generator = infer::make_student_generator(std::move(engine));
+  }
+  DOJO_CHECK(ranges.size() == 1 && ranges.contains("dojosim_robot"),
+             checkpoint.string() + ": the model's actions are " + ranges.dump() +
+                 "; DojoSim's policies command the 'dojosim_robot' slot (6 values)");
+  const auto& [slot, stats] = *ranges.items().begin();
+  data::ActionChunker chunker(data::slot_by_name(slot),
+                              data::ArrayStats::from_json(stats, "model actions." + slot),
+                              static_cast<int>(loaded.per_step));
+  loaded.environment = std::make_unique<eval::WorldModelEnvironment>(name, std::move(generator),
+                                                                     std::move(chunker), std::move(detector));
+  loaded.fingerprint = {{"world_model", fs::absolute(checkpoint).string()},
+                        {"tokenizer", fs::absolute(tokenizer).string()},
+                        {"fast_decoder", fast_decoder.empty() ? "" : fs::absolute(fast_decoder).string()},
+                        {"device", a.device},
+                        {"precision", a.precision}};
+  return loaded;
+}
+
+// Generates DIR/data.safetensors once (DIR/data.json says from what), then trains (or resumes)
+// DIR/checkpoint; DIR/result.json.
 nlohmann::json train_detector(const DetectorArgs& a) {
   const fs::path out = a.out;
   fs::create_directories(out);
   const auto data = out / "data.safetensors";
-  if (!fs::exists(data)) {
+  std::optional<LoadedWorldModel> world_model;
+  if (a.world_model) world_model = load_world_model(a.wm, models::SuccessDetector{nullptr});
+  nlohmann::json source = {{"frames", a.world_model ? world_model->fingerprint : nlohmann::json("dojosim")},
+                           {"scenes", a.scenes},
+                           {"seed", a.seed},
+                           {"frames_per_episode", a.frames},
+                           {"settle_frames", a.settle_frames},
+                           {"policies", a.policies}};
+  if (fs::exists(data)) {
+    // An older directory without data.json holds DojoSim frames.
+    const auto made = fs::exists(out / "data.json") ? read_json_file(out / "data.json")
+                                                    : nlohmann::json{{"frames", "dojosim"}};
+    DOJO_CHECK(made["frames"] == source["frames"], data.string() + " holds frames of " +
+                                                       made["frames"].dump() + ", not of " +
+                                                       source["frames"].dump() + ": give another --out");
+  } else {
     recipes::SuccessDataOptions o;
     o.scenes = a.scenes;
     o.seed = a.seed;
-    o.episode = episode_options(a.frames, a.settle_frames, 4);
-    LOG_INFO("policy detector: rendering ", a.scenes, " scenes per policy in DojoSim");
+    o.episode = episode_options(a.frames, a.settle_frames, world_model ? world_model->per_step : 4);
+    LOG_INFO("policy detector: rendering ", a.scenes, " scenes per policy in DojoSim",
+             world_model ? " and replaying them in the world model" : "");
     auto specs = policy_set(a.policies);
     if (std::none_of(specs.begin(), specs.end(), [](const auto& s) { return s.scripted(); }))
-      specs = recipes::default_policy_set();  // labelled episodes need scripted policies
-    recipes::make_success_data(specs, o, data);
+      specs = recipes::default_policy_set();                      // labelled episodes need scripted policies
+    write_file_atomic(out / "data.json", source.dump(2) + "\n");  // first: data without it reads as DojoSim's
+    recipes::make_success_data(specs, o, data, world_model ? world_model->environment.get() : nullptr);
   }
+  world_model.reset();  // training needs the memory more
   train::SuccessTrainJob job;
   job.data = data;
   job.out = out;
@@ -190,45 +283,35 @@ nlohmann::json train_detector(const DetectorArgs& a) {
   return result;
 }
 
-fs::path pick(const std::string& given, const fs::path& fallback) {
-  return given.empty() ? fallback : fs::path(given);
-}
-
 // Whether a training run in `dir` finished `steps` steps: its result.json is written at the end.
 bool finished(const fs::path& dir, int64_t steps) {
   return fs::exists(dir / "result.json") &&
          read_json_file(dir / "result.json").value("steps", int64_t{-1}) == steps;
 }
 
-int run_eval(const EvalArgs& a) {
-  const fs::path out = a.out, demo = a.demo;
-  fs::create_directories(out);
-  const auto device = parse_device(a.device);
-  ScopedThreads matmul_bound(matmul_bound_command_threads("policy eval", device.is_cuda()));
+// The detector `policy eval` uses: --detector, or its own, trained into OUT on first use.
+fs::path detector_directory(const EvalArgs& a) {
+  return pick(a.detector,
+              fs::path(a.out) / (a.detector_frames == "world-model" ? "detector-world-model" : "detector"));
+}
 
-  // The world model: the demo's student unless told otherwise.
-  const bool teacher = !a.teacher.empty();
-  const fs::path checkpoint =
-      teacher ? fs::path(a.teacher) : pick(a.student, demo / "student" / "checkpoint");
-  const fs::path tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
-  fs::path fast_decoder = a.fast_decoder;
-  if (fast_decoder.empty() && a.student.empty() && !teacher &&
-      fs::exists(demo / "fast_decoder" / "checkpoint"))
-    fast_decoder = demo / "fast_decoder" / "checkpoint";
-  std::unique_ptr<infer::WorldModel> teacher_model;  // before the environment that refers to it
-  std::unique_ptr<eval::Environment> world_model;
+int run_eval(const EvalArgs& a) {
+  const fs::path out = a.out;
+  fs::create_directories(out);
+  ScopedThreads matmul_bound(
+      matmul_bound_command_threads("policy eval", parse_device(a.wm.device).is_cuda()));
+
+  std::optional<LoadedWorldModel> loaded;
+  eval::Environment* world_model = nullptr;
+  recipes::DojoSimEnvironment sim_as_world_model;
   std::string world_model_name = "DojoSim (as the world model)";
   nlohmann::json fingerprint;
   int64_t per_step = infer::StreamingEngine::kActionsPerStep;
   if (a.sim_as_world_model) {
-    world_model = std::make_unique<recipes::DojoSimEnvironment>();
+    world_model = &sim_as_world_model;
     fingerprint["world_model"] = "dojosim";
   } else {
-    DOJO_CHECK(checkpoint_exists(checkpoint),
-               "policy eval: no world model at " + checkpoint.string() +
-                   " (give --student or --teacher, or --demo DIR of a finished `dojo demo`)");
-    DOJO_CHECK(checkpoint_exists(tokenizer), "policy eval: no tokenizer at " + tokenizer.string());
-    const fs::path detector_dir = pick(a.detector, out / "detector");
+    const fs::path detector_dir = detector_directory(a);
     if (a.detector.empty()
             ? !finished(detector_dir, a.detector_steps)
             : !checkpoint_exists(detector_dir / "checkpoint") && !checkpoint_exists(detector_dir)) {
@@ -240,44 +323,18 @@ int run_eval(const EvalArgs& a) {
       d.steps = a.detector_steps;
       d.frames = a.frames;
       d.settle_frames = a.settle_frames;
+      d.world_model = a.detector_frames == "world-model";
+      d.wm = a.wm;
       train_detector(d);
     }
     auto detector = models::load_success_detector(
         checkpoint_exists(detector_dir / "checkpoint") ? detector_dir / "checkpoint" : detector_dir);
-    std::unique_ptr<infer::Generator> generator;
-    nlohmann::json ranges;
-    if (teacher) {
-      teacher_model = std::make_unique<infer::WorldModel>(
-          infer::WorldModel::load(checkpoint, tokenizer, device, parse_precision(a.precision)));
-      ranges = teacher_model->action_ranges();
-      generator = infer::make_teacher_generator(*teacher_model);
-      per_step = infer::WorldModel::kChunkActions;
-      world_model_name = "teacher";
-    } else {
-      infer::StreamingEngine::Options o;
-      o.device = device;
-      o.precision = parse_precision(a.precision);
-      if (!fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(fast_decoder);
-      auto engine = infer::StreamingEngine::load(checkpoint, tokenizer, o);
-      ranges = engine.action_ranges();
-      generator = infer::make_student_generator(std::move(engine));
-      world_model_name = "student";
-    }
-    DOJO_CHECK(ranges.size() == 1 && ranges.contains("dojosim_robot"),
-               checkpoint.string() + ": the model's actions are " + ranges.dump() +
-                   "; DojoSim's policies command the 'dojosim_robot' slot (6 values)");
-    const auto& [slot, stats] = *ranges.items().begin();
-    data::ActionChunker chunker(data::slot_by_name(slot),
-                                data::ArrayStats::from_json(stats, "model actions." + slot),
-                                static_cast<int>(per_step));
-    world_model = std::make_unique<eval::WorldModelEnvironment>(world_model_name, std::move(generator),
-                                                                std::move(chunker), std::move(detector));
-    fingerprint = {{"world_model", fs::absolute(checkpoint).string()},
-                   {"tokenizer", fs::absolute(tokenizer).string()},
-                   {"fast_decoder", fast_decoder.empty() ? "" : fs::absolute(fast_decoder).string()},
-                   {"detector", fs::absolute(detector_dir).string()},
-                   {"device", a.device},
-                   {"precision", a.precision}};
+    loaded = load_world_model(a.wm, std::move(detector));
+    world_model = loaded->environment.get();
+    world_model_name = world_model->name();
+    per_step = loaded->per_step;
+    fingerprint = loaded->fingerprint;
+    fingerprint["detector"] = fs::absolute(detector_dir).string();
   }
 
   recipes::PolicySceneOptions scene_options;
@@ -333,8 +390,11 @@ int run_eval(const EvalArgs& a) {
   auto json = report.to_json();
   json["world_model"] = world_model_name;
   json["fingerprint"] = fingerprint;
-  if (fs::exists(pick(a.detector, out / "detector") / "result.json"))
-    json["detector"] = read_json_file(pick(a.detector, out / "detector") / "result.json");
+  if (!a.sim_as_world_model && fs::exists(detector_directory(a) / "result.json")) {
+    json["detector"] = read_json_file(detector_directory(a) / "result.json");
+    if (fs::exists(detector_directory(a) / "data.json"))
+      json["detector"]["data"] = read_json_file(detector_directory(a) / "data.json");
+  }
   write_file_atomic(out / "report.json", json.dump(2) + "\n");
   eval::write_policy_eval_html(report, out / "report.html", "DojoSim", world_model_name, options.video_dir);
 
@@ -349,6 +409,16 @@ int run_eval(const EvalArgs& a) {
               world_model_name.c_str(), report.world_model_seconds_per_episode);
   LOG_INFO("policy eval: ", (out / "report.json").string(), ", ", (out / "report.html").string());
   return 0;
+}
+
+void add_world_model_options(CLI::App* cmd, WorldModelArgs& wm) {
+  cmd->add_option("--demo", wm.demo, "Take the models from this `dojo demo` output")->capture_default_str();
+  cmd->add_option("--student", wm.student, "Student checkpoint (default: the demo's)");
+  cmd->add_option("--teacher", wm.teacher, "Use this teacher checkpoint instead (12-frame chunks)");
+  cmd->add_option("--tokenizer", wm.tokenizer, "Tokenizer checkpoint (default: the demo's)");
+  cmd->add_option("--fast-decoder", wm.fast_decoder, "Student's fast decoder (default: the demo's)");
+  add_device_option(cmd, wm.device);
+  add_precision_option(cmd, wm.precision);
 }
 
 }  // namespace
@@ -402,6 +472,17 @@ void register_policy(CLI::App& app) {
   detector->add_option("--steps", d->steps, "Training steps")
       ->check(CLI::Range(0, 10000000))
       ->capture_default_str();
+  detector->add_option("--frames", d->frames, "Frames each policy acts for (as `policy eval --frames`)")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
+  detector
+      ->add_option("--settle-frames", d->settle_frames, "Frames holding the last command (as `policy eval`)")
+      ->check(CLI::Range(0, 100000))
+      ->capture_default_str();
+  detector->add_flag("--world-model", d->world_model,
+                     "Train on the world model's replays of the episodes (labels from DojoSim): the "
+                     "detector then reads generated video as `policy eval` shows it");
+  add_world_model_options(detector, d->wm);
   detector->callback([d] { set_action([d] { return train_detector(*d).is_object() ? 0 : 1; }); });
 
   auto e = std::make_shared<EvalArgs>();
@@ -410,13 +491,14 @@ void register_policy(CLI::App& app) {
                              "Run every policy closed loop in DojoSim and in the world model; Pearson r, "
                              "MMRV, Spearman, success gap; JSON + HTML (resumable)");
   ev->add_option("--out", e->out, "Output directory")->capture_default_str();
-  ev->add_option("--demo", e->demo, "Take the models from this `dojo demo` output")->capture_default_str();
-  ev->add_option("--student", e->student, "Student checkpoint (default: the demo's)");
-  ev->add_option("--teacher", e->teacher, "Evaluate in this teacher checkpoint instead (12-frame chunks)");
-  ev->add_option("--tokenizer", e->tokenizer, "Tokenizer checkpoint (default: the demo's)");
-  ev->add_option("--fast-decoder", e->fast_decoder, "Student's fast decoder (default: the demo's)");
+  add_world_model_options(ev, e->wm);
   ev->add_option("--detector", e->detector, "Success detector (default: OUT/detector, trained when missing)");
   ev->add_option("--detector-steps", e->detector_steps, "Training steps when the detector is trained here")
+      ->capture_default_str();
+  ev->add_option("--detector-frames", e->detector_frames,
+                 "What a detector trained here learns from: DojoSim's frames, or the world model's "
+                 "replays of the same episodes (labels from DojoSim either way)")
+      ->check(CLI::IsMember({"dojosim", "world-model"}))
       ->capture_default_str();
   ev->add_option("--policies", e->policies, "Policy set JSON (default: the built-in 13 scripted policies)");
   ev->add_option("--bc", e->bc,
@@ -449,8 +531,6 @@ void register_policy(CLI::App& app) {
       ->capture_default_str();
   ev->add_flag("--sim-as-world-model", e->sim_as_world_model,
                "Plug DojoSim in as the world model too (checks the harness: r = 1, MMRV = 0)");
-  add_device_option(ev, e->device);
-  add_precision_option(ev, e->precision);
   ev->callback([e] { set_action([e] { return run_eval(*e); }); });
 }
 

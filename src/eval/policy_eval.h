@@ -77,7 +77,8 @@ class Environment {
 // A world model as an environment: raw commands become the model's action rows through its own
 // normalisation (data::ActionChunker, baseline = the start command), frames come from the
 // generator, and success is the detector's vote over the last frames (1 when more than half of
-// the last `votes` windows see success).
+// the last `votes` windows see success). Without a detector (an empty holder) it only makes
+// frames: success() throws.
 class WorldModelEnvironment : public Environment {
  public:
   WorldModelEnvironment(std::string name, std::unique_ptr<infer::Generator> generator,

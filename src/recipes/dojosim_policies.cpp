@@ -241,7 +241,7 @@ std::vector<PolicySpec> read_policy_set(const fs::path& path) {
 }
 
 void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDataOptions& options,
-                       const fs::path& path) {
+                       const fs::path& path, eval::Environment* frames_from) {
   DOJO_CHECK(!policies.empty() && options.scenes > 0, "success data: policies and scenes are needed");
   PolicySceneOptions scene_options;
   scene_options.count = options.scenes;
@@ -259,21 +259,28 @@ void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDat
     if (!spec.scripted()) continue;  // labelled episodes come from the scripted policies
     auto policy = make_scripted_policy(spec);
     for (const auto& start : scenes) {
-      std::vector<torch::Tensor> frames{env.reset(start).unsqueeze(0)};
+      std::vector<torch::Tensor> frames{env.reset(start).unsqueeze(0)};  // the simulator's
+      std::vector<torch::Tensor> shown;  // the world model's, when it supplies the frames
+      if (frames_from) shown.push_back(frames_from->reset(start).unsqueeze(0));
       std::vector<float> label{static_cast<float>(env.success_now() > 0.5)};
       policy->reset(start);
       auto last = start.command;
       for (int64_t k = 0; k < steps; ++k) {
         const auto commands = k < options.episode.steps ? policy->act(frames.back(), last, n)
-                                                        : last.unsqueeze(0).expand({n, -1});
+                                                        : last.unsqueeze(0).expand({n, -1}).contiguous();
         last = commands[-1].clone();
         // Step one command at a time so every frame gets the label of its own state.
         for (int64_t i = 0; i < n; ++i) {
           frames.push_back(env.step(commands.narrow(0, i, 1)));
           label.push_back(static_cast<float>(env.success_now() > 0.5));
         }
+        if (frames_from) shown.push_back(frames_from->step(commands));  // [n, H, W, 3]
       }
-      videos.push_back(torch::cat(frames));  // [T, H, W, 3]
+      videos.push_back(torch::cat(frames_from ? shown : frames));  // [T, H, W, 3]
+      DOJO_CHECK(videos.back().size(0) == static_cast<int64_t>(label.size()),
+                 "success data: " + (frames_from ? frames_from->name() : env.name()) + " returned " +
+                     std::to_string(videos.back().size(0)) + " frames for " + std::to_string(label.size()) +
+                     " labelled ones");
       labels.push_back(torch::tensor(label));
       heldout.push_back(start.index >= heldout_from);
     }

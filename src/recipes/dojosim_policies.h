@@ -88,9 +88,13 @@ struct SuccessDataOptions {
   double heldout_fraction = 0.25;
   eval::PolicyEvalOptions episode;  // the same episode length as the evaluation
 };
-// Writes a train::SuccessData file to `path` (atomically).
+// Writes a train::SuccessData file to `path` (atomically). With `frames_from` (a world model), the
+// frames are that world's replay of the same commands while the labels stay the simulator's: the
+// scripted policies plan at reset and never look at a frame, so both worlds receive identical
+// commands and the detector learns what success looks like in generated video. Its steps take
+// options.episode.actions_per_step commands.
 void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDataOptions& options,
-                       const std::filesystem::path& path);
+                       const std::filesystem::path& path, eval::Environment* frames_from = nullptr);
 
 // Demonstrations for the behaviour-cloning policy (train/bc_train.h): DojoSim's expert bin policy
 // on policy scenes (seeds seed, seed + 1, ...: keep them apart from the evaluation's), watching

@@ -1,7 +1,7 @@
 // Policy evaluation (eval/policy_eval.h) with DojoSim's scenes and scripted policies
 // (recipes/dojosim_policies.h): the plumbing is exact when the simulator stands in for the world
 // model, journals resume, bad policies are named, the success detector learns, and a world model
-// runs a policy closed loop.
+// runs a policy closed loop and replays the detector's training episodes.
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
@@ -210,6 +210,31 @@ TEST(PolicyEval, WorldModelRunsAPolicyClosedLoop) {
   const auto first = env.video().clone();
   eval::run_policy_episode(*owned[0], env, starts[0], options);
   EXPECT_TRUE(torch::equal(first, env.video()));
+
+  // Without a detector the world model only makes frames: the detector's training data from its
+  // replays holds exactly the frames the evaluation shows, under the simulator's labels.
+  auto replay_engine = infer::StreamingEngine::load(reference / "wm_posttrain", reference / "tokenizer", o);
+  data::ActionChunker replay_chunker(data::slot_by_name("dojosim_robot"),
+                                     data::ArrayStats::from_json(ranges["dojosim_robot"], "ranges"), 4);
+  eval::WorldModelEnvironment frames_only("student", infer::make_student_generator(std::move(replay_engine)),
+                                          std::move(replay_chunker), models::SuccessDetector{nullptr});
+  test::TempDir tmp;
+  SuccessDataOptions data_options;
+  data_options.scenes = 1;
+  data_options.seed = starts[0].seed;  // the scene above
+  data_options.episode = options;
+  std::vector<PolicySpec> expert;
+  for (const auto& s : default_policy_set())
+    if (s.name == "expert") expert.push_back(s);
+  make_success_data(expert, data_options, tmp / "replayed.safetensors", &frames_only);
+  make_success_data(expert, data_options, tmp / "simulated.safetensors");
+  const auto replayed = train::SuccessData::load(tmp / "replayed.safetensors");
+  const auto simulated = train::SuccessData::load(tmp / "simulated.safetensors");
+  ASSERT_EQ(replayed.frames.size(0), 1);
+  EXPECT_TRUE(torch::equal(replayed.frames[0], first));
+  EXPECT_FALSE(torch::equal(replayed.frames, simulated.frames));
+  EXPECT_TRUE(torch::equal(replayed.labels, simulated.labels));
+  EXPECT_THROW(frames_only.success(), Error);
 }
 
 }  // namespace

@@ -15,6 +15,7 @@
 #include "serve/external_policy.h"
 #include "test_util.h"
 #include "train/bc_train.h"
+#include "train/success_train.h"
 
 namespace dojo::recipes {
 namespace {
@@ -250,6 +251,44 @@ TEST(PolicyCli, TrainThenEvaluateWithTheSimulatorAsTheWorldModel) {
   one_line(test::run_dojo("policy eval --sim-as-world-model --no-bc --policies " +
                           (tmp / "seven.json").string() + " --out " + (tmp / "e5").string()),
            "policy 'x' (" + (tmp / "seven").string() + "): its commands have 7 values; the robot takes 6");
+}
+
+TEST(PolicyCli, DetectorLearnsFromWorldModelReplaysAndTheEvaluationUsesIt) {
+  test::TempDir tmp;
+  const fs::path reference = fs::path(DOJO_SOURCE_DIR) / "models" / "reference";
+  const std::string model = " --student " + (reference / "wm_posttrain").string() + " --tokenizer " +
+                            (reference / "tokenizer").string();
+  std::ofstream(tmp / "set.json")
+      << R"({"policies": [{"name": "expert"}, {"name": "idle", "behavior": "idle"}]})";
+  const std::string set = " --policies " + (tmp / "set.json").string();
+  const std::string short_episodes = set + " --frames 8 --settle-frames 4";
+  const auto detector = tmp / "detector";
+  // Whole episodes (64 + 12 frames): the expert's success comes late.
+  auto r = test::run_dojo("--threads 1 policy detector --world-model --scenes 2 --steps 10" + model + set +
+                          " --out " + detector.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto made = nlohmann::json::parse(test::read_file(detector / "data.json"));
+  EXPECT_EQ(made.at("frames").at("world_model"), fs::absolute(reference / "wm_posttrain").string());
+  EXPECT_EQ(train::SuccessData::load(detector / "data.safetensors").frames.size(1), 1 + 64 + 12);
+  EXPECT_TRUE(fs::exists(detector / "result.json"));
+
+  const auto out = tmp / "eval";
+  r = test::run_dojo("--threads 1 policy eval --no-bc --scenes 1 --videos 0 --detector " + detector.string() +
+                     model + short_episodes + " --out " + out.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto report = nlohmann::json::parse(test::read_file(out / "report.json"));
+  EXPECT_EQ(report.at("policies").size(), 2u);
+  EXPECT_EQ(report.at("detector").at("data").at("frames"), made.at("frames"));
+
+  // One-line errors: frames of another source in the same directory, no world model.
+  r = test::run_dojo("policy detector --scenes 2 --steps 10" + short_episodes + " --out " +
+                     detector.string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("data.safetensors holds frames of"), std::string::npos) << r.output;
+  r = test::run_dojo("policy detector --world-model --student " + (tmp / "nowhere").string() + " --out " +
+                     (tmp / "d2").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("no world model at " + (tmp / "nowhere").string()), std::string::npos) << r.output;
 }
 
 }  // namespace
