@@ -165,37 +165,60 @@ fs::path pick(const std::string& given, const fs::path& fallback) {
   return given.empty() ? fallback : fs::path(given);
 }
 
-// A world model as an environment, with what it was loaded from.
+// The files a world model loads from, checked to exist, and how it runs.
+struct WorldModelSource {
+  fs::path checkpoint, tokenizer, fast_decoder;  // fast_decoder may be empty (the Wan decoder)
+  bool teacher = false;
+  std::string device, precision;
+  // What the model's frames depend on (journals and detector data record it).
+  nlohmann::json fingerprint() const {
+    return {{"world_model", fs::absolute(checkpoint).string()},
+            {"tokenizer", fs::absolute(tokenizer).string()},
+            {"fast_decoder", fast_decoder.empty() ? "" : fs::absolute(fast_decoder).string()},
+            {"device", device},
+            {"precision", precision}};
+  }
+};
+
+// The demo's student unless `a` names others; `who` starts the error messages.
+WorldModelSource resolve_world_model(const WorldModelArgs& a, const std::string& who) {
+  const fs::path demo = a.demo;
+  WorldModelSource s;
+  s.teacher = !a.teacher.empty();
+  s.checkpoint = s.teacher ? fs::path(a.teacher) : pick(a.student, demo / "student" / "checkpoint");
+  s.tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
+  s.fast_decoder = a.fast_decoder;
+  if (s.fast_decoder.empty() && a.student.empty() && !s.teacher &&
+      fs::exists(demo / "fast_decoder" / "checkpoint"))
+    s.fast_decoder = demo / "fast_decoder" / "checkpoint";
+  s.device = a.device;
+  s.precision = a.precision;
+  DOJO_CHECK(checkpoint_exists(s.checkpoint),
+             who + ": no world model at " + s.checkpoint.string() +
+                 " (give --student or --teacher, or --demo DIR of a finished `dojo demo`)");
+  DOJO_CHECK(checkpoint_exists(s.tokenizer), who + ": no tokenizer at " + s.tokenizer.string());
+  DOJO_CHECK(s.fast_decoder.empty() || checkpoint_exists(s.fast_decoder),
+             who + ": no fast decoder at " + s.fast_decoder.string());
+  return s;
+}
+
+// A world model as an environment.
 struct LoadedWorldModel {
   std::unique_ptr<infer::WorldModel> teacher;  // first: the environment refers to it
   std::unique_ptr<eval::WorldModelEnvironment> environment;
   int64_t per_step = infer::StreamingEngine::kActionsPerStep;  // commands per step
-  nlohmann::json fingerprint;
 };
 
-// Loads the student (or the teacher) that `a` names; `detector` may be empty (frames only).
-LoadedWorldModel load_world_model(const WorldModelArgs& a, models::SuccessDetector detector) {
-  const fs::path demo = a.demo;
-  const bool teacher = !a.teacher.empty();
-  const fs::path checkpoint =
-      teacher ? fs::path(a.teacher) : pick(a.student, demo / "student" / "checkpoint");
-  const fs::path tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
-  fs::path fast_decoder = a.fast_decoder;
-  if (fast_decoder.empty() && a.student.empty() && !teacher &&
-      fs::exists(demo / "fast_decoder" / "checkpoint"))
-    fast_decoder = demo / "fast_decoder" / "checkpoint";
-  DOJO_CHECK(checkpoint_exists(checkpoint),
-             "policy: no world model at " + checkpoint.string() +
-                 " (give --student or --teacher, or --demo DIR of a finished `dojo demo`)");
-  DOJO_CHECK(checkpoint_exists(tokenizer), "policy: no tokenizer at " + tokenizer.string());
-  const auto device = parse_device(a.device);
+// Loads the student (or the teacher) of `s`; `detector` may be empty (frames only).
+LoadedWorldModel load_world_model(const WorldModelSource& s, models::SuccessDetector detector) {
+  const auto device = parse_device(s.device);
   LoadedWorldModel loaded;
   std::unique_ptr<infer::Generator> generator;
   nlohmann::json ranges;
   std::string name = "student";
-  if (teacher) {
+  if (s.teacher) {
     loaded.teacher = std::make_unique<infer::WorldModel>(
-        infer::WorldModel::load(checkpoint, tokenizer, device, parse_precision(a.precision)));
+        infer::WorldModel::load(s.checkpoint, s.tokenizer, device, parse_precision(s.precision)));
     ranges = loaded.teacher->action_ranges();
     generator = infer::make_teacher_generator(*loaded.teacher);
     loaded.per_step = infer::WorldModel::kChunkActions;
@@ -203,14 +226,14 @@ LoadedWorldModel load_world_model(const WorldModelArgs& a, models::SuccessDetect
   } else {
     infer::StreamingEngine::Options o;
     o.device = device;
-    o.precision = parse_precision(a.precision);
-    if (!fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(fast_decoder);
-    auto engine = infer::StreamingEngine::load(checkpoint, tokenizer, o);
+    o.precision = parse_precision(s.precision);
+    if (!s.fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(s.fast_decoder);
+    auto engine = infer::StreamingEngine::load(s.checkpoint, s.tokenizer, o);
     ranges = engine.action_ranges();
     generator = infer::make_student_generator(std::move(engine));
   }
   DOJO_CHECK(ranges.size() == 1 && ranges.contains("dojosim_robot"),
-             checkpoint.string() + ": the model's actions are " + ranges.dump() +
+             s.checkpoint.string() + ": the model's actions are " + ranges.dump() +
                  "; DojoSim's policies command the 'dojosim_robot' slot (6 values)");
   const auto& [slot, stats] = *ranges.items().begin();
   data::ActionChunker chunker(data::slot_by_name(slot),
@@ -218,46 +241,53 @@ LoadedWorldModel load_world_model(const WorldModelArgs& a, models::SuccessDetect
                               static_cast<int>(loaded.per_step));
   loaded.environment = std::make_unique<eval::WorldModelEnvironment>(name, std::move(generator),
                                                                      std::move(chunker), std::move(detector));
-  loaded.fingerprint = {{"world_model", fs::absolute(checkpoint).string()},
-                        {"tokenizer", fs::absolute(tokenizer).string()},
-                        {"fast_decoder", fast_decoder.empty() ? "" : fs::absolute(fast_decoder).string()},
-                        {"device", a.device},
-                        {"precision", a.precision}};
   return loaded;
+}
+
+// The frames a detector's data directory holds (data.json; an older directory without it holds
+// DojoSim's).
+nlohmann::json detector_frames_source(const fs::path& dir) {
+  return fs::exists(dir / "data.json") ? read_json_file(dir / "data.json").value("frames", nlohmann::json())
+                                       : nlohmann::json("dojosim");
 }
 
 // Generates DIR/data.safetensors once (DIR/data.json says from what), then trains (or resumes)
 // DIR/checkpoint; DIR/result.json.
 nlohmann::json train_detector(const DetectorArgs& a) {
   const fs::path out = a.out;
+  std::optional<WorldModelSource> source;
+  if (a.world_model) source = resolve_world_model(a.wm, "policy detector");
+  const nlohmann::json frames = source ? source->fingerprint() : nlohmann::json("dojosim");
   fs::create_directories(out);
   const auto data = out / "data.safetensors";
   std::optional<LoadedWorldModel> world_model;
-  if (a.world_model) world_model = load_world_model(a.wm, models::SuccessDetector{nullptr});
-  nlohmann::json source = {{"frames", a.world_model ? world_model->fingerprint : nlohmann::json("dojosim")},
-                           {"scenes", a.scenes},
-                           {"seed", a.seed},
-                           {"frames_per_episode", a.frames},
-                           {"settle_frames", a.settle_frames},
-                           {"policies", a.policies}};
   if (fs::exists(data)) {
-    // An older directory without data.json holds DojoSim frames.
-    const auto made = fs::exists(out / "data.json") ? read_json_file(out / "data.json")
-                                                    : nlohmann::json{{"frames", "dojosim"}};
-    DOJO_CHECK(made["frames"] == source["frames"], data.string() + " holds frames of " +
-                                                       made["frames"].dump() + ", not of " +
-                                                       source["frames"].dump() + ": give another --out");
+    DOJO_CHECK(detector_frames_source(out) == frames, data.string() + " holds frames of " +
+                                                          detector_frames_source(out).dump() + ", not of " +
+                                                          frames.dump() + ": give another --out");
   } else {
     recipes::SuccessDataOptions o;
     o.scenes = a.scenes;
     o.seed = a.seed;
+    std::optional<ScopedThreads> matmul_bound;  // the world model's replays, as in `policy eval`
+    if (source) {
+      matmul_bound.emplace(
+          matmul_bound_command_threads("policy detector", parse_device(source->device).is_cuda()));
+      world_model = load_world_model(*source, models::SuccessDetector{nullptr});
+    }
     o.episode = episode_options(a.frames, a.settle_frames, world_model ? world_model->per_step : 4);
     LOG_INFO("policy detector: rendering ", a.scenes, " scenes per policy in DojoSim",
              world_model ? " and replaying them in the world model" : "");
     auto specs = policy_set(a.policies);
     if (std::none_of(specs.begin(), specs.end(), [](const auto& s) { return s.scripted(); }))
-      specs = recipes::default_policy_set();                      // labelled episodes need scripted policies
-    write_file_atomic(out / "data.json", source.dump(2) + "\n");  // first: data without it reads as DojoSim's
+      specs = recipes::default_policy_set();  // labelled episodes need scripted policies
+    const nlohmann::json made = {{"frames", frames},
+                                 {"scenes", a.scenes},
+                                 {"seed", a.seed},
+                                 {"frames_per_episode", a.frames},
+                                 {"settle_frames", a.settle_frames},
+                                 {"policies", a.policies}};
+    write_file_atomic(out / "data.json", made.dump(2) + "\n");  // first: data without it reads as DojoSim's
     recipes::make_success_data(specs, o, data, world_model ? world_model->environment.get() : nullptr);
   }
   world_model.reset();  // training needs the memory more
@@ -303,15 +333,23 @@ int run_eval(const EvalArgs& a) {
 
   std::optional<LoadedWorldModel> loaded;
   eval::Environment* world_model = nullptr;
-  recipes::DojoSimEnvironment sim_as_world_model;
+  std::optional<recipes::DojoSimEnvironment> sim_as_world_model;
   std::string world_model_name = "DojoSim (as the world model)";
   nlohmann::json fingerprint;
   int64_t per_step = infer::StreamingEngine::kActionsPerStep;
   if (a.sim_as_world_model) {
-    world_model = &sim_as_world_model;
+    world_model = &sim_as_world_model.emplace();
     fingerprint["world_model"] = "dojosim";
   } else {
+    const auto source = resolve_world_model(a.wm, "policy eval");  // before any detector training
     const fs::path detector_dir = detector_directory(a);
+    const nlohmann::json detector_frames =
+        a.detector_frames == "world-model" ? source.fingerprint() : nlohmann::json("dojosim");
+    if (a.detector.empty() && fs::exists(detector_dir / "data.safetensors"))
+      DOJO_CHECK(detector_frames_source(detector_dir) == detector_frames,
+                 detector_dir.string() + " was trained on frames of " +
+                     detector_frames_source(detector_dir).dump() + ", not of " + detector_frames.dump() +
+                     ": give another --out or --detector");
     if (a.detector.empty()
             ? !finished(detector_dir, a.detector_steps)
             : !checkpoint_exists(detector_dir / "checkpoint") && !checkpoint_exists(detector_dir)) {
@@ -329,11 +367,11 @@ int run_eval(const EvalArgs& a) {
     }
     auto detector = models::load_success_detector(
         checkpoint_exists(detector_dir / "checkpoint") ? detector_dir / "checkpoint" : detector_dir);
-    loaded = load_world_model(a.wm, std::move(detector));
+    loaded = load_world_model(source, std::move(detector));
     world_model = loaded->environment.get();
     world_model_name = world_model->name();
     per_step = loaded->per_step;
-    fingerprint = loaded->fingerprint;
+    fingerprint = source.fingerprint();
     fingerprint["detector"] = fs::absolute(detector_dir).string();
   }
 

@@ -248,7 +248,9 @@ void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDat
   scene_options.seed = options.seed;
   scene_options.size = options.size;
   const auto scenes = make_policy_scenes(scene_options);
-  const int64_t n = options.episode.actions_per_step;
+  // A world model's own step size wins, as in run_policy_episode.
+  const int64_t n = frames_from && frames_from->actions_per_step() > 0 ? frames_from->actions_per_step()
+                                                                       : options.episode.actions_per_step;
   const int64_t steps = options.episode.steps + options.episode.settle_steps;
   const auto heldout_from =
       static_cast<int64_t>(std::lround(static_cast<double>(options.scenes) * (1 - options.heldout_fraction)));

@@ -269,7 +269,9 @@ TEST(PolicyCli, DetectorLearnsFromWorldModelReplaysAndTheEvaluationUsesIt) {
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto made = nlohmann::json::parse(test::read_file(detector / "data.json"));
   EXPECT_EQ(made.at("frames").at("world_model"), fs::absolute(reference / "wm_posttrain").string());
-  EXPECT_EQ(train::SuccessData::load(detector / "data.safetensors").frames.size(1), 1 + 64 + 12);
+  const auto data = train::SuccessData::load(detector / "data.safetensors");
+  EXPECT_EQ(data.frames.size(1), 1 + 64 + 12);
+  EXPECT_GT(data.labels.sum().item<double>(), 0);  // the expert's endings: both classes to learn
   EXPECT_TRUE(fs::exists(detector / "result.json"));
 
   const auto out = tmp / "eval";
@@ -280,7 +282,13 @@ TEST(PolicyCli, DetectorLearnsFromWorldModelReplaysAndTheEvaluationUsesIt) {
   EXPECT_EQ(report.at("policies").size(), 2u);
   EXPECT_EQ(report.at("detector").at("data").at("frames"), made.at("frames"));
 
-  // One-line errors: frames of another source in the same directory, no world model.
+  // One-line errors: frames of another source in the same directory (to train on or to reuse in
+  // an evaluation), no world model.
+  r = test::run_dojo("policy eval --no-bc --detector-frames world-model --student " +
+                     (reference / "wm_posttrain").string() + " --demo " + (tmp / "nodemo").string() +
+                     " --out " + out.string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("policy eval: no tokenizer at"), std::string::npos) << r.output;
   r = test::run_dojo("policy detector --scenes 2 --steps 10" + short_episodes + " --out " +
                      detector.string());
   EXPECT_NE(r.exit_code, 0);
