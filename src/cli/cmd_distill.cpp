@@ -22,7 +22,7 @@ namespace {
 struct DistillArgs {
   std::string stage = "warmup", init, teacher, tokenizer, split = "train", out;
   std::vector<std::string> data;
-  int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 3;
+  int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 12;
   int batch = 8, student_steps = 4, teacher_steps = 35;
   double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1;
   bool fp32_times = false;
@@ -109,7 +109,7 @@ void register_distill(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--weight-decay", a->weight_decay, "AdamW weight decay")->capture_default_str();
   cmd->add_option("--grad-clip", a->grad_clip, "Global gradient-norm clip")->capture_default_str();
-  cmd->add_option("--window", a->window, "Earlier latent frames a new frame attends to (released: 3)")
+  cmd->add_option("--window", a->window, "Earlier latent frames a new frame attends to (paper: 12, released: 3)")
       ->check(CLI::Range(int64_t{0}, int64_t{64}))
       ->capture_default_str();
   cmd->add_option("--student-steps", a->student_steps, "Student hops per latent frame, 1-4")

@@ -41,7 +41,7 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
                           out.string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto config = nlohmann::json::parse(test::read_file(out / "checkpoint" / "config.json"));
-  EXPECT_EQ(config.at("student").at("window_frames"), 3);
+  EXPECT_EQ(config.at("student").at("window_frames"), 12);  // the paper's, by default
   EXPECT_TRUE(config.at("actions").contains("dojosim_robot")) << "the teacher's action ranges travel on";
   EXPECT_TRUE(std::filesystem::exists(out / "trajectories" / "shard-00000.safetensors"));
 
@@ -87,10 +87,11 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(std::filesystem::exists(tmp / "fast.mp4"));
 
-  // The released teleop alignment takes 12 actions per step: 3 latents first, then 1 per step.
-  r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
-                     " --data " + data +
-                     " --split all --frames 16 --no-decode --json --action-alignment released_teleop");
+  // The released teleop alignment at the released window takes 12 actions per step: 3 latents
+  // first, then 1 per step.
+  r = test::run_dojo(
+      "--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok + " --data " +
+      data + " --split all --frames 16 --no-decode --json --window 3 --action-alignment released_teleop");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("\"frames\": 16"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("released_teleop"), std::string::npos) << r.output;
