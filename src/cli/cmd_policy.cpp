@@ -172,9 +172,10 @@ struct WorldModelSource {
   std::string device, precision;
   // What the model's frames depend on (journals and detector data record it).
   nlohmann::json fingerprint() const {
-    return {{"world_model", fs::absolute(checkpoint).string()},
-            {"tokenizer", fs::absolute(tokenizer).string()},
-            {"fast_decoder", fast_decoder.empty() ? "" : fs::absolute(fast_decoder).string()},
+    const auto where = [](const fs::path& p) { return fs::absolute(p).lexically_normal().string(); };
+    return {{"world_model", where(checkpoint)},
+            {"tokenizer", where(tokenizer)},
+            {"fast_decoder", fast_decoder.empty() ? "" : where(fast_decoder)},
             {"device", device},
             {"precision", precision}};
   }
