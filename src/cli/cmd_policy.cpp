@@ -245,11 +245,15 @@ LoadedWorldModel load_world_model(const WorldModelSource& s, models::SuccessDete
   return loaded;
 }
 
-// The frames a detector's data directory holds (data.json; an older directory without it holds
-// DojoSim's).
-nlohmann::json detector_frames_source(const fs::path& dir) {
-  return fs::exists(dir / "data.json") ? read_json_file(dir / "data.json").value("frames", nlohmann::json())
-                                       : nlohmann::json("dojosim");
+// Refuses a detector directory whose data holds other frames than `frames` (data.json's "frames";
+// an older directory without it holds DojoSim's): "SUBJECT <verb> frames of X, not of Y: HINT".
+void require_detector_frames(const fs::path& dir, const nlohmann::json& frames, const std::string& subject,
+                             const std::string& hint) {
+  const auto held = fs::exists(dir / "data.json")
+                        ? read_json_file(dir / "data.json").value("frames", nlohmann::json())
+                        : nlohmann::json("dojosim");
+  DOJO_CHECK(held == frames,
+             subject + " frames of " + held.dump() + ", not of " + frames.dump() + ": " + hint);
 }
 
 // Generates DIR/data.safetensors once (DIR/data.json says from what), then trains (or resumes)
@@ -263,9 +267,7 @@ nlohmann::json train_detector(const DetectorArgs& a) {
   const auto data = out / "data.safetensors";
   std::optional<LoadedWorldModel> world_model;
   if (fs::exists(data)) {
-    DOJO_CHECK(detector_frames_source(out) == frames, data.string() + " holds frames of " +
-                                                          detector_frames_source(out).dump() + ", not of " +
-                                                          frames.dump() + ": give another --out");
+    require_detector_frames(out, frames, data.string() + " holds", "give another --out");
   } else {
     recipes::SuccessDataOptions o;
     o.scenes = a.scenes;
@@ -347,10 +349,8 @@ int run_eval(const EvalArgs& a) {
     const nlohmann::json detector_frames =
         a.detector_frames == "world-model" ? source.fingerprint() : nlohmann::json("dojosim");
     if (a.detector.empty() && fs::exists(detector_dir / "data.safetensors"))
-      DOJO_CHECK(detector_frames_source(detector_dir) == detector_frames,
-                 detector_dir.string() + " was trained on frames of " +
-                     detector_frames_source(detector_dir).dump() + ", not of " + detector_frames.dump() +
-                     ": give another --out or --detector");
+      require_detector_frames(detector_dir, detector_frames, detector_dir.string() + " was trained on",
+                              "give another --out or --detector");
     if (a.detector.empty()
             ? !finished(detector_dir, a.detector_steps)
             : !checkpoint_exists(detector_dir / "checkpoint") && !checkpoint_exists(detector_dir)) {
@@ -429,10 +429,11 @@ int run_eval(const EvalArgs& a) {
   auto json = report.to_json();
   json["world_model"] = world_model_name;
   json["fingerprint"] = fingerprint;
-  if (!a.sim_as_world_model && fs::exists(detector_directory(a) / "result.json")) {
-    json["detector"] = read_json_file(detector_directory(a) / "result.json");
-    if (fs::exists(detector_directory(a) / "data.json"))
-      json["detector"]["data"] = read_json_file(detector_directory(a) / "data.json");
+  const auto detector_dir = detector_directory(a);
+  if (!a.sim_as_world_model && fs::exists(detector_dir / "result.json")) {
+    json["detector"] = read_json_file(detector_dir / "result.json");
+    if (fs::exists(detector_dir / "data.json"))
+      json["detector"]["data"] = read_json_file(detector_dir / "data.json");
   }
   write_file_atomic(out / "report.json", json.dump(2) + "\n");
   eval::write_policy_eval_html(report, out / "report.html", "DojoSim", world_model_name, options.video_dir);

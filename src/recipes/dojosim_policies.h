@@ -91,8 +91,8 @@ struct SuccessDataOptions {
 // Writes a train::SuccessData file to `path` (atomically). With `frames_from` (a world model), the
 // frames are that world's replay of the same commands while the labels stay the simulator's: the
 // scripted policies plan at reset and never look at a frame, so both worlds receive identical
-// commands and the detector learns what success looks like in generated video. Its steps take
-// options.episode.actions_per_step commands.
+// commands and the detector learns what success looks like in generated video. A step takes the
+// world's own actions_per_step() commands when it has one, else options.episode.actions_per_step.
 void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDataOptions& options,
                        const std::filesystem::path& path, eval::Environment* frames_from = nullptr);
 
