@@ -143,9 +143,12 @@ struct EvalArgs {
   int chunks = 4, episodes = 16, videos = 4, batch = 4, video_scale = 4;
   uint64_t seed = 0;
   bool json = false, action_sensitivity = false, student = false;
+  SinkArgs sink;
 };
 
 int run_eval(EvalArgs a) {
+  if (!a.student && (a.sink.frames >= 0 || !a.sink.position.empty()))
+    throw UsageError("--sink-frames and --sink-position stream a student: add --student");
   const auto device = parse_device(a.device);
   a.model.resolve(&a.probe);
   // Rollouts are DiT sampling: 31.0 generated frames/s with one OpenMP thread, 12.6 with two
@@ -171,6 +174,9 @@ int run_eval(EvalArgs a) {
     so.precision = parse_precision(a.precision);
     if (!a.fast_decoder.empty()) so.fast_decoder = models::load_fast_decoder(a.fast_decoder);
     student.emplace(infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, so));
+    auto settings = student->options().student;
+    a.sink.apply(settings);
+    student->set_student(settings);
     o.student = &*student;
   }
   std::optional<models::KeypointProbe> probe;
@@ -323,6 +329,7 @@ void register_wm(CLI::App& app) {
       "The checkpoint is a distilled student (dojo distill): roll out by streaming it, 4 frames a step");
   ev->add_option("--fast-decoder", e->fast_decoder,
                  "With --student: decode with this fast streaming decoder");
+  e->sink.add_options(ev);
   ev->add_flag("--action-sensitivity", e->action_sensitivity,
                "Also roll out with shuffled and with zero actions: does the model use the actions?");
   ev->add_option("--video-scale", e->video_scale, "Enlarge the side-by-side videos this many times")

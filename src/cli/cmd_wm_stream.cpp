@@ -88,6 +88,7 @@ class ActionLines {
 
 struct StreamArgs {
   ModelArgs model;
+  SinkArgs sink;
   std::string split = "val", episode, image, actions, out, fast_decoder, alignment, device = "cpu",
               precision = "fp32";
   int64_t frames = 48;
@@ -122,9 +123,14 @@ int run_stream(StreamArgs a) {
   auto engine = infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, o);
   auto student = engine.options().student;
   if (a.window >= 0) student.window_frames = a.window;
+  a.sink.apply(student);
   if (a.student_steps > 0) student.steps = a.student_steps;
-  if (!a.alignment.empty())
+  if (!a.alignment.empty()) {
     student.action_alignment = infer::parse_action_alignment(a.alignment, "--action-alignment");
+    // The released scripts' alignments come without a sink; one asked for as well is refused below.
+    if (student.action_alignment != infer::ActionAlignment::kTraining && a.sink.frames < 0)
+      student.sink_frames = 0;
+  }
   engine.set_student(student);
 
   // The start frame and, without --actions, the recorded actions (looped past their end).
@@ -214,6 +220,8 @@ int run_stream(StreamArgs a) {
       {"checkpoint", a.model.checkpoint},
       {"frames", generated},
       {"window_frames", student.window_frames},
+      {"sink_frames", student.sink_frames},
+      {"sink_position", infer::to_string(student.sink_position)},
       {"student_steps", student.steps},
       {"action_alignment", infer::to_string(student.action_alignment)},
       {"kv_cache", o.use_cache},
@@ -266,6 +274,7 @@ void register_wm_stream(CLI::App& wm) {
   cmd->add_option("--frames", a->frames, "Frames to generate (a multiple of 4)")->capture_default_str();
   cmd->add_option("--window", a->window, "Earlier latent frames attended (default: the student's)")
       ->check(CLI::NonNegativeNumber);
+  a->sink.add_options(cmd);
   cmd->add_option("--student-steps", a->student_steps,
                   "Denoising hops per latent frame, 1-4 (default: the student's)")
       ->check(CLI::Range(1, 4));

@@ -8,6 +8,7 @@
 #include "cli/options.h"
 #include "core/error.h"
 #include "core/log.h"
+#include "infer/streaming.h"
 #include "infer/world_model.h"
 #ifdef DOJO_WITH_SIM
 #include "sim/generate.h"
@@ -78,6 +79,24 @@ infer::SamplerOptions ModelArgs::sampler(const infer::WorldModel& model) const {
   s.action_guidance = action_guidance;
   s.solver = infer::parse_solver(solver);
   return s;
+}
+
+void SinkArgs::add_options(CLI::App* cmd) {
+  cmd->add_option("--sink-frames", frames,
+                  "Keep the first N latent frames (the start frame first) in the student's window for "
+                  "good, an attention sink (default: the student's; 0 off)")
+      ->check(CLI::NonNegativeNumber);
+  cmd->add_option("--sink-position", position,
+                  "Where the sink sits in time: window_edge (in the window's oldest slots, as in "
+                  "training) or absolute (its own frame index)")
+      ->check(CLI::IsMember({"window_edge", "absolute"}));
+}
+
+void SinkArgs::apply(infer::StudentConfig& student) const {
+  if (frames >= 0) student.sink_frames = frames;
+  if (!position.empty())
+    student.sink_position =
+        position == "absolute" ? infer::SinkPosition::kAbsolute : infer::SinkPosition::kWindowEdge;
 }
 
 }  // namespace dojo::cli

@@ -10,6 +10,7 @@ class App;
 namespace dojo::infer {
 class WorldModel;
 struct SamplerOptions;
+struct StudentConfig;
 }  // namespace dojo::infer
 
 namespace dojo::cli {
@@ -35,6 +36,15 @@ struct ModelArgs {
   void resolve(std::string* probe);
   // The model's trained sampler with the options given on the command line.
   infer::SamplerOptions sampler(const infer::WorldModel& model) const;
+};
+
+// --sink-frames / --sink-position for the commands that stream a student; -1 / empty keep the
+// student's own settings.
+struct SinkArgs {
+  int frames = -1;
+  std::string position;
+  void add_options(CLI::App* cmd);
+  void apply(infer::StudentConfig& student) const;
 };
 
 }  // namespace dojo::cli

@@ -40,8 +40,12 @@ ActionAlignment parse_action_alignment(const std::string& name, const std::strin
               "' (expected training, released_offline or released_teleop)");
 }
 
+const char* to_string(SinkPosition p) { return p == SinkPosition::kAbsolute ? "absolute" : "window_edge"; }
+
 nlohmann::json StudentConfig::to_json() const {
   return {{"window_frames", window_frames},
+          {"sink_frames", sink_frames},
+          {"sink_position", to_string(sink_position)},
           {"steps", steps},
           {"bf16_times", bf16_times},
           {"action_alignment", to_string(action_alignment)}};
@@ -55,6 +59,17 @@ StudentConfig StudentConfig::from_json(const nlohmann::json& j, const std::strin
     DOJO_CHECK(j["window_frames"].is_number_integer() && j["window_frames"].get<int64_t>() >= 0,
                field("window_frames") + " must be an integer >= 0");
     c.window_frames = j["window_frames"].get<int64_t>();
+  }
+  if (j.contains("sink_frames")) {
+    DOJO_CHECK(j["sink_frames"].is_number_integer() && j["sink_frames"].get<int64_t>() >= 0,
+               field("sink_frames") + " must be an integer >= 0");
+    c.sink_frames = j["sink_frames"].get<int64_t>();
+  }
+  if (j.contains("sink_position")) {
+    const auto& p = j["sink_position"];
+    DOJO_CHECK(p.is_string() && (p == "window_edge" || p == "absolute"),
+               field("sink_position") + " must be \"window_edge\" or \"absolute\"");
+    c.sink_position = p == "absolute" ? SinkPosition::kAbsolute : SinkPosition::kWindowEdge;
   }
   if (j.contains("steps")) {
     DOJO_CHECK(j["steps"].is_number_integer() && j["steps"].get<int>() >= 1 && j["steps"].get<int>() <= 4,
@@ -148,6 +163,16 @@ void StreamingEngine::set_student(const StudentConfig& student) {
                  " action alignment needs a window of at least 1 frame");
   DOJO_CHECK(student.action_alignment != ActionAlignment::kReleasedTeleop || options_.use_cache,
              "streaming: the released_teleop action alignment re-writes the KV cache and needs it on");
+  DOJO_CHECK(student.sink_frames >= 0 && student.sink_frames <= student.window_frames,
+             "streaming: the attention sink (" + std::to_string(student.sink_frames) +
+                 " frames) must fit in the window (" + std::to_string(student.window_frames) + ")");
+  DOJO_CHECK(student.sink_frames == 0 || student.action_alignment == ActionAlignment::kTraining,
+             "streaming: an attention sink needs the training action alignment");
+  // Without a cache every frame is recomputed under one set of positions; a sink that moves with
+  // the window has a position per query frame, which only the cache can give.
+  DOJO_CHECK(
+      student.sink_frames == 0 || student.sink_position == SinkPosition::kAbsolute || options_.use_cache,
+      "streaming: a window_edge attention sink needs the KV cache on");
   schedule_ = student.schedule();
   options_.student = student;
   frames_ = 0;  // the cache was built for the old window
@@ -178,7 +203,7 @@ torch::Tensor StreamingEngine::reset(const torch::Tensor& first, uint64_t seed) 
   const int64_t tokens =
       (z0.size(3) / net_->config.patch_spatial) * (z0.size(4) / net_->config.patch_spatial);
   for (auto& c : cache_) {
-    c.set_ring(options_.student.window_frames, tokens);
+    c.set_ring(options_.student.window_frames, tokens, options_.student.sink_frames);
     c.clear();
   }
   history_latents_.clear();
@@ -187,6 +212,7 @@ torch::Tensor StreamingEngine::reset(const torch::Tensor& first, uint64_t seed) 
   window_latents_.clear();
   frames_ = 0;
   position_base_ = 0;
+  sink_base_ = 0;
   recache(z0, torch::Tensor());  // frame 0: clean, no action term
   decoder_ = std::make_unique<models::WanVaeStreamDecoder>(tokenizer_);
   fast_state_.clear();
@@ -202,16 +228,25 @@ void StreamingEngine::rebase_positions() {
   if (frames_ - position_base_ < limit) return;
   // The new frame lands at position max(window, 1): position 0 means "first frame, no actions".
   const int64_t delta = frames_ - position_base_ - std::max<int64_t>(options_.student.window_frames, 1);
-  const auto angles =
-      models::rope_angles_3d(net_->pos_embedder->dim_spatial_range, net_->pos_embedder->dim_temporal_range, 1,
-                             1, 1, -delta, net_->config.rope_h_extrapolation_ratio,
-                             net_->config.rope_w_extrapolation_ratio,
-                             net_->config.rope_t_extrapolation_ratio)
-          .flatten()
-          .to(options_.device);  // [head_dim]: temporal angles of -delta, spatial 0
-  const auto cos = angles.cos(), sin = angles.sin();
+  const auto [cos, sin] = models::temporal_rope_shift(*net_, -delta);
   for (auto& c : cache_) c.rotate_keys(cos, sin);
   position_base_ += delta;
+}
+
+void StreamingEngine::move_sink() {
+  // Frame n = frames_ attends to frames n - w .. n - 1. Once frame 0 would leave that window the
+  // sink takes the oldest positions instead: its keys hold RoPE only, and the frames' contents do
+  // not depend on where they sit in time (each attended only to the sink's own frames), so
+  // rotating them equals re-storing them there (tested).
+  const auto& s = options_.student;
+  if (s.sink_frames == 0 || s.sink_position != SinkPosition::kWindowEdge) return;
+  const int64_t target = std::max<int64_t>(0, frames_ - s.window_frames);
+  if (target == sink_base_) return;
+  const auto [cos, sin] = models::temporal_rope_shift(*net_, target - sink_base_);
+  const int64_t tokens =
+      (latent_shape_[3] / net_->config.patch_spatial) * (latent_shape_[4] / net_->config.patch_spatial);
+  for (auto& c : cache_) c.rotate_keys(cos, sin, s.sink_frames * tokens);
+  sink_base_ = target;
 }
 
 torch::Tensor StreamingEngine::decode(const torch::Tensor& x0) {
@@ -289,7 +324,8 @@ torch::Tensor StreamingEngine::denoise_reference(const torch::Tensor& noise, con
   const int64_t tokens =
       (noise.size(3) / net_->config.patch_spatial) * (noise.size(4) / net_->config.patch_spatial);
   auto base = inputs(torch::cat(all_actions, 1));  // [B, 4 (T - 1), 384]
-  base.self_attn_mask = models::dit_block_causal_mask(T, tokens, 0, options_.student.window_frames + 1);
+  base.self_attn_mask = models::dit_block_causal_mask(T, tokens, 0, options_.student.window_frames + 1,
+                                                      options_.student.sink_frames);
   auto x = noise;
   torch::Tensor x0;
   for (size_t s = 0; s < schedule_.size(); ++s) {
@@ -324,7 +360,10 @@ int64_t StreamingEngine::actions_per_step() const {
 torch::Tensor StreamingEngine::generate(const torch::Tensor& generate_with, const torch::Tensor& cache_with) {
   const auto start = std::chrono::steady_clock::now();
   const auto noise = torch::randn(latent_shape_, generator_).to(options_.device);  // ε [B, 16, 1, h, w]
-  if (options_.use_cache) rebase_positions();
+  if (options_.use_cache) {
+    rebase_positions();
+    move_sink();
+  }
   const auto x0 =
       options_.use_cache ? denoise_cached(noise, generate_with) : denoise_reference(noise, generate_with);
   timings_.denoise_ms += ms_since(start);

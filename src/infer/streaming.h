@@ -48,11 +48,23 @@ enum class ActionAlignment {
 const char* to_string(ActionAlignment a);
 ActionAlignment parse_action_alignment(const std::string& name, const std::string& where);
 
+// Where an attention sink's frames sit in RoPE time once the stream outgrows the window.
+enum class SinkPosition {
+  kWindowEdge,  // in the window's oldest slots (frame n attends to the sink at n - window): the
+                // layout of a rollout that just fills the window, which the student trained on
+  kAbsolute,    // at their own frame indices: ever farther from the new frame
+};
+const char* to_string(SinkPosition p);  // "window_edge" | "absolute"
+
 // What makes a DiT a student: stored as the "student" entry of its checkpoint's config.json.
 struct StudentConfig {
   int64_t window_frames = 3;  // earlier latent frames a new one attends to (released: 3)
-  int steps = 4;              // hops per latent frame, the first `steps` of the 4 student times
-  bool bf16_times = true;     // the released streaming code's bf16 time rounding (self_forcing.md §3.1)
+  // The first sink_frames latent frames (frame 0 is the real start frame) stay in the window for
+  // good, in place of its oldest frames, so a long stream keeps seeing where it started. 0: off.
+  int64_t sink_frames = 0;
+  SinkPosition sink_position = SinkPosition::kWindowEdge;
+  int steps = 4;           // hops per latent frame, the first `steps` of the 4 student times
+  bool bf16_times = true;  // the released streaming code's bf16 time rounding (self_forcing.md §3.1)
   ActionAlignment action_alignment = ActionAlignment::kTraining;
   nlohmann::json to_json() const;
   // Missing fields keep the defaults; a bad value throws dojo::Error naming `where` and the field.
@@ -144,6 +156,8 @@ class StreamingEngine {
   models::DitInputs inputs(const torch::Tensor& actions) const;
   // Keeps RoPE positions inside the network's table for any horizon (see step()).
   void rebase_positions();
+  // Window-edge sink: moves the sink's keys to the window's oldest positions for the next frame.
+  void move_sink();
 
   models::ActionDit net_;
   models::WanVae tokenizer_;
@@ -157,6 +171,7 @@ class StreamingEngine {
   std::vector<int64_t> latent_shape_;  // [B, 16, 1, h, w] of the stream
   int64_t frames_ = 0;
   int64_t position_base_ = 0;  // frame index that sits at RoPE position 0
+  int64_t sink_base_ = 0;      // frame index whose position the sink's first frame holds
   // Reference path: every clean latent and action chunk so far.
   std::vector<torch::Tensor> history_latents_, history_actions_;
   // Compatibility modes: the last chunks received (offline lag) and the last window latents (teleop).

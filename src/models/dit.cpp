@@ -85,14 +85,18 @@ torch::Tensor timestep_sinusoid(const torch::Tensor& t, int64_t dim) {
 }
 
 torch::Tensor dit_block_causal_mask(int64_t q_frames, int64_t tokens_per_frame, int64_t cached_frames,
-                                    int64_t window_frames) {
+                                    int64_t window_frames, int64_t sink_frames) {
   const auto q_frame =
       (torch::arange(q_frames, torch::kLong) + cached_frames).repeat_interleave(tokens_per_frame);
   const auto k_frame =
       torch::arange(cached_frames + q_frames, torch::kLong).repeat_interleave(tokens_per_frame);
   auto keep = k_frame.unsqueeze(0).le(q_frame.unsqueeze(1));  // [Lq, Lk]
-  if (window_frames > 0)
-    keep = keep.logical_and(k_frame.unsqueeze(0).gt(q_frame.unsqueeze(1) - window_frames));
+  if (window_frames > 0) {
+    // A sink takes the oldest places of the window: the last window - sink frames, then the sink.
+    auto in_view = k_frame.unsqueeze(0).gt(q_frame.unsqueeze(1) - (window_frames - sink_frames));
+    if (sink_frames > 0) in_view = in_view.logical_or(k_frame.lt(sink_frames).unsqueeze(0));
+    keep = keep.logical_and(in_view);
+  }
   return keep;
 }
 
@@ -115,12 +119,15 @@ void DitKvCache::append(const torch::Tensor& k_new, const torch::Tensor& v_new) 
   }
 }
 
-void DitKvCache::keep_last(int64_t tokens_to_keep) {
+void DitKvCache::keep_last(int64_t tokens_to_keep, int64_t leading) {
   DOJO_CHECK(!ring(), "DitKvCache: keep_last() is for the growing layout (a ring keeps its window)");
-  if (tokens() <= tokens_to_keep) return;
-  if (tokens_to_keep <= 0) return clear();
-  k = k.slice(2, tokens() - tokens_to_keep).contiguous();
-  v = v.slice(2, v.size(2) - tokens_to_keep).contiguous();
+  if (tokens() <= leading + tokens_to_keep) return;
+  if (leading + tokens_to_keep <= 0) return clear();
+  const auto kept = [&](const torch::Tensor& x) {  // [B, h, L, d] -> [B, h, leading + kept, d]
+    return torch::cat({x.narrow(2, 0, leading), x.narrow(2, x.size(2) - tokens_to_keep, tokens_to_keep)}, 2);
+  };
+  k = kept(k);
+  v = kept(v);
 }
 
 void DitKvCache::clear() {
@@ -128,18 +135,22 @@ void DitKvCache::clear() {
   if (!ring()) k = v = torch::Tensor();  // a ring keeps its buffer: reset is allocation-free
 }
 
-void DitKvCache::rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin) {
+void DitKvCache::rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin, int64_t leading) {
   if (!k.defined()) return;
   torch::NoGradGuard no_grad;
-  k.copy_(apply_rope(k, cos, sin));  // [B, h, L, d]; in place keeps a ring's buffer
+  const int64_t n =
+      leading < 0 ? k.size(2) : std::min(leading, ring() ? committed_ * ring_tokens_ : k.size(2));
+  auto keys = k.narrow(2, 0, n);           // [B, h, n, d]
+  keys.copy_(apply_rope(keys, cos, sin));  // in place keeps a ring's buffer
 }
 
-void DitKvCache::set_ring(int64_t window_frames, int64_t tokens_per_frame) {
-  DOJO_CHECK(window_frames >= 0 && tokens_per_frame > 0,
-             "DitKvCache: ring needs a window >= 0 and tokens > 0");
+void DitKvCache::set_ring(int64_t window_frames, int64_t tokens_per_frame, int64_t sink_frames) {
+  DOJO_CHECK(window_frames >= 0 && tokens_per_frame > 0 && sink_frames >= 0 && sink_frames <= window_frames,
+             "DitKvCache: ring needs a window >= 0, tokens > 0 and 0 <= sink <= window");
   k = v = torch::Tensor();
   ring_frames_ = window_frames;
   ring_tokens_ = tokens_per_frame;
+  sink_frames_ = sink_frames;
   committed_ = 0;
 }
 
@@ -162,9 +173,11 @@ std::pair<torch::Tensor, torch::Tensor> DitKvCache::attend(const torch::Tensor& 
     v = torch::empty(shape, v_new.options());
     committed_ = 0;  // a new batch or dtype: nothing cached is valid
   }
-  // The slot after the newest committed frame: empty while filling, then the oldest one, which
-  // falls out of the window now.
-  const int64_t slot = committed_ % slots;
+  // The slot after the newest committed frame: empty while filling, then the oldest one after the
+  // sink, which falls out of the window now.
+  const int64_t slot = committed_ < sink_frames_
+                           ? committed_
+                           : sink_frames_ + (committed_ - sink_frames_) % (slots - sink_frames_);
   DOJO_CHECK(!(torch::GradMode::is_enabled() && k_new.requires_grad()),
              "DitKvCache: the ring layout is for inference; train through the growing layout");
   torch::NoGradGuard no_grad;  // entries are stored detached, as in the growing layout
@@ -173,6 +186,16 @@ std::pair<torch::Tensor, torch::Tensor> DitKvCache::attend(const torch::Tensor& 
   const int64_t used = std::min(committed_ + 1, slots) * ring_tokens_;
   if (store) ++committed_;
   return {k.narrow(2, 0, used), v.narrow(2, 0, used)};
+}
+
+std::pair<torch::Tensor, torch::Tensor> temporal_rope_shift(const ActionDitImpl& net, int64_t frames) {
+  const auto& c = net.config;
+  const auto angles =
+      rope_angles_3d(net.pos_embedder->dim_spatial_range, net.pos_embedder->dim_temporal_range, 1, 1, 1,
+                     frames, c.rope_h_extrapolation_ratio, c.rope_w_extrapolation_ratio,
+                     c.rope_t_extrapolation_ratio)
+          .flatten();  // [head_dim]: temporal angles of `frames`, spatial 0
+  return {angles.cos(), angles.sin()};
 }
 
 DitRmsNormImpl::DitRmsNormImpl(int64_t dim, double eps_) : eps(eps_) {

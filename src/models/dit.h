@@ -146,6 +146,10 @@ torch::Tensor rope_angles_3d(int64_t head_dim, int64_t frames, int64_t height, i
 // Non-interleaved rotate-half rotation: x·cos + cat(-x2, x1)·sin, x [..., L, heads, d] with
 // cos/sin [L, 1, d] (or anything broadcastable); computed in float32, returned in x's dtype.
 torch::Tensor apply_rope(const torch::Tensor& x, const torch::Tensor& cos, const torch::Tensor& sin);
+class ActionDitImpl;
+// Cos and sin [head_dim] of a shift by `frames` in time (spatial angles 0) under net's RoPE: what
+// DitKvCache::rotate_keys takes to move cached keys to other frame positions.
+std::pair<torch::Tensor, torch::Tensor> temporal_rope_shift(const ActionDitImpl& net, int64_t frames);
 // angles: [L, 1, 1, d] as from rope_angles_3d; x: [B, L, heads, d].
 torch::Tensor apply_rope(const torch::Tensor& x, const torch::Tensor& angles);
 
@@ -155,9 +159,11 @@ torch::Tensor timestep_sinusoid(const torch::Tensor& t, int64_t dim);
 
 // Keep-mask [Lq, (cached_frames + q_frames) · tokens_per_frame] for block-causal attention over
 // latent frames: query frame i (absolute cached_frames + i) sees key frames j <= i, and with
-// window_frames > 0 only the last window_frames of them (including its own).
+// window_frames > 0 only the last window_frames of them (including its own). With sink_frames
+// (< window_frames) key frames j < sink_frames stay in view of every later query in place of the
+// window's oldest ones: the sink and the last window_frames - sink_frames (an attention sink).
 torch::Tensor dit_block_causal_mask(int64_t q_frames, int64_t tokens_per_frame, int64_t cached_frames = 0,
-                                    int64_t window_frames = 0);
+                                    int64_t window_frames = 0, int64_t sink_frames = 0);
 
 // --- modules (names as released) ---------------------------------------------------------------
 
@@ -171,19 +177,25 @@ torch::Tensor dit_block_causal_mask(int64_t q_frames, int64_t tokens_per_frame, 
 //                      oldest frame, every slot in use is attended (attention does not depend on
 //                      key order, and RoPE is already in the keys), and commit advances the ring.
 //                      No allocation after the first call; memory is flat for any horizon.
+//                      An attention sink keeps the first sink_frames committed frames in their
+//                      slots for good; the ring turns over the slots after them.
 struct DitKvCache {
   torch::Tensor k, v;
   int64_t tokens() const;  // tokens that a call attends besides its own
   void append(const torch::Tensor& k_new, const torch::Tensor& v_new);
-  void keep_last(int64_t tokens);  // growing layout: drop the oldest entries
+  // Growing layout: drop the oldest entries but the first `leading` tokens (an attention sink).
+  void keep_last(int64_t tokens, int64_t leading = 0);
   void clear();
-  // Switches to the ring layout holding window_frames committed frames of tokens_per_frame each.
-  void set_ring(int64_t window_frames, int64_t tokens_per_frame);
+  // Switches to the ring layout holding window_frames committed frames of tokens_per_frame each,
+  // the first sink_frames of which (<= window_frames) are never overwritten.
+  void set_ring(int64_t window_frames, int64_t tokens_per_frame, int64_t sink_frames = 0);
   bool ring() const { return ring_tokens_ > 0; }
   int64_t committed_frames() const { return committed_; }
-  // Rotates every cached key by the angles whose cos/sin are given ([head_dim], broadcast over
+  // Rotates the cached keys by the angles whose cos/sin are given ([head_dim], broadcast over
   // tokens): with temporal-only angles this moves the keys to other absolute frame positions.
-  void rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin);
+  // leading >= 0: only the first `leading` tokens (an attention sink's, which sit first in both
+  // layouts).
+  void rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin, int64_t leading = -1);
   // Keys and values to attend for this call's k_new, v_new ([B, h, L, d]); with store, this
   // call's entries stay in the cache for later calls.
   std::pair<torch::Tensor, torch::Tensor> attend(const torch::Tensor& k_new, const torch::Tensor& v_new,
@@ -191,6 +203,7 @@ struct DitKvCache {
 
  private:
   int64_t ring_frames_ = 0, ring_tokens_ = 0;  // ring: committed window, tokens per frame
+  int64_t sink_frames_ = 0;                    // ring: leading frames kept for good
   int64_t committed_ = 0;                      // ring: frames committed so far
 };
 

@@ -155,10 +155,17 @@ namespace {
 
 // The student settings recorded in `source` (a checkpoint being resumed, or the warmed-up student
 // Self-Forcing starts from) win over the command line's: the network was trained with them. Said
-// once when they differ, so a --window that does nothing does not pass unnoticed.
+// once when they differ, so a --window that does nothing does not pass unnoticed. Starting
+// Self-Forcing from a warm-up (sink_from_asked) takes the attention sink from the command line: the
+// warm-up trains without one (its 4-latent clips stay inside any window of 3 frames or more).
 infer::StudentConfig resumed_student_settings(const nlohmann::json& saved, const infer::StudentConfig& asked,
-                                              const std::filesystem::path& source) {
+                                              const std::filesystem::path& source,
+                                              bool sink_from_asked = false) {
   auto settings = infer::StudentConfig::from_json(saved, source.string() + "/config.json");
+  if (sink_from_asked) {
+    settings.sink_frames = asked.sink_frames;
+    settings.sink_position = asked.sink_position;
+  }
   if (settings.to_json() != asked.to_json())
     LOG_WARN("distill: ", source.string(), " was trained with student settings ", settings.to_json().dump(),
              "; they are kept (the command line asked for ", asked.to_json().dump(), ")");
@@ -335,7 +342,8 @@ DistillResult run_self_forcing(const DistillJob& job) {
   const auto student_config_json = Checkpoint::open(resolve_checkpoint_dir(student_source)).config();
   const auto student =
       student_config_json.contains("student")
-          ? resumed_student_settings(student_config_json["student"], job.student, student_source)
+          ? resumed_student_settings(student_config_json["student"], job.student, student_source,
+                                     /*sink_from_asked=*/!resuming)
           : job.student;
   auto teacher = models::load_world_model(job.teacher);
   for (auto& p : teacher->parameters()) p.set_requires_grad(false);

@@ -42,6 +42,7 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto config = nlohmann::json::parse(test::read_file(out / "checkpoint" / "config.json"));
   EXPECT_EQ(config.at("student").at("window_frames"), 12);  // the paper's, by default
+  EXPECT_EQ(config.at("student").at("sink_frames"), 1);     // the first frame kept in view
   EXPECT_TRUE(config.at("actions").contains("dojosim_robot")) << "the teacher's action ranges travel on";
   EXPECT_TRUE(std::filesystem::exists(out / "trajectories" / "shard-00000.safetensors"));
 
@@ -95,6 +96,13 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("\"frames\": 16"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("released_teleop"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("\"sink_frames\": 0"), std::string::npos) << "released modes stream without a sink";
+  r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
+                     " --data " + data +
+                     " --split all --frames 16 --no-decode --window 3 --action-alignment released_teleop "
+                     "--sink-frames 1");
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("attention sink needs the training action alignment"), std::string::npos) << r.output;
 
   write_lines(actions, {rows(4, 384, 0.0), "[[1, 2], [3]]"});
   r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
@@ -103,9 +111,14 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_NE(r.output.find("actions.jsonl line 2"), std::string::npos) << r.output;
 
   r = test::run_dojo("--threads 1 eval --student -c " + (out / "checkpoint").string() + " --tokenizer " +
-                     tok + " --data " + data + " --split all -n 1 --chunks 1 --json");
+                     tok + " --data " + data + " --split all -n 1 --chunks 1 --json --sink-position absolute");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("\"student\""), std::string::npos);
+  EXPECT_NE(r.output.find("\"sink_position\": \"absolute\""), std::string::npos) << r.output;
+  r = test::run_dojo("--threads 1 eval -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
+                     " --data " + data + " --split all -n 1 --chunks 1 --sink-frames 1");
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("add --student"), std::string::npos) << r.output;
 }
 
 }  // namespace

@@ -56,6 +56,22 @@ TEST(Streaming, CachedEqualsBlockCausalRecomputation) {
   std::printf("cached vs recomputed, 7 frames, window 2: max abs %.2g\n", worst);
   EXPECT_EQ(cached.latent_frames(), 8);
 
+  // With an attention sink at its own position, frame 0 stays in the mask of every frame.
+  o.student.sink_frames = 1;
+  o.student.sink_position = SinkPosition::kAbsolute;
+  auto sink_reference = engine(o);
+  o.use_cache = true;
+  auto sink_cached = engine(o);
+  const auto sa = run(sink_cached, first, actions, 5);
+  const auto sb = run(sink_reference, first, actions, 5);
+  double sink_worst = 0;
+  for (size_t i = 0; i < sa.size(); ++i)
+    sink_worst = std::max(sink_worst, (sa[i] - sb[i]).abs().max().item<double>());
+  EXPECT_LT(sink_worst, 1e-4);
+  EXPECT_LT((sa[1] - a[1]).abs().max().item<double>(), 1e-5) << "frame 0 still in the window";
+  EXPECT_GT((sa[4] - a[4]).abs().max().item<double>(), 1e-3) << "frame 0 kept past the window";
+  o.student.sink_frames = 0;
+
   // The window matters (so the comparison above can fail): a longer window changes frame 4 on.
   o.use_cache = true;
   o.student.window_frames = 6;
@@ -131,6 +147,55 @@ TEST(Streaming, AnyHorizonRebasesRopePositions) {
   }
   o.student.window_frames = 5;  // no room left in a table of 6
   EXPECT_THROW(make(6), Error);
+}
+
+// A sink at the window's edge takes the positions of the frames it replaces: the same frames as a
+// sink at its own position while frame 0 is still in the window, others after; RoPE rebasing and
+// memory as without a sink.
+TEST(Streaming, WindowEdgeSinkMovesWithTheWindow) {
+  test::OneThread one;
+  StreamingEngine::Options o;
+  o.decode = false;
+  o.student.window_frames = 2;
+  o.student.sink_frames = 1;
+  auto config = train::test_fixtures::tiny_dit(/*live_actions=*/true, /*width=*/64);
+  config.max_img_h = config.max_img_w = 8;
+  const auto make = [&](int64_t max_frames, SinkPosition position) {
+    config.max_frames = max_frames;
+    o.student.sink_position = position;
+    torch::manual_seed(0);
+    return StreamingEngine(models::ActionDit(config), models::WanVae(models::WanVaeConfig::tiny()), o);
+  };
+  const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
+  const auto actions = actions_for(14, 1, 6);
+  auto edge = make(64, SinkPosition::kWindowEdge), absolute = make(64, SinkPosition::kAbsolute);
+  const auto a = run(edge, first, actions, 2);
+  const auto b = run(absolute, first, actions, 2);
+  EXPECT_LT((a[1] - b[1]).abs().max().item<double>(), 1e-5) << "frame 2 sees frame 0 where it is";
+  EXPECT_GT((a[2] - b[2]).abs().max().item<double>(), 1e-3) << "frame 3 sees it one frame later";
+
+  auto edge_short = make(6, SinkPosition::kWindowEdge);  // rebased every few frames
+  const auto c = run(edge_short, first, actions, 2);
+  double worst = 0;
+  for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, (a[i] - c[i]).abs().max().item<double>());
+  EXPECT_LT(worst, 1e-4);
+  std::printf("window-edge sink, RoPE table 6 vs 64, 14 frames: max abs %.2g\n", worst);
+
+  o.student.sink_frames = 0;
+  auto plain = make(64, SinkPosition::kWindowEdge);
+  run(plain, first, actions, 2);
+  EXPECT_EQ(edge.cache_bytes(), plain.cache_bytes()) << "the sink takes a window slot";
+
+  auto student = edge.options().student;
+  student.sink_frames = 3;  // more than the window
+  EXPECT_THROW(edge.set_student(student), Error);
+  student.sink_frames = 1;
+  student.action_alignment = ActionAlignment::kReleasedOffline;
+  EXPECT_THROW(edge.set_student(student), Error);
+  o.use_cache = false;
+  o.student.sink_frames = 1;
+  EXPECT_THROW(make(64, SinkPosition::kWindowEdge), Error) << "needs the cache";
+  EXPECT_NO_THROW(make(64, SinkPosition::kAbsolute));
 }
 
 TEST(Streaming, DecodesWithTheFastDecoderWhenGiven) {
@@ -243,6 +308,12 @@ TEST(StudentConfig, BadFieldsNameTheFile) {
   EXPECT_EQ(c.action_alignment, ActionAlignment::kReleasedOffline);
   EXPECT_EQ(c.schedule().size(), 2u);
   EXPECT_EQ(StudentConfig::from_json(c.to_json(), "x").to_json(), c.to_json());
+  EXPECT_THROW(StudentConfig::from_json({{"sink_position", "first"}}, "x"), Error);
+  EXPECT_THROW(StudentConfig::from_json({{"sink_frames", -1}}, "x"), Error);
+  const auto sink = StudentConfig::from_json({{"sink_frames", 1}, {"sink_position", "absolute"}}, "x");
+  EXPECT_EQ(sink.sink_position, SinkPosition::kAbsolute);
+  EXPECT_EQ(StudentConfig::from_json(sink.to_json(), "x").to_json(), sink.to_json());
+  EXPECT_EQ(StudentConfig::from_json(nlohmann::json::object(), "x").sink_frames, 0) << "released: no sink";
 }
 
 }  // namespace

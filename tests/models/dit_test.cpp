@@ -524,6 +524,81 @@ TEST(DitSmall, BlockCausalMaskEqualsKvCacheStreaming) {
   EXPECT_LT(max_abs(torch::cat(frames, 2), v_win), 1e-5);
 }
 
+// An attention sink in the ring: frame 0 stays in view of every later frame while the window
+// rolls over the others (the block-causal mask with a sink), and rotating the sink's keys in time
+// equals storing frame 0 at the new position.
+TEST(DitSmall, RingSinkKeepsTheFirstFrameAndMovesByRotation) {
+  test::OneThread one_thread;
+  const auto c = DitConfig::small();
+  ActionDit net(c);
+  default_init_with_actions(*net, 23);
+  net->eval();
+  torch::NoGradGuard no_grad;
+  const int64_t B = 1, T = 6, H = 8, W = 8, S = (H / 2) * (W / 2), k = c.actions_per_latent_frame;
+  const auto in = random_inputs(c, B, T, H, W, 24);
+  const auto stream = [&](std::vector<DitKvCache>& cache, int64_t window, int64_t sink) {
+    for (auto& e : cache) e.set_ring(window, S, sink);
+    std::vector<torch::Tensor> frames;
+    for (int64_t t = 0; t < T; ++t) {
+      DitInputs step;
+      step.x = in.x.slice(2, t, t + 1);
+      step.timesteps = in.timesteps.slice(1, t, t + 1);
+      step.condition_mask = in.condition_mask.slice(2, t, t + 1);
+      step.context = in.context;
+      step.frame_offset = t;
+      step.actions = t == 0 ? torch::Tensor() : in.actions.slice(1, (t - 1) * k, t * k);
+      step.kv_cache = &cache;
+      frames.push_back(net->forward(step));
+    }
+    return torch::cat(frames, 2);  // [B, 16, T, H, W]
+  };
+  std::vector<DitKvCache> cache(c.num_blocks);
+  const auto with_sink = stream(cache, /*window=*/2, /*sink=*/1);
+  DitInputs masked = in;
+  masked.self_attn_mask = dit_block_causal_mask(T, S, 0, /*window_frames=*/3, /*sink_frames=*/1);
+  EXPECT_LT(max_abs(with_sink, net->forward(masked)), 1e-5);
+  const auto without = stream(cache, 2, 0);  // frame 0 leaves the window at frame 3
+  EXPECT_LT(max_abs(with_sink.narrow(2, 0, 3), without.narrow(2, 0, 3)), 1e-6);
+  EXPECT_GT(max_abs(with_sink.narrow(2, 3, 3), without.narrow(2, 3, 3)), 1e-3);
+
+  const auto store_first = [&](std::vector<DitKvCache>& into, int64_t position) {
+    for (auto& e : into) e.set_ring(2, S, 1);
+    DitInputs first;
+    first.x = in.x.slice(2, 0, 1);
+    first.timesteps = in.timesteps.slice(1, 0, 1);
+    first.condition_mask = in.condition_mask.slice(2, 0, 1);
+    first.context = in.context;
+    first.frame_offset = position;  // no actions: the first frame's pass wherever it sits
+    first.kv_cache = &into;
+    net->forward(first);
+  };
+  std::vector<DitKvCache> moved(c.num_blocks), stored(c.num_blocks);
+  store_first(moved, 0);
+  store_first(stored, 3);
+  const auto [cos, sin] = temporal_rope_shift(*net, 3);  // 3 frames later
+  double worst = 0, moved_by = 0;
+  for (int64_t b = 0; b < c.num_blocks; ++b) {
+    const auto before = moved[b].k.narrow(2, 0, S).clone();
+    moved[b].rotate_keys(cos, sin, /*leading=*/S);
+    worst = std::max(worst, max_abs(moved[b].k.narrow(2, 0, S), stored[b].k.narrow(2, 0, S)));
+    moved_by = std::max(moved_by, max_abs(before, stored[b].k.narrow(2, 0, S)));
+    worst = std::max(worst, max_abs(moved[b].v.narrow(2, 0, S), stored[b].v.narrow(2, 0, S)));
+  }
+  EXPECT_LT(worst, 1e-5);
+  EXPECT_GT(moved_by, 1e-2) << "the position is in the keys";
+}
+
+TEST(DitKvCache, SinkTokensSurviveTrimmingAndRotateAlone) {
+  DitKvCache c;
+  const auto entries = torch::arange(1.0, 7.0).view({1, 1, 6, 1}).repeat({1, 1, 1, 2});  // [1, 1, 6, 2]
+  c.append(entries, entries * 10);
+  c.keep_last(/*tokens=*/2, /*leading=*/1);
+  EXPECT_TRUE(c.k.select(3, 0).flatten().equal(torch::tensor({1.0f, 5.0f, 6.0f})));
+  EXPECT_TRUE(c.v.select(3, 0).flatten().equal(torch::tensor({10.0f, 50.0f, 60.0f})));
+  c.rotate_keys(-torch::ones({2}), torch::zeros({2}), /*leading=*/1);  // a half turn of the first
+  EXPECT_TRUE(c.k.select(3, 0).flatten().equal(torch::tensor({-1.0f, 5.0f, 6.0f})));
+}
+
 TEST(DitSmall, BlockCausalMaskLayout) {
   const auto m = dit_block_causal_mask(2, 2, /*cached_frames=*/1);  // [4, 6]
   const auto expect =
@@ -532,6 +607,9 @@ TEST(DitSmall, BlockCausalMaskLayout) {
   EXPECT_TRUE(torch::equal(m, expect));
   const auto w = dit_block_causal_mask(3, 1, 0, 2);
   EXPECT_TRUE(torch::equal(w, torch::tensor({{1, 0, 0}, {1, 1, 0}, {0, 1, 1}}).to(torch::kBool)));
+  const auto sink = dit_block_causal_mask(4, 1, 0, 3, /*sink_frames=*/1);
+  EXPECT_TRUE(torch::equal(
+      sink, torch::tensor({{1, 0, 0, 0}, {1, 1, 0, 0}, {1, 1, 1, 0}, {1, 0, 1, 1}}).to(torch::kBool)));
 }
 
 TEST(DitSmall, InitZeroActionFc2AndReinit) {

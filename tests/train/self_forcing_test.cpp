@@ -13,34 +13,49 @@ namespace {
 using test_fixtures::gen;
 
 // The rollout distillation trains on is the one the streaming engine runs: same noise, same
-// latents (the growing cache trimmed to the window against the engine's ring).
+// latents (the growing cache trimmed to the window against the engine's ring), with and without
+// an attention sink.
 TEST(SelfForcing, TrainingRolloutEqualsTheStreamingEngine) {
   test::OneThread one;
   torch::manual_seed(0);
   models::ActionDit net(test_fixtures::tiny_dit(/*live_actions=*/true));
   models::WanVae vae(models::WanVaeConfig::tiny());
-  infer::StreamingEngine::Options o;
-  o.decode = false;
-  o.student.window_frames = 2;
-  infer::StreamingEngine engine(net, vae, o);
   const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
   const auto actions = torch::rand({1, 24, 384}, gen(1)) * 2 - 1;  // 6 steps
-  engine.reset(first, 11);
-  std::vector<torch::Tensor> streamed;
-  for (int64_t s = 0; s < 6; ++s) streamed.push_back(engine.step(actions.narrow(1, 4 * s, 4)));
+  std::vector<torch::Tensor> rollouts;
+  for (const auto& [sink, position] :
+       std::vector<std::pair<int64_t, infer::SinkPosition>>{{0, infer::SinkPosition::kWindowEdge},
+                                                            {1, infer::SinkPosition::kWindowEdge},
+                                                            {1, infer::SinkPosition::kAbsolute}}) {
+    infer::StreamingEngine::Options o;
+    o.decode = false;
+    o.student.window_frames = 2;
+    o.student.sink_frames = sink;
+    o.student.sink_position = position;
+    infer::StreamingEngine engine(net, vae, o);
+    engine.reset(first, 11);
+    std::vector<torch::Tensor> streamed;
+    for (int64_t s = 0; s < 6; ++s) streamed.push_back(engine.step(actions.narrow(1, 4 * s, 4)));
 
-  torch::NoGradGuard no_grad;
-  const auto z0 =
-      engine.tokenizer()->encode_latents(models::video_to_model(first.unsqueeze(1)));  // [1, 16, 1, 4, 4]
-  auto g = gen(11);  // the engine's draws: one ε per new frame, in order
-  std::vector<torch::Tensor> noise = {torch::zeros_like(z0)};
-  for (int64_t s = 0; s < 6; ++s) noise.push_back(torch::randn(z0.sizes(), g));
-  const auto rolled = student_rollout(*net, o.student, z0, actions, torch::cat(noise, 2), 3, 7);
-  ASSERT_EQ(rolled.size(2), 7);
-  EXPECT_LT((rolled.narrow(2, 1, 6) - torch::cat(streamed, 2)).abs().max().item<double>(), 1e-4);
-  // An earlier exit is a different (noisier) sample.
-  const auto early = student_rollout(*net, o.student, z0, actions, torch::cat(noise, 2), 0, 7);
-  EXPECT_GT((early - rolled).abs().max().item<double>(), 1e-3);
+    torch::NoGradGuard no_grad;
+    const auto z0 =
+        engine.tokenizer()->encode_latents(models::video_to_model(first.unsqueeze(1)));  // [1, 16, 1, 4, 4]
+    auto g = gen(11);  // the engine's draws: one ε per new frame, in order
+    std::vector<torch::Tensor> noise = {torch::zeros_like(z0)};
+    for (int64_t s = 0; s < 6; ++s) noise.push_back(torch::randn(z0.sizes(), g));
+    const auto rolled = student_rollout(*net, o.student, z0, actions, torch::cat(noise, 2), 3, 7);
+    ASSERT_EQ(rolled.size(2), 7);
+    EXPECT_LT((rolled.narrow(2, 1, 6) - torch::cat(streamed, 2)).abs().max().item<double>(), 1e-4)
+        << "sink " << sink << " " << infer::to_string(position);
+    rollouts.push_back(rolled);
+    if (sink > 0) continue;
+    // An earlier exit is a different (noisier) sample.
+    const auto early = student_rollout(*net, o.student, z0, actions, torch::cat(noise, 2), 0, 7);
+    EXPECT_GT((early - rolled).abs().max().item<double>(), 1e-3);
+  }
+  // The three differ once frame 0 leaves the window (frame 3 on), so each comparison can fail.
+  EXPECT_GT((rollouts[0] - rollouts[1]).narrow(2, 3, 4).abs().max().item<double>(), 1e-3);
+  EXPECT_GT((rollouts[1] - rollouts[2]).narrow(2, 3, 4).abs().max().item<double>(), 1e-3);
 }
 
 // With the critic equal to the teacher the scores agree: no generator gradient. A critic trained
