@@ -22,7 +22,7 @@ namespace {
 struct DistillArgs {
   std::string stage = "warmup", init, teacher, tokenizer, split = "train", out;
   std::vector<std::string> data;
-  int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 12, sink = 1;
+  int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 12, sink = -1;
   std::string sink_position = "window_edge";
   int batch = 8, student_steps = 4, teacher_steps = 35;
   double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1;
@@ -50,11 +50,9 @@ int run_distill(DistillArgs a) {
   job.teacher = a.teacher;
   job.out = a.out;
   job.student.window_frames = a.window;
-  job.student.sink_frames = a.sink;
+  job.student.sink_frames = a.sink >= 0 ? a.sink : std::min<int64_t>(1, a.window);
   job.student.sink_position =
       a.sink_position == "absolute" ? infer::SinkPosition::kAbsolute : infer::SinkPosition::kWindowEdge;
-  DOJO_CHECK(a.sink <= a.window, "--sink-frames (" + std::to_string(a.sink) + ") must not exceed --window (" +
-                                     std::to_string(a.window) + ")");
   job.student.steps = a.student_steps;
   job.student.bf16_times = !a.fp32_times;
   job.student.schedule();  // validates the steps before any work
@@ -121,9 +119,8 @@ void register_distill(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--sink-frames", a->sink,
                   "Latent frames from the start (the real first frame first) the student keeps in its "
-                  "window for good, an attention sink; 0: none, as released")
-      ->check(CLI::NonNegativeNumber)
-      ->capture_default_str();
+                  "window for good, an attention sink; 0: none, as released (default: 1, 0 with --window 0)")
+      ->check(CLI::NonNegativeNumber);
   cmd->add_option("--sink-position", a->sink_position,
                   "Where the sink sits in time: window_edge (the window's oldest slots) or absolute")
       ->check(CLI::IsMember({"window_edge", "absolute"}))

@@ -173,10 +173,8 @@ int run_eval(EvalArgs a) {
     so.device = device;
     so.precision = parse_precision(a.precision);
     if (!a.fast_decoder.empty()) so.fast_decoder = models::load_fast_decoder(a.fast_decoder);
-    student.emplace(infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, so));
-    auto settings = student->options().student;
-    a.sink.apply(settings);
-    student->set_student(settings);
+    student.emplace(infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, so,
+                                                 [&](infer::StudentConfig& s) { a.sink.apply(s); }));
     o.student = &*student;
   }
   std::optional<models::KeypointProbe> probe;

@@ -120,18 +120,22 @@ int run_stream(StreamArgs a) {
   o.device = parse_device(a.device);
   o.precision = parse_precision(a.precision);
   if (!a.fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(a.fast_decoder);
-  auto engine = infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, o);
-  auto student = engine.options().student;
-  if (a.window >= 0) student.window_frames = a.window;
-  a.sink.apply(student);
-  if (a.student_steps > 0) student.steps = a.student_steps;
-  if (!a.alignment.empty()) {
-    student.action_alignment = infer::parse_action_alignment(a.alignment, "--action-alignment");
-    // The released scripts' alignments come without a sink; one asked for as well is refused below.
-    if (student.action_alignment != infer::ActionAlignment::kTraining && a.sink.frames < 0)
-      student.sink_frames = 0;
-  }
-  engine.set_student(student);
+  auto engine = infer::StreamingEngine::load(
+      a.model.checkpoint, a.model.tokenizer, o, [&](infer::StudentConfig& student) {
+        if (a.window >= 0) {
+          student.window_frames = a.window;
+          if (a.sink.frames < 0) student.sink_frames = std::min<int64_t>(student.sink_frames, a.window);
+        }
+        if (a.student_steps > 0) student.steps = a.student_steps;
+        if (!a.alignment.empty()) {
+          student.action_alignment = infer::parse_action_alignment(a.alignment, "--action-alignment");
+          // The released scripts' alignments come without a sink; one asked for as well is refused.
+          if (student.action_alignment != infer::ActionAlignment::kTraining && a.sink.frames < 0)
+            student.sink_frames = 0;
+        }
+        a.sink.apply(student);
+      });
+  const auto student = engine.options().student;
 
   // The start frame and, without --actions, the recorded actions (looped past their end).
   torch::Tensor first, recorded;

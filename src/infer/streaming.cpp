@@ -140,7 +140,8 @@ StreamingEngine::StreamingEngine(models::ActionDit student, models::WanVae token
 }
 
 StreamingEngine StreamingEngine::load(const std::filesystem::path& checkpoint,
-                                      const std::filesystem::path& tokenizer, Options options) {
+                                      const std::filesystem::path& tokenizer, Options options,
+                                      const std::function<void(StudentConfig&)>& adjust) {
   const auto dir = resolve_checkpoint_dir(checkpoint);
   const auto config = Checkpoint::open(dir).config();
   if (config.contains("student"))
@@ -148,6 +149,7 @@ StreamingEngine StreamingEngine::load(const std::filesystem::path& checkpoint,
   else
     LOG_WARN(checkpoint.string(),
              " is not a distilled student: streaming it with the default student settings");
+  if (adjust) adjust(options.student);
   StreamingEngine engine(models::load_world_model(checkpoint), models::load_tokenizer(tokenizer), options);
   engine.action_ranges_ = config.value("actions", nlohmann::json::object());
   return engine;
@@ -172,7 +174,8 @@ void StreamingEngine::set_student(const StudentConfig& student) {
   // the window has a position per query frame, which only the cache can give.
   DOJO_CHECK(
       student.sink_frames == 0 || student.sink_position == SinkPosition::kAbsolute || options_.use_cache,
-      "streaming: a window_edge attention sink needs the KV cache on");
+      "streaming: a window_edge attention sink needs the KV cache on (without it: an absolute "
+      "sink, or none)");
   schedule_ = student.schedule();
   options_.student = student;
   frames_ = 0;  // the cache was built for the old window
@@ -212,7 +215,6 @@ torch::Tensor StreamingEngine::reset(const torch::Tensor& first, uint64_t seed) 
   window_latents_.clear();
   frames_ = 0;
   position_base_ = 0;
-  sink_base_ = 0;
   recache(z0, torch::Tensor());  // frame 0: clean, no action term
   decoder_ = std::make_unique<models::WanVaeStreamDecoder>(tokenizer_);
   fast_state_.clear();
@@ -235,18 +237,19 @@ void StreamingEngine::rebase_positions() {
 
 void StreamingEngine::move_sink() {
   // Frame n = frames_ attends to frames n - w .. n - 1. Once frame 0 would leave that window the
-  // sink takes the oldest positions instead: its keys hold RoPE only, and the frames' contents do
+  // sink takes the oldest positions instead. Its keys hold RoPE only, and its frames' contents do
   // not depend on where they sit in time (each attended only to the sink's own frames), so
-  // rotating them equals re-storing them there (tested).
+  // rotating the keys as stored (at positions 0 ..) equals re-storing them there (tested).
+  // An absolute sink stays at frame 0, but is placed the same way after a rebase (rotate_keys
+  // moved it with everything else) so that no position is ever rotated more than once.
   const auto& s = options_.student;
-  if (s.sink_frames == 0 || s.sink_position != SinkPosition::kWindowEdge) return;
-  const int64_t target = std::max<int64_t>(0, frames_ - s.window_frames);
-  if (target == sink_base_) return;
-  const auto [cos, sin] = models::temporal_rope_shift(*net_, target - sink_base_);
-  const int64_t tokens =
-      (latent_shape_[3] / net_->config.patch_spatial) * (latent_shape_[4] / net_->config.patch_spatial);
-  for (auto& c : cache_) c.rotate_keys(cos, sin, s.sink_frames * tokens);
-  sink_base_ = target;
+  if (s.sink_frames == 0) return;
+  const int64_t target = s.sink_position == SinkPosition::kWindowEdge
+                             ? std::max<int64_t>(0, frames_ - s.window_frames)
+                             : 0;                  // frame index whose position the sink takes
+  if (target == 0 && position_base_ == 0) return;  // where it was stored
+  const auto [cos, sin] = models::temporal_rope_shift(*net_, target - position_base_);
+  for (auto& c : cache_) c.place_sink(cos, sin);
 }
 
 torch::Tensor StreamingEngine::decode(const torch::Tensor& x0) {

@@ -108,9 +108,10 @@ class StreamingEngine {
 
   StreamingEngine(models::ActionDit student, models::WanVae tokenizer, Options options);
   // A student checkpoint (its config's "student" entry; a plain world-model checkpoint streams
-  // with the defaults, e.g. to time an undistilled network) and its tokenizer.
+  // with the defaults, e.g. to time an undistilled network) and its tokenizer. `adjust` edits the
+  // recorded settings before they are checked (command-line overrides).
   static StreamingEngine load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer,
-                              Options options);
+                              Options options, const std::function<void(StudentConfig&)>& adjust = {});
 
   // Replaces the student settings (window, hops, time rounding); takes effect at the next reset().
   void set_student(const StudentConfig& student);
@@ -171,7 +172,6 @@ class StreamingEngine {
   std::vector<int64_t> latent_shape_;  // [B, 16, 1, h, w] of the stream
   int64_t frames_ = 0;
   int64_t position_base_ = 0;  // frame index that sits at RoPE position 0
-  int64_t sink_base_ = 0;      // frame index whose position the sink's first frame holds
   // Reference path: every clean latent and action chunk so far.
   std::vector<torch::Tensor> history_latents_, history_actions_;
   // Compatibility modes: the last chunks received (offline lag) and the last window latents (teleop).

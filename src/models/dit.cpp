@@ -91,6 +91,9 @@ torch::Tensor dit_block_causal_mask(int64_t q_frames, int64_t tokens_per_frame, 
   const auto k_frame =
       torch::arange(cached_frames + q_frames, torch::kLong).repeat_interleave(tokens_per_frame);
   auto keep = k_frame.unsqueeze(0).le(q_frame.unsqueeze(1));  // [Lq, Lk]
+  DOJO_CHECK(sink_frames == 0 || sink_frames < window_frames,
+             "dit_block_causal_mask: a sink of " + std::to_string(sink_frames) +
+                 " frames must be smaller than the window (" + std::to_string(window_frames) + ")");
   if (window_frames > 0) {
     // A sink takes the oldest places of the window: the last window - sink frames, then the sink.
     auto in_view = k_frame.unsqueeze(0).gt(q_frame.unsqueeze(1) - (window_frames - sink_frames));
@@ -117,14 +120,28 @@ void DitKvCache::append(const torch::Tensor& k_new, const torch::Tensor& v_new) 
     k = torch::cat({k, k_new.detach()}, 2);
     v = torch::cat({v, v_new.detach()}, 2);
   }
+  keep_sink_keys();
 }
 
-void DitKvCache::keep_last(int64_t tokens_to_keep, int64_t leading) {
+void DitKvCache::keep_sink_keys() {
+  if (sink_tokens_ > 0 && !sink_keys_.defined() && tokens() >= sink_tokens_)
+    sink_keys_ = k.narrow(2, 0, sink_tokens_).clone();  // [B, h, sink_tokens, d]
+}
+
+void DitKvCache::set_sink(int64_t tokens_in_sink) {
+  DOJO_CHECK(!ring() && tokens_in_sink >= 0, "DitKvCache: set_sink() is for the growing layout");
+  sink_tokens_ = tokens_in_sink;
+  sink_keys_ = torch::Tensor();
+  keep_sink_keys();
+}
+
+void DitKvCache::keep_last(int64_t tokens_to_keep) {
   DOJO_CHECK(!ring(), "DitKvCache: keep_last() is for the growing layout (a ring keeps its window)");
-  if (tokens() <= leading + tokens_to_keep) return;
-  if (leading + tokens_to_keep <= 0) return clear();
-  const auto kept = [&](const torch::Tensor& x) {  // [B, h, L, d] -> [B, h, leading + kept, d]
-    return torch::cat({x.narrow(2, 0, leading), x.narrow(2, x.size(2) - tokens_to_keep, tokens_to_keep)}, 2);
+  const int64_t lead = std::min(sink_tokens_, tokens());
+  if (tokens() <= lead + tokens_to_keep) return;
+  if (lead + tokens_to_keep <= 0) return clear();
+  const auto kept = [&](const torch::Tensor& x) {  // [B, h, L, d] -> [B, h, lead + kept, d]
+    return torch::cat({x.narrow(2, 0, lead), x.narrow(2, x.size(2) - tokens_to_keep, tokens_to_keep)}, 2);
   };
   k = kept(k);
   v = kept(v);
@@ -132,16 +149,20 @@ void DitKvCache::keep_last(int64_t tokens_to_keep, int64_t leading) {
 
 void DitKvCache::clear() {
   committed_ = 0;
+  sink_keys_ = torch::Tensor();
   if (!ring()) k = v = torch::Tensor();  // a ring keeps its buffer: reset is allocation-free
 }
 
-void DitKvCache::rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin, int64_t leading) {
+void DitKvCache::rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin) {
   if (!k.defined()) return;
   torch::NoGradGuard no_grad;
-  const int64_t n =
-      leading < 0 ? k.size(2) : std::min(leading, ring() ? committed_ * ring_tokens_ : k.size(2));
-  auto keys = k.narrow(2, 0, n);           // [B, h, n, d]
-  keys.copy_(apply_rope(keys, cos, sin));  // in place keeps a ring's buffer
+  k.copy_(apply_rope(k, cos, sin));  // [B, h, L, d]; in place keeps a ring's buffer
+}
+
+void DitKvCache::place_sink(const torch::Tensor& cos, const torch::Tensor& sin) {
+  DOJO_CHECK(sink_keys_.defined(), "DitKvCache: place_sink() before the sink's frames were stored");
+  torch::NoGradGuard no_grad;
+  k.narrow(2, 0, sink_tokens_).copy_(apply_rope(sink_keys_, cos, sin));
 }
 
 void DitKvCache::set_ring(int64_t window_frames, int64_t tokens_per_frame, int64_t sink_frames) {
@@ -151,6 +172,8 @@ void DitKvCache::set_ring(int64_t window_frames, int64_t tokens_per_frame, int64
   ring_frames_ = window_frames;
   ring_tokens_ = tokens_per_frame;
   sink_frames_ = sink_frames;
+  sink_tokens_ = sink_frames * tokens_per_frame;
+  sink_keys_ = torch::Tensor();
   committed_ = 0;
 }
 
@@ -172,6 +195,7 @@ std::pair<torch::Tensor, torch::Tensor> DitKvCache::attend(const torch::Tensor& 
     k = torch::empty(shape, k_new.options());  // [B, h, slots · S, d]
     v = torch::empty(shape, v_new.options());
     committed_ = 0;  // a new batch or dtype: nothing cached is valid
+    sink_keys_ = torch::Tensor();
   }
   // The slot after the newest committed frame: empty while filling, then the oldest one after the
   // sink, which falls out of the window now.
@@ -184,7 +208,10 @@ std::pair<torch::Tensor, torch::Tensor> DitKvCache::attend(const torch::Tensor& 
   k.narrow(2, slot * ring_tokens_, ring_tokens_).copy_(k_new);
   v.narrow(2, slot * ring_tokens_, ring_tokens_).copy_(v_new);
   const int64_t used = std::min(committed_ + 1, slots) * ring_tokens_;
-  if (store) ++committed_;
+  if (store) {
+    ++committed_;
+    if (committed_ == sink_frames_) keep_sink_keys();
+  }
   return {k.narrow(2, 0, used), v.narrow(2, 0, used)};
 }
 

@@ -148,7 +148,7 @@ torch::Tensor rope_angles_3d(int64_t head_dim, int64_t frames, int64_t height, i
 torch::Tensor apply_rope(const torch::Tensor& x, const torch::Tensor& cos, const torch::Tensor& sin);
 class ActionDitImpl;
 // Cos and sin [head_dim] of a shift by `frames` in time (spatial angles 0) under net's RoPE: what
-// DitKvCache::rotate_keys takes to move cached keys to other frame positions.
+// DitKvCache::rotate_keys and place_sink take to move cached keys to other frame positions.
 std::pair<torch::Tensor, torch::Tensor> temporal_rope_shift(const ActionDitImpl& net, int64_t frames);
 // angles: [L, 1, 1, d] as from rope_angles_3d; x: [B, L, heads, d].
 torch::Tensor apply_rope(const torch::Tensor& x, const torch::Tensor& angles);
@@ -183,19 +183,23 @@ struct DitKvCache {
   torch::Tensor k, v;
   int64_t tokens() const;  // tokens that a call attends besides its own
   void append(const torch::Tensor& k_new, const torch::Tensor& v_new);
-  // Growing layout: drop the oldest entries but the first `leading` tokens (an attention sink).
-  void keep_last(int64_t tokens, int64_t leading = 0);
+  // Growing layout: drop the oldest entries, keeping the sink's tokens (set_sink) and the last `tokens`.
+  void keep_last(int64_t tokens);
   void clear();
   // Switches to the ring layout holding window_frames committed frames of tokens_per_frame each,
   // the first sink_frames of which (<= window_frames) are never overwritten.
   void set_ring(int64_t window_frames, int64_t tokens_per_frame, int64_t sink_frames = 0);
   bool ring() const { return ring_tokens_ > 0; }
   int64_t committed_frames() const { return committed_; }
-  // Rotates the cached keys by the angles whose cos/sin are given ([head_dim], broadcast over
+  // Growing layout: the first `tokens` entries form an attention sink (kept by keep_last).
+  void set_sink(int64_t tokens);
+  // Rotates every cached key by the angles whose cos/sin are given ([head_dim], broadcast over
   // tokens): with temporal-only angles this moves the keys to other absolute frame positions.
-  // leading >= 0: only the first `leading` tokens (an attention sink's, which sit first in both
-  // layouts).
-  void rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin, int64_t leading = -1);
+  void rotate_keys(const torch::Tensor& cos, const torch::Tensor& sin);
+  // Writes the sink's keys as first stored, rotated by cos/sin, into its slots: moves the sink in
+  // time from where it was stored. From the stored copy each time, so moving it every step does
+  // not pile up rounding in a bf16 cache.
+  void place_sink(const torch::Tensor& cos, const torch::Tensor& sin);
   // Keys and values to attend for this call's k_new, v_new ([B, h, L, d]); with store, this
   // call's entries stay in the cache for later calls.
   std::pair<torch::Tensor, torch::Tensor> attend(const torch::Tensor& k_new, const torch::Tensor& v_new,
@@ -204,6 +208,9 @@ struct DitKvCache {
  private:
   int64_t ring_frames_ = 0, ring_tokens_ = 0;  // ring: committed window, tokens per frame
   int64_t sink_frames_ = 0;                    // ring: leading frames kept for good
+  int64_t sink_tokens_ = 0;                    // both layouts: leading tokens kept for good
+  torch::Tensor sink_keys_;                    // the sink's keys as stored [B, h, sink_tokens, d]
+  void keep_sink_keys();                       // copies them once all are stored
   int64_t committed_ = 0;                      // ring: frames committed so far
 };
 

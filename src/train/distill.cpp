@@ -123,7 +123,7 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
 
 torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& points,
                           const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
-                          int64_t window_frames, torch::Generator generator) {
+                          int64_t window_frames, torch::Generator generator, int64_t sink_frames) {
   const int64_t B = points.size(0), P = points.size(1), T = points.size(3);
   DOJO_CHECK(static_cast<int64_t>(timesteps.size()) == P, "warmup: one timestep per trajectory point");
   auto index = torch::randint(P, {B, T}, generator, torch::kLong);  // the point of every frame
@@ -140,7 +140,7 @@ torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& p
   const int64_t tokens = (x.size(3) / c.patch_spatial) * (x.size(4) / c.patch_spatial);
   models::DitInputs base;
   base.actions = actions;
-  base.self_attn_mask = models::dit_block_causal_mask(T, tokens, 0, window_frames + 1);
+  base.self_attn_mask = models::dit_block_causal_mask(T, tokens, 0, window_frames + 1, sink_frames);
   const auto x0 = infer::student_x0_rf(student, base, x, sigma);  // [B, 16, T, h, w]
   return (x0 - target).narrow(2, 1, T - 1).pow(2).mean();
 }
@@ -157,7 +157,7 @@ namespace {
 // Self-Forcing starts from) win over the command line's: the network was trained with them. Said
 // once when they differ, so a --window that does nothing does not pass unnoticed. Starting
 // Self-Forcing from a warm-up (sink_from_asked) takes the attention sink from the command line: the
-// warm-up trains without one (its 4-latent clips stay inside any window of 3 frames or more).
+// warm-up's 4-latent clips stay inside any window of 3 frames or more, where a sink changes nothing.
 infer::StudentConfig resumed_student_settings(const nlohmann::json& saved, const infer::StudentConfig& asked,
                                               const std::filesystem::path& source,
                                               bool sink_from_asked = false) {
@@ -165,6 +165,11 @@ infer::StudentConfig resumed_student_settings(const nlohmann::json& saved, const
   if (sink_from_asked) {
     settings.sink_frames = asked.sink_frames;
     settings.sink_position = asked.sink_position;
+    if (settings.sink_frames > settings.window_frames) {
+      LOG_WARN("distill: ", source.string(), " attends to ", settings.window_frames,
+               " earlier frames: its attention sink is cut from ", settings.sink_frames, " to fit");
+      settings.sink_frames = settings.window_frames;
+    }
   }
   if (settings.to_json() != asked.to_json())
     LOG_WARN("distill: ", source.string(), " was trained with student settings ", settings.to_json().dump(),
@@ -258,7 +263,7 @@ DistillResult run_warmup(const DistillJob& job) {
   const auto fixed_batch_loss = [&] {
     torch::NoGradGuard no_grad;
     return warmup_loss(*trainer.ema(), probe_points, probe_actions, trajectories.timesteps,
-                       settings.window_frames, cpu_generator(job.seed + 777))
+                       settings.window_frames, cpu_generator(job.seed + 777), settings.sink_frames)
         .item<double>();
   };
   DistillResult result;
@@ -287,7 +292,8 @@ DistillResult run_warmup(const DistillJob& job) {
         const auto pts = trajectories.points.index_select(0, idx),
                    acts = trajectories.actions.index_select(0, idx);
         const auto s = trainer.step_loss([&](models::ActionDitImpl& net) {
-          return warmup_loss(net, pts, acts, trajectories.timesteps, settings.window_frames, gen);
+          return warmup_loss(net, pts, acts, trajectories.timesteps, settings.window_frames, gen,
+                             settings.sink_frames);
         });
         recent.push_back(s.loss);
         if (recent.size() > 20) recent.pop_front();
@@ -482,6 +488,9 @@ DistillResult run_self_forcing(const DistillJob& job) {
 }  // namespace
 
 DistillResult run_distillation(const DistillJob& job) {
+  DOJO_CHECK(job.student.sink_frames >= 0 && job.student.sink_frames <= job.student.window_frames,
+             "distill: the attention sink (" + std::to_string(job.student.sink_frames) +
+                 " frames) must fit in the window (" + std::to_string(job.student.window_frames) + ")");
   return job.stage == DistillStage::kWarmup ? run_warmup(job) : run_self_forcing(job);
 }
 

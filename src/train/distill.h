@@ -52,10 +52,11 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
                                                const std::filesystem::path& dir);
 
 // The warm-up regression loss of `student` on a batch of trajectory points: frames ≥ 1 each at a
-// random point (drawn from `generator`), frame 0 clean. points [B, P, 16, 4, h, w].
+// random point (drawn from `generator`), frame 0 clean, under the block-causal mask of the window
+// (and sink: at frame 0's own position). points [B, P, 16, 4, h, w].
 torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& points,
                           const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
-                          int64_t window_frames, torch::Generator generator);
+                          int64_t window_frames, torch::Generator generator, int64_t sink_frames = 0);
 
 enum class DistillStage { kWarmup, kSelfForcing };
 DistillStage parse_distill_stage(const std::string& text);  // warmup | self-forcing

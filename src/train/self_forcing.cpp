@@ -25,7 +25,7 @@ torch::Tensor student_rollout(models::ActionDitImpl& student, const infer::Stude
   const int64_t window = config.window_frames, sink = config.sink_frames;
   DOJO_CHECK(sink >= 0 && sink <= window, "self-forcing: the attention sink must fit in the window");
   std::vector<models::DitKvCache> cache(static_cast<size_t>(c.num_blocks));
-  int64_t sink_base = 0;  // frame whose position the sink's first frame holds (as in streaming)
+  for (auto& e : cache) e.set_sink(sink * tokens);
   const auto zeros_mask = torch::zeros_like(first.narrow(1, 0, 1));  // [B, 1, 1, h, w]
 
   // The clean pass that writes a frame's keys and values (no gradient, as released).
@@ -40,15 +40,15 @@ torch::Tensor student_rollout(models::ActionDitImpl& student, const infer::Stude
     in.kv_cache = &cache;
     in.store_kv = true;
     student.forward(in);
-    for (auto& e : cache) e.keep_last((window - sink) * tokens, sink * tokens);
+    for (auto& e : cache) e.keep_last((window - sink) * tokens);  // and the sink
   };
   std::vector<torch::Tensor> out = {first};
   recache(first, 0);
   for (int64_t f = 1; f < frames; ++f) {
-    if (sink > 0 && config.sink_position == infer::SinkPosition::kWindowEdge && f - window > sink_base) {
-      const auto [cos, sin] = models::temporal_rope_shift(student, f - window - sink_base);
-      for (auto& e : cache) e.rotate_keys(cos, sin, sink * tokens);
-      sink_base = f - window;
+    if (sink > 0 && config.sink_position == infer::SinkPosition::kWindowEdge && f > window) {
+      // As in streaming: the sink takes the position of frame f - window.
+      const auto [cos, sin] = models::temporal_rope_shift(student, f - window);
+      for (auto& e : cache) e.place_sink(cos, sin);
     }
     models::DitInputs base;
     base.actions = actions.narrow(1, k * (f - 1), k);

@@ -102,7 +102,20 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
                      " --split all --frames 16 --no-decode --window 3 --action-alignment released_teleop "
                      "--sink-frames 1");
   EXPECT_NE(r.exit_code, 0);
-  EXPECT_NE(r.output.find("attention sink needs the training action alignment"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("attention sink needs the training action alignment"), std::string::npos)
+      << r.output;
+  // The plain reference recomputes an absolute sink; one at the window's edge needs the cache.
+  const auto no_cache = "--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
+                        " --data " + data + " --split all --frames 8 --no-decode --no-cache";
+  r = test::run_dojo(no_cache);
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("needs the KV cache on"), std::string::npos) << r.output;
+  r = test::run_dojo(no_cache + " --sink-position absolute");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  r = test::run_dojo("--threads 1 distill --data " + data + " --window 2 --sink-frames 3 --out " +
+                     (tmp / "bad").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("must fit in the window"), std::string::npos) << r.output;
 
   write_lines(actions, {rows(4, 384, 0.0), "[[1, 2], [3]]"});
   r = test::run_dojo("--threads 1 wm stream -c " + (out / "checkpoint").string() + " --tokenizer " + tok +
@@ -111,7 +124,8 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_NE(r.output.find("actions.jsonl line 2"), std::string::npos) << r.output;
 
   r = test::run_dojo("--threads 1 eval --student -c " + (out / "checkpoint").string() + " --tokenizer " +
-                     tok + " --data " + data + " --split all -n 1 --chunks 1 --json --sink-position absolute");
+                     tok + " --data " + data +
+                     " --split all -n 1 --chunks 1 --json --sink-position absolute");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("\"student\""), std::string::npos);
   EXPECT_NE(r.output.find("\"sink_position\": \"absolute\""), std::string::npos) << r.output;

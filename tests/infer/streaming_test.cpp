@@ -174,17 +174,28 @@ TEST(Streaming, WindowEdgeSinkMovesWithTheWindow) {
   EXPECT_LT((a[1] - b[1]).abs().max().item<double>(), 1e-5) << "frame 2 sees frame 0 where it is";
   EXPECT_GT((a[2] - b[2]).abs().max().item<double>(), 1e-3) << "frame 3 sees it one frame later";
 
-  auto edge_short = make(6, SinkPosition::kWindowEdge);  // rebased every few frames
-  const auto c = run(edge_short, first, actions, 2);
-  double worst = 0;
-  for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, (a[i] - c[i]).abs().max().item<double>());
-  EXPECT_LT(worst, 1e-4);
-  std::printf("window-edge sink, RoPE table 6 vs 64, 14 frames: max abs %.2g\n", worst);
+  for (auto position : {SinkPosition::kWindowEdge, SinkPosition::kAbsolute}) {
+    auto rebased = make(6, position);  // rebased every few frames
+    const auto c = run(rebased, first, actions, 2);
+    const auto& expected = position == SinkPosition::kWindowEdge ? a : b;
+    double worst = 0;
+    for (size_t i = 0; i < a.size(); ++i)
+      worst = std::max(worst, (expected[i] - c[i]).abs().max().item<double>());
+    EXPECT_LT(worst, 1e-4) << to_string(position);
+    std::printf("%s sink, RoPE table 6 vs 64, 14 frames: max abs %.2g\n", to_string(position), worst);
+  }
 
-  o.student.sink_frames = 0;
-  auto plain = make(64, SinkPosition::kWindowEdge);
-  run(plain, first, actions, 2);
-  EXPECT_EQ(edge.cache_bytes(), plain.cache_bytes()) << "the sink takes a window slot";
+  // A window of 2 with a sink of 2: the first two frames and the new one, for good.
+  o.student.sink_frames = 2;
+  auto whole = make(64, SinkPosition::kAbsolute);
+  o.use_cache = false;
+  auto whole_reference = make(64, SinkPosition::kAbsolute);
+  o.use_cache = true;
+  const auto w1 = run(whole, first, actions, 2), w2 = run(whole_reference, first, actions, 2);
+  double whole_worst = 0;
+  for (size_t i = 0; i < w1.size(); ++i)
+    whole_worst = std::max(whole_worst, (w1[i] - w2[i]).abs().max().item<double>());
+  EXPECT_LT(whole_worst, 1e-4);
 
   auto student = edge.options().student;
   student.sink_frames = 3;  // more than the window

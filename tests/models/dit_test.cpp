@@ -575,11 +575,13 @@ TEST(DitSmall, RingSinkKeepsTheFirstFrameAndMovesByRotation) {
   std::vector<DitKvCache> moved(c.num_blocks), stored(c.num_blocks);
   store_first(moved, 0);
   store_first(stored, 3);
-  const auto [cos, sin] = temporal_rope_shift(*net, 3);  // 3 frames later
   double worst = 0, moved_by = 0;
   for (int64_t b = 0; b < c.num_blocks; ++b) {
     const auto before = moved[b].k.narrow(2, 0, S).clone();
-    moved[b].rotate_keys(cos, sin, /*leading=*/S);
+    for (int64_t shift = 1; shift <= 3; ++shift) {  // one frame a step, as a stream moves it
+      const auto [cos, sin] = temporal_rope_shift(*net, shift);
+      moved[b].place_sink(cos, sin);
+    }
     worst = std::max(worst, max_abs(moved[b].k.narrow(2, 0, S), stored[b].k.narrow(2, 0, S)));
     moved_by = std::max(moved_by, max_abs(before, stored[b].k.narrow(2, 0, S)));
     worst = std::max(worst, max_abs(moved[b].v.narrow(2, 0, S), stored[b].v.narrow(2, 0, S)));
@@ -588,15 +590,21 @@ TEST(DitSmall, RingSinkKeepsTheFirstFrameAndMovesByRotation) {
   EXPECT_GT(moved_by, 1e-2) << "the position is in the keys";
 }
 
-TEST(DitKvCache, SinkTokensSurviveTrimmingAndRotateAlone) {
+TEST(DitKvCache, SinkTokensSurviveTrimmingAndArePlacedFromTheirStoredKeys) {
   DitKvCache c;
   const auto entries = torch::arange(1.0, 7.0).view({1, 1, 6, 1}).repeat({1, 1, 1, 2});  // [1, 1, 6, 2]
+  c.set_sink(/*tokens=*/1);
   c.append(entries, entries * 10);
-  c.keep_last(/*tokens=*/2, /*leading=*/1);
+  c.keep_last(/*tokens=*/2);
   EXPECT_TRUE(c.k.select(3, 0).flatten().equal(torch::tensor({1.0f, 5.0f, 6.0f})));
   EXPECT_TRUE(c.v.select(3, 0).flatten().equal(torch::tensor({10.0f, 50.0f, 60.0f})));
-  c.rotate_keys(-torch::ones({2}), torch::zeros({2}), /*leading=*/1);  // a half turn of the first
+  const auto half_turn = -torch::ones({2}), none = torch::zeros({2});
+  c.place_sink(half_turn, none);  // the sink alone, from its keys as stored
   EXPECT_TRUE(c.k.select(3, 0).flatten().equal(torch::tensor({-1.0f, 5.0f, 6.0f})));
+  c.place_sink(half_turn, none);  // again from the stored keys: not a full turn
+  EXPECT_TRUE(c.k.select(3, 0).flatten().equal(torch::tensor({-1.0f, 5.0f, 6.0f})));
+  c.rotate_keys(half_turn, none);  // every key
+  EXPECT_TRUE(c.k.select(3, 0).flatten().equal(torch::tensor({1.0f, -5.0f, -6.0f})));
 }
 
 TEST(DitSmall, BlockCausalMaskLayout) {
