@@ -99,6 +99,19 @@ DitInputs random_inputs(const DitConfig& c, int64_t B, int64_t T, int64_t H, int
   return in;
 }
 
+// Frame t of `in` alone, for frame-by-frame calls through `cache` (k actions per latent frame).
+DitInputs frame_step(const DitInputs& in, int64_t t, int64_t k, std::vector<DitKvCache>& cache) {
+  DitInputs step;
+  step.x = in.x.slice(2, t, t + 1);
+  step.timesteps = in.timesteps.slice(1, t, t + 1);
+  step.condition_mask = in.condition_mask.slice(2, t, t + 1);
+  step.context = in.context;
+  step.frame_offset = t;
+  step.actions = t == 0 ? torch::Tensor() : in.actions.slice(1, (t - 1) * k, t * k);
+  step.kv_cache = &cache;
+  return step;
+}
+
 }  // namespace
 
 // --- RoPE and timestep embedding (dit_rope_temb) ----------------------------------------------
@@ -487,15 +500,7 @@ TEST(DitSmall, BlockCausalMaskEqualsKvCacheStreaming) {
   std::vector<DitKvCache> cache(c.num_blocks);
   std::vector<torch::Tensor> frames;
   for (int64_t t = 0; t < T; ++t) {
-    DitInputs step;
-    step.x = in.x.slice(2, t, t + 1);
-    step.timesteps = in.timesteps.slice(1, t, t + 1);
-    step.condition_mask = in.condition_mask.slice(2, t, t + 1);
-    step.context = in.context;
-    step.frame_offset = t;
-    step.actions = t == 0 ? torch::Tensor() : in.actions.slice(1, (t - 1) * k, t * k);
-    step.kv_cache = &cache;
-    frames.push_back(net->forward(step));
+    frames.push_back(net->forward(frame_step(in, t, k, cache)));
     EXPECT_EQ(cache[0].tokens(), (t + 1) * S);
   }
   const double err = max_abs(torch::cat(frames, 2), v_full);
@@ -510,23 +515,15 @@ TEST(DitSmall, BlockCausalMaskEqualsKvCacheStreaming) {
   for (auto& e : cache) e.clear();
   frames.clear();
   for (int64_t t = 0; t < T; ++t) {
-    DitInputs step;
-    step.x = in.x.slice(2, t, t + 1);
-    step.timesteps = in.timesteps.slice(1, t, t + 1);
-    step.condition_mask = in.condition_mask.slice(2, t, t + 1);
-    step.context = in.context;
-    step.frame_offset = t;
-    step.actions = t == 0 ? torch::Tensor() : in.actions.slice(1, (t - 1) * k, t * k);
-    step.kv_cache = &cache;
-    frames.push_back(net->forward(step));
+    frames.push_back(net->forward(frame_step(in, t, k, cache)));
     for (auto& e : cache) e.keep_last(S);
   }
   EXPECT_LT(max_abs(torch::cat(frames, 2), v_win), 1e-5);
 }
 
 // An attention sink in the ring: frame 0 stays in view of every later frame while the window
-// rolls over the others (the block-causal mask with a sink), and rotating the sink's keys in time
-// equals storing frame 0 at the new position.
+// rolls over the others (the block-causal mask with a sink), and placing the sink's keys later in
+// time equals storing frame 0 at the new position.
 TEST(DitSmall, RingSinkKeepsTheFirstFrameAndMovesByRotation) {
   test::OneThread one_thread;
   const auto c = DitConfig::small();
@@ -540,15 +537,7 @@ TEST(DitSmall, RingSinkKeepsTheFirstFrameAndMovesByRotation) {
     for (auto& e : cache) e.set_ring(window, S, sink);
     std::vector<torch::Tensor> frames;
     for (int64_t t = 0; t < T; ++t) {
-      DitInputs step;
-      step.x = in.x.slice(2, t, t + 1);
-      step.timesteps = in.timesteps.slice(1, t, t + 1);
-      step.condition_mask = in.condition_mask.slice(2, t, t + 1);
-      step.context = in.context;
-      step.frame_offset = t;
-      step.actions = t == 0 ? torch::Tensor() : in.actions.slice(1, (t - 1) * k, t * k);
-      step.kv_cache = &cache;
-      frames.push_back(net->forward(step));
+      frames.push_back(net->forward(frame_step(in, t, k, cache)));
     }
     return torch::cat(frames, 2);  // [B, 16, T, H, W]
   };
