@@ -224,6 +224,7 @@ void register_wm(CLI::App& app) {
   auto* wm = app.add_subcommand("wm", "Action-conditioned world model (DiT, rectified flow)");
   wm->require_subcommand(1);
   register_wm_stream(*wm);
+  register_wm_speed(*wm);
 
   auto t = std::make_shared<WmTrainArgs>();
   auto* train_cmd =

@@ -20,6 +20,7 @@
 #include "core/runtime.h"
 #include "data/actions.h"
 #include "eval/wm_eval.h"
+#include "infer/stream_stats.h"
 #include "infer/streaming.h"
 #include "io/video.h"
 
@@ -96,12 +97,6 @@ struct StreamArgs {
   bool raw = false, no_cache = false, no_decode = false, json = false;
   uint64_t seed = 0;
 };
-
-double percentile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  return v[static_cast<size_t>(std::min<double>(v.size() - 1, q * (v.size() - 1) + 0.5))];
-}
 
 int run_stream(StreamArgs a) {
   DOJO_CHECK(a.frames > 0 && a.frames % 4 == 0, "--frames must be a positive multiple of 4");
@@ -182,15 +177,14 @@ int run_stream(StreamArgs a) {
   const auto frame0 = engine.reset(first, a.seed);
   if (frame0.defined()) emit(frame0[0]);
 
-  std::vector<double> total_ms, denoise_ms, recache_ms, decode_ms;
-  int64_t generated = 0, rss_at_100 = 0;
+  infer::StreamStats stats;
   int64_t chunks_read = 0;
   const auto next_chunk = [&]() -> std::optional<torch::Tensor> {  // [4, 384]
     if (lines) return lines->next();
     const int64_t steps = recorded.size(0) / 4, s = chunks_read++ % steps;
     return recorded.narrow(0, 4 * s, 4);
   };
-  while (generated < a.frames) {
+  while (stats.frames() < a.frames) {
     std::vector<torch::Tensor> chunks;  // one step's actions: 1 chunk, or the window's in teleop mode
     while (static_cast<int64_t>(chunks.size()) * 4 < engine.actions_per_step()) {
       auto next = next_chunk();
@@ -200,29 +194,12 @@ int run_stream(StreamArgs a) {
     if (static_cast<int64_t>(chunks.size()) * 4 < engine.actions_per_step()) break;
     const auto out = engine.step(torch::cat(chunks).unsqueeze(0));  // [1, 4 n, H, W, 3] | [1, 16, n, h, w]
     if (o.decode) emit(out[0]);
-    generated += o.decode ? out.size(1) : 4 * out.size(2);
-    const auto& t = engine.last_timings();
-    total_ms.push_back(t.total_ms);
-    denoise_ms.push_back(t.denoise_ms);
-    recache_ms.push_back(t.recache_ms);
-    decode_ms.push_back(t.decode_ms);
-    if (rss_at_100 == 0 && generated >= 100) rss_at_100 = resident_memory_bytes();
+    stats.add(engine.last_timings(), o.decode ? out.size(1) : 4 * out.size(2));
   }
   if (writer) writer->close();
-  double seconds = 0;
-  for (double ms : total_ms) seconds += ms / 1000;
-  // The first steps warm allocators up; the steady state leaves out the first two.
-  std::vector<double> steady(total_ms.begin() + std::min<size_t>(2, total_ms.size()), total_ms.end());
-  double steady_s = 0;
-  for (double ms : steady) steady_s += ms / 1000;
-  const auto avg = [](const std::vector<double>& v) {
-    double s = 0;
-    for (double x : v) s += x;
-    return v.empty() ? 0.0 : s / v.size();
-  };
-  nlohmann::json summary = {
+  auto summary = stats.summary();
+  summary.update(nlohmann::json{
       {"checkpoint", a.model.checkpoint},
-      {"frames", generated},
       {"window_frames", student.window_frames},
       {"sink_frames", student.sink_frames},
       {"sink_position", infer::to_string(student.sink_position)},
@@ -231,17 +208,8 @@ int run_stream(StreamArgs a) {
       {"kv_cache", o.use_cache},
       {"decode", o.decode},
       {"decoder", o.fast_decoder ? "fast" : "wan"},
-      {"frames_per_second", seconds > 0 ? generated / seconds : 0},
-      {"steady_frames_per_second", steady_s > 0 ? 4.0 * steady.size() / steady_s : 0},
-      {"step_ms_p50", percentile(total_ms, 0.5)},
-      {"step_ms_p95", percentile(total_ms, 0.95)},
-      {"denoise_ms_mean", avg(denoise_ms)},
-      {"recache_ms_mean", avg(recache_ms)},
-      {"decode_ms_mean", avg(decode_ms)},
-      {"rss_mib_at_frame_100", rss_at_100 / 1048576.0},
-      {"rss_mib_at_end", resident_memory_bytes() / 1048576.0},
       {"kv_cache_mib", engine.cache_bytes() / 1048576.0},
-  };
+  });
   if (a.json && !a.raw) {
     std::printf("%s\n", summary.dump(2).c_str());
   } else {
@@ -249,11 +217,12 @@ int run_stream(StreamArgs a) {
         stderr,
         "streamed %lld frames: %.1f frames/s (steady %.1f), step p50 %.1f ms p95 %.1f ms "
         "(denoise %.1f, re-cache %.1f, decode %.1f), RSS %.0f MiB at frame 100, %.0f MiB at the end%s%s\n",
-        static_cast<long long>(generated), summary["frames_per_second"].get<double>(),
+        static_cast<long long>(stats.frames()), summary["frames_per_second"].get<double>(),
         summary["steady_frames_per_second"].get<double>(), summary["step_ms_p50"].get<double>(),
-        summary["step_ms_p95"].get<double>(), avg(denoise_ms), avg(recache_ms), avg(decode_ms),
-        rss_at_100 / 1048576.0, resident_memory_bytes() / 1048576.0, a.out.empty() ? "" : " -> ",
-        a.out.c_str());
+        summary["step_ms_p95"].get<double>(), summary["denoise_ms_mean"].get<double>(),
+        summary["recache_ms_mean"].get<double>(), summary["decode_ms_mean"].get<double>(),
+        summary["rss_mib_at_frame_100"].get<double>(), summary["rss_mib_at_end"].get<double>(),
+        a.out.empty() ? "" : " -> ", a.out.c_str());
   }
   return 0;
 }

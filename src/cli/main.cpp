@@ -132,6 +132,12 @@ int main(int argc, char** argv) {
   app.add_flag("-q,--quiet", opts.quiet, "Log warnings and errors only");
 
   cli::register_version(app);
+#ifdef DOJO_ENGINE_ONLY
+  // The engine-only build (CMake option DOJO_ENGINE_ONLY): the streaming engine's timing alone.
+  auto* wm = app.add_subcommand("wm", "Action-conditioned world model (DiT, rectified flow)");
+  wm->require_subcommand(1);
+  cli::register_wm_speed(*wm);
+#else
   cli::register_ckpt(app);
   cli::register_video(app);
   cli::register_bench(app);
@@ -152,6 +158,7 @@ int main(int argc, char** argv) {
   cli::register_serve_load(app);
   cli::register_metrics(app);
   cli::register_probe(app);
+#endif
 
   try {
     cli::check_command_words(app, argc, argv);

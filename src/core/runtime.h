@@ -46,6 +46,9 @@ int64_t resident_memory_bytes();
 
 bool cuda_available();
 int cuda_device_count();
+// Waits until the work queued on `device` has finished (no-op on the CPU), so that a wall clock
+// read afterwards covers it: CUDA kernels run asynchronously to the host.
+void synchronize(const c10::Device& device);
 
 // Parses "cpu", "cuda", "cuda:N" or "auto" (CUDA when available, else CPU). Throws
 // dojo::UsageError on an unknown name or a CUDA request without CUDA.

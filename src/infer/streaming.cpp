@@ -9,6 +9,7 @@
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
+#include "core/runtime.h"
 
 namespace dojo::infer {
 
@@ -16,6 +17,37 @@ namespace {
 
 double ms_since(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+// The weights autocast would cast at each op: those of linears and convolutions.
+void cast_matmul_weights(torch::nn::Module& root, c10::ScalarType dtype) {
+  for (const auto& m : root.modules(/*include_self=*/true)) {
+    const bool matmul = dynamic_cast<torch::nn::LinearImpl*>(m.get()) != nullptr ||
+                        dynamic_cast<torch::nn::Conv2dImpl*>(m.get()) != nullptr ||
+                        dynamic_cast<torch::nn::Conv3dImpl*>(m.get()) != nullptr ||
+                        dynamic_cast<models::CausalConv3dImpl*>(m.get()) != nullptr;
+    if (!matmul) continue;
+    for (auto& p : m->parameters(/*recurse=*/false)) p.set_data(p.data().to(dtype));
+  }
+}
+
+// Runs `stream` (a reset or a step) under c10::InferenceMode and hands back a normal tensor.
+// Inference mode skips autograd's and view tracking's dispatch for every op: the 2B student's
+// forward is ~4200 small ops, and on a GPU their dispatch, not the arithmetic, sets the pace.
+// What it creates (caches, latents) stays inside the engine; the result is cloned outside it, so
+// callers may modify it or train on it.
+template <typename Stream>
+torch::Tensor in_inference_mode(bool enabled, Stream&& stream) {
+  if (!enabled) {
+    torch::NoGradGuard no_grad;
+    return stream();
+  }
+  torch::Tensor out;
+  {
+    c10::InferenceMode inference;
+    out = stream();
+  }
+  return out.defined() ? out.clone() : out;
 }
 
 }  // namespace
@@ -135,8 +167,16 @@ StreamingEngine::StreamingEngine(models::ActionDit student, models::WanVae token
     options_.fast_decoder->eval();
   }
   torch::NoGradGuard no_grad;
-  projected_context_ = net_->project_context(
-      torch::zeros({1, 1, net_->config.crossattn_emb_channels}, torch::TensorOptions(options_.device)));
+  if (options_.precision != Precision::kFloat32 && options_.cast_weights) {
+    const auto dtype = autocast_dtype(options_.precision);
+    cast_matmul_weights(*net_, dtype);
+    cast_matmul_weights(*tokenizer_, dtype);
+    if (options_.fast_decoder) cast_matmul_weights(*options_.fast_decoder, dtype);
+  }
+  AutocastGuard autocast(options_.device.type(), options_.precision);
+  projected_context_ = net_->project_context(torch::zeros({1, 1, net_->config.crossattn_emb_channels},
+                                                          torch::TensorOptions(options_.device)))
+                           .to(torch::kFloat32);
 }
 
 StreamingEngine StreamingEngine::load(const std::filesystem::path& checkpoint,
@@ -196,12 +236,23 @@ models::DitInputs StreamingEngine::inputs(const torch::Tensor& actions) const {
 }
 
 torch::Tensor StreamingEngine::reset(const torch::Tensor& first, uint64_t seed) {
+  return in_inference_mode(options_.inference_mode, [&] { return reset_stream(first, seed); });
+}
+
+torch::Tensor StreamingEngine::step(const torch::Tensor& actions) {
+  return in_inference_mode(options_.inference_mode, [&] { return step_stream(actions); });
+}
+
+torch::Tensor StreamingEngine::reset_stream(const torch::Tensor& first, uint64_t seed) {
   DOJO_CHECK(first.dim() == 4 && first.size(3) == 3 && first.scalar_type() == torch::kUInt8,
              "streaming: the first frame must be [B, H, W, 3] uint8");
-  torch::NoGradGuard no_grad;
   generator_ = at::make_generator<at::CPUGeneratorImpl>(seed);
   const auto video = models::video_to_model(first.to(options_.device).unsqueeze(1));  // [B, 3, 1, H, W]
-  const auto z0 = tokenizer_->encode_latents(video);                                  // [B, 16, 1, h, w]
+  torch::Tensor z0;
+  {
+    AutocastGuard autocast(options_.device.type(), options_.precision);
+    z0 = tokenizer_->encode_latents(video).to(torch::kFloat32);  // [B, 16, 1, h, w]
+  }
   latent_shape_ = z0.sizes().vec();
   const int64_t tokens =
       (z0.size(3) / net_->config.patch_spatial) * (z0.size(4) / net_->config.patch_spatial);
@@ -253,9 +304,10 @@ void StreamingEngine::move_sink() {
 }
 
 torch::Tensor StreamingEngine::decode(const torch::Tensor& x0) {
+  AutocastGuard autocast(options_.device.type(), options_.precision);
   const auto pixels = options_.fast_decoder ? options_.fast_decoder->step(x0.select(2, 0), fast_state_)
                                             : decoder_->push(tokenizer_->denormalize(x0));  // [B, 3, n, H, W]
-  return models::model_to_video(pixels.clamp(-1, 1)).to(torch::kCPU);                       // [B, n, H, W, 3]
+  return models::model_to_video(pixels.to(torch::kFloat32).clamp(-1, 1)).to(torch::kCPU);   // [B, n, H, W, 3]
 }
 
 void StreamingEngine::store_frame(const torch::Tensor& x0, const torch::Tensor& actions, int64_t position) {
@@ -369,21 +421,22 @@ torch::Tensor StreamingEngine::generate(const torch::Tensor& generate_with, cons
   }
   const auto x0 =
       options_.use_cache ? denoise_cached(noise, generate_with) : denoise_reference(noise, generate_with);
+  synchronize(options_.device);  // the stage timings cover the device's work, not only its queueing
   timings_.denoise_ms += ms_since(start);
   const auto recache_start = std::chrono::steady_clock::now();
   recache(x0, cache_with);
+  synchronize(options_.device);
   timings_.recache_ms += ms_since(recache_start);
   return x0;  // [B, 16, 1, h, w]
 }
 
-torch::Tensor StreamingEngine::step(const torch::Tensor& actions) {
+torch::Tensor StreamingEngine::step_stream(const torch::Tensor& actions) {
   DOJO_CHECK(frames_ > 0, "streaming: reset() must come before step()");
   const int64_t expected = actions_per_step();
   DOJO_CHECK(actions.dim() == 3 && actions.size(1) == expected && actions.size(2) == net_->config.action_dim,
              "streaming: actions must be [B, " + std::to_string(expected) + ", " +
                  std::to_string(net_->config.action_dim) + "] (" +
                  to_string(options_.student.action_alignment) + " alignment)");
-  torch::NoGradGuard no_grad;
   const auto start = std::chrono::steady_clock::now();
   const auto acts = actions.to(options_.device, torch::kFloat32);
   DOJO_CHECK(acts.size(0) == latent_shape_[0], "streaming: actions for batch " +
@@ -432,6 +485,7 @@ torch::Tensor StreamingEngine::step(const torch::Tensor& actions) {
   } else {
     out = torch::cat(latents, 2);  // [B, 16, n, h, w]
   }
+  synchronize(options_.device);
   timings_.decode_ms = ms_since(decode_start);
   timings_.total_ms = ms_since(start);
   return out;

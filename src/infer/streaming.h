@@ -103,7 +103,17 @@ class StreamingEngine {
     // a little blurrier; models/fast_decoder.h). Empty: the Wan decoder.
     models::FastDecoder fast_decoder{nullptr};
     torch::Device device = torch::kCPU;
+    // Below fp32, every network runs under autocast (the DiT, the encoder and both decoders).
     Precision precision = Precision::kFloat32;
+    // Below fp32: store the weights of every linear and convolution in the lower precision once,
+    // instead of autocast casting them again at every op (2B parameters per forward on the 2B
+    // network). Autocast casts those ops' inputs anyway, so the results agree to rounding and are
+    // as close to fp32 (tested). The networks are changed in place (shared with other engines of
+    // the same options); norm weights and buffers stay float32.
+    bool cast_weights = true;
+    // Run reset() and step() under c10::InferenceMode (less dispatch per op; streaming.cpp says
+    // why). false: under a plain no-grad guard, for comparison.
+    bool inference_mode = true;
   };
 
   StreamingEngine(models::ActionDit student, models::WanVae tokenizer, Options options);
@@ -144,6 +154,8 @@ class StreamingEngine {
   static constexpr int64_t kActionsPerStep = 4;
 
  private:
+  torch::Tensor reset_stream(const torch::Tensor& first, uint64_t seed);  // reset() in inference mode
+  torch::Tensor step_stream(const torch::Tensor& actions);                // step() in inference mode
   torch::Tensor decode(const torch::Tensor& x0);  // [B, 16, 1, h, w] -> [B, n, H, W, 3] uint8
   torch::Tensor denoise_cached(const torch::Tensor& noise, const torch::Tensor& actions);
   torch::Tensor denoise_reference(const torch::Tensor& noise, const torch::Tensor& actions);

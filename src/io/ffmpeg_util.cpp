@@ -1,4 +1,4 @@
-// FFmpeg plumbing shared by the video reader and writer, and as_batch (see ffmpeg_util.h).
+// FFmpeg plumbing shared by the video reader and writer (see ffmpeg_util.h).
 #include "io/ffmpeg_util.h"
 
 #include <torch/torch.h>
@@ -130,14 +130,6 @@ void RgbConverter::convert(const AVFrame* frame, int out_w, int out_h, uint8_t* 
 std::string RgbConverter::pixel_format_name(int format) {
   const char* name = av_get_pix_fmt_name(static_cast<AVPixelFormat>(format));
   return name ? name : "unknown";
-}
-
-// Views a [H, W, 3] or [T, H, W, 3] tensor as [T, H, W, 3].
-torch::Tensor as_batch(const at::Tensor& frames, const char* what) {
-  DOJO_CHECK(frames.defined() && (frames.dim() == 3 || frames.dim() == 4) && frames.size(-1) == 3,
-             std::string(what) + ": expected [H, W, 3] or [T, H, W, 3] RGB frames, got shape " +
-                 (frames.defined() ? c10::str(frames.sizes()) : std::string("undefined")));
-  return frames.dim() == 3 ? frames.unsqueeze(0) : frames;
 }
 
 }  // namespace dojo::io::video_detail

@@ -1,7 +1,6 @@
 // Internal to src/io (not a public header): what the video .cpp files share. FFmpeg plumbing
 // for video_reader.cpp and video_writer.cpp (error strings, log routing, one-time init, owning
-// pointers, RGB conversion), and as_batch, the frame-tensor view used by frame_ops.cpp and
-// write_png_frames.
+// pointers, RGB conversion).
 #pragma once
 
 #include <ATen/core/Tensor.h>
@@ -65,8 +64,5 @@ class RgbConverter {
   SwsPtr sws_;
   int src_format_ = -1, src_w_ = 0, src_h_ = 0, dst_w_ = 0, dst_h_ = 0, colorspace_ = -1, full_range_ = -1;
 };
-
-// Views a [H, W, 3] or [T, H, W, 3] tensor as [T, H, W, 3].
-at::Tensor as_batch(const at::Tensor& frames, const char* what);
 
 }  // namespace dojo::io::video_detail

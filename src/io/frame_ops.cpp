@@ -8,11 +8,15 @@
 #include <vector>
 
 #include "core/error.h"
-#include "io/ffmpeg_util.h"
 
 namespace dojo::io {
 
-using video_detail::as_batch;
+torch::Tensor as_batch(const at::Tensor& frames, const char* what) {
+  DOJO_CHECK(frames.defined() && (frames.dim() == 3 || frames.dim() == 4) && frames.size(-1) == 3,
+             std::string(what) + ": expected [H, W, 3] or [T, H, W, 3] RGB frames, got shape " +
+                 (frames.defined() ? c10::str(frames.sizes()) : std::string("undefined")));
+  return frames.dim() == 3 ? frames.unsqueeze(0) : frames;
+}
 
 CropBox center_crop_box(int64_t h, int64_t w, int64_t aspect_w, int64_t aspect_h) {
   DOJO_CHECK(h > 0 && w > 0 && aspect_w > 0 && aspect_h > 0,

@@ -17,6 +17,9 @@ struct CropBox {
 };
 // The largest centred box of aspect aspect_w:aspect_h inside h x w. The cropped dimension is
 // round-half-up(other_dim * ratio); e.g. 720x528 at 4:3 -> 704x528 at left 8.
+// Views a [H, W, 3] or [T, H, W, 3] tensor as [T, H, W, 3]; throws dojo::Error naming `what`.
+at::Tensor as_batch(const at::Tensor& frames, const char* what);
+
 CropBox center_crop_box(int64_t h, int64_t w, int64_t aspect_w, int64_t aspect_h);
 
 at::Tensor center_crop(const at::Tensor& frames, int64_t crop_h, int64_t crop_w);

@@ -21,6 +21,7 @@
 #include "data/episode_store.h"
 #include "eval/keypoint_metrics.h"
 #include "eval/wm_eval.h"
+#include "infer/stream_stats.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
 #include "io/video.h"
@@ -123,27 +124,21 @@ nlohmann::json time_streaming(const fs::path& out, const fs::path& tokenizer, to
   vo.fps = 10;
   io::VideoWriter video((out / "student_600_frames.mp4").string(), vo);  // the long rollout, for the report
   video.write_many(engine.reset(clip.video.narrow(0, 0, 1), 0)[0]);
-  std::vector<double> ms;
-  int64_t rss_100 = 0;
+  infer::StreamStats stats;
   for (int64_t frames = 4; frames <= 600; frames += 4) {
     const int64_t s = (frames / 4 - 1) % (clip.actions.size(0) / 4);
     const auto frames_out = engine.step(clip.actions.narrow(0, 4 * s, 4).unsqueeze(0));  // [1, 4, H, W, 3]
-    ms.push_back(engine.last_timings().total_ms);
+    stats.add(engine.last_timings(), frames_out.size(1));
     video.write_many(frames_out[0]);
-    if (frames == 100) rss_100 = resident_memory_bytes();
   }
-  const int64_t rss_600 = resident_memory_bytes();
+  const auto summary = stats.summary();
   video.close();
-  std::vector<double> steady(ms.begin() + 2, ms.end()), sorted = steady;
-  std::sort(sorted.begin(), sorted.end());
-  double total = 0;
-  for (double v : steady) total += v;
-  return {{"frames", 600},
-          {"frames_per_second", 4.0 * static_cast<double>(steady.size()) / (total / 1000)},
-          {"step_ms_p50", sorted[sorted.size() / 2]},
-          {"step_ms_p95", sorted[sorted.size() * 95 / 100]},
-          {"rss_mib_frame_100", rss_100 / 1048576.0},
-          {"rss_mib_frame_600", rss_600 / 1048576.0}};
+  return {{"frames", stats.frames()},
+          {"frames_per_second", summary["steady_frames_per_second"]},
+          {"step_ms_p50", summary["step_ms_p50"]},
+          {"step_ms_p95", summary["step_ms_p95"]},
+          {"rss_mib_frame_100", summary["rss_mib_at_frame_100"]},
+          {"rss_mib_frame_600", summary["rss_mib_at_end"]}};
 }
 
 }  // namespace

@@ -135,5 +135,40 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_NE(r.output.find("add --student"), std::string::npos) << r.output;
 }
 
+// `dojo wm speed` on random tiny networks: one row per decoder with frames/s that add up, the
+// cache bounded by the window, and one-line errors for what it cannot time.
+TEST(StreamCli, SpeedTimesEachDecoderOnRandomWeights) {
+  auto r = test::run_dojo(
+      "--threads 1 wm speed --arch tiny --vae-dim 8 --size 32x32 --steps 3 --window 2 --sink-frames 1 "
+      "--json");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto report = nlohmann::json::parse(r.output.substr(r.output.find("{\n")));
+  EXPECT_EQ(report.at("window_frames"), 2);
+  EXPECT_EQ(report.at("sink_frames"), 1);
+  ASSERT_EQ(report.at("rows").size(), 3u);
+  double kv_mib = -1;
+  for (const auto& row : report.at("rows")) {
+    EXPECT_EQ(row.at("frames"), 12) << row;  // 3 timed steps of 4 frames
+    const double fps = row.at("steady_frames_per_second");
+    EXPECT_GT(fps, 0) << row;
+    EXPECT_LE(row.at("step_ms_p50").get<double>(), row.at("step_ms_max").get<double>());
+    if (kv_mib >= 0) EXPECT_DOUBLE_EQ(row.at("kv_cache_mib").get<double>(), kv_mib);  // the same ring
+    kv_mib = row.at("kv_cache_mib");
+  }
+  EXPECT_EQ(report["rows"][0].at("decoder"), "none");
+  EXPECT_EQ(report["rows"][0].at("decode_ms_mean").get<double>() < 0.5, true);
+  EXPECT_GT(report["rows"][2].at("decode_ms_mean").get<double>(), 0);  // the Wan decoder ran
+
+  for (const auto& [args, message] : std::vector<std::pair<std::string, std::string>>{
+           {"--arch huge", "--arch: unknown architecture 'huge'"},
+           {"--arch tiny --decoders vq", "--decoders: unknown decoder 'vq'"},
+           {"--checkpoint models/reference/wm_posttrain", "--checkpoint needs --tokenizer"},
+           {"--arch tiny --steps 1", "--steps must be at least 3"}}) {
+    r = test::run_dojo("wm speed --vae-dim 8 --size 32x32 " + args);
+    EXPECT_NE(r.exit_code, 0) << args;
+    EXPECT_NE(r.output.find(message), std::string::npos) << args << ": " << r.output;
+  }
+}
+
 }  // namespace
 }  // namespace dojo

@@ -32,6 +32,66 @@ std::vector<torch::Tensor> run(StreamingEngine& e, const torch::Tensor& first, c
   return out;
 }
 
+// Inference mode changes the dispatch, not the numbers; what the engine hands back is an ordinary
+// tensor that callers may modify in place and train on.
+TEST(Streaming, InferenceModeGivesTheSameFramesAsOrdinaryTensors) {
+  test::OneThread one;
+  StreamingEngine::Options o;
+  o.student.window_frames = 2;
+  auto fast = engine(o);
+  o.inference_mode = false;
+  auto plain = engine(o);
+  const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
+  const auto actions = actions_for(3, 1, 3);
+  auto a = run(fast, first, actions, 5);
+  const auto b = run(plain, first, actions, 5);
+  for (size_t i = 0; i < a.size(); ++i) {
+    EXPECT_TRUE(torch::equal(a[i], b[i])) << "step " << i;
+    EXPECT_FALSE(a[i].is_inference());
+  }
+  a[0].zero_();  // in place outside inference mode: refused for inference tensors
+  const auto weight = torch::ones({1}, torch::requires_grad());
+  (a[1].to(torch::kFloat32) * weight).sum().backward();  // saved for backward: likewise
+  EXPECT_GT(weight.grad().item<double>(), 0);
+  EXPECT_FALSE(fast.reset(first, 5).is_inference());
+}
+
+// bf16 streaming with the linear and convolution weights stored in bf16 once is as close to fp32
+// as autocast casting the float32 weights at every op (not bit-equal: on the CPU autocast rounds a
+// 3-D linear's bias differently), latents and decoded frames alike.
+TEST(Streaming, Bf16WeightsCastOnceAreAsAccurateAsAutocastCastingThemEachOp) {
+  test::OneThread one;
+  const auto relative = [](const torch::Tensor& a, const torch::Tensor& b) {
+    const auto x = a.to(torch::kFloat64), y = b.to(torch::kFloat64);
+    return ((x - y).norm() / y.norm()).item<double>();
+  };
+  const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
+  const auto actions = actions_for(4, 1, 3);
+  for (const bool decode : {false, true}) {
+    StreamingEngine::Options o;
+    o.decode = decode;
+    o.student.window_frames = 2;
+    o.precision = Precision::kBFloat16;
+    auto cast = engine(o);
+    o.cast_weights = false;
+    auto per_op = engine(o);
+    o.precision = Precision::kFloat32;
+    auto fp32 = engine(o);
+    EXPECT_EQ(cast.net()->block_list[0]->self_attn->q_proj->weight.scalar_type(), torch::kBFloat16);
+    EXPECT_EQ(cast.tokenizer()->parameters()[0].scalar_type(), torch::kBFloat16);
+    EXPECT_EQ(cast.net()->t_embedding_norm->weight.scalar_type(), torch::kFloat32);  // not a matmul
+    EXPECT_EQ(per_op.net()->block_list[0]->self_attn->q_proj->weight.scalar_type(), torch::kFloat32);
+    const auto a = run(cast, first, actions, 5), b = run(per_op, first, actions, 5),
+               c = run(fp32, first, actions, 5);
+    for (size_t i = 0; i < a.size(); ++i) {
+      const double cast_error = relative(a[i], c[i]), autocast_error = relative(b[i], c[i]);
+      EXPECT_GT(autocast_error, 0) << "the bf16 rows ran in bf16";
+      EXPECT_LT(cast_error, (decode ? 0.1 : 0.01)) << "step " << i;
+      EXPECT_LT(cast_error, 1.5 * autocast_error) << "step " << i << (decode ? " (frames)" : " (latents)");
+    }
+  }
+}
+
 // The ring-buffer KV cache against recomputing the whole history under the block-causal window
 // mask, past the point where the ring wraps (window 2, 7 new frames).
 TEST(Streaming, CachedEqualsBlockCausalRecomputation) {
