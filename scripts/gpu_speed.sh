@@ -4,6 +4,7 @@
 # streaming student on the 2B architecture at 480x640 in bf16, batch 1, 4 hops, with random
 # weights: the DiT alone, with the fast decoder and with the Wan decoder, at the released window
 # (3) and at ours (12 + a 1-frame sink); and without inference mode, for comparison.
+# DOJO_SPEED_STEPS sets the timed steps per row (default 40).
 #
 #   scripts/gpu_speed.sh [OUT_DIR]
 #
@@ -15,6 +16,7 @@ set -euo pipefail
 out=${1:-gpu_speed}
 steps=${DOJO_SPEED_STEPS:-40}
 mkdir -p "$out"
+out=$(cd "$out" && pwd)  # before leaving the caller's directory
 cd "$(dirname "$0")/.."
 
 {

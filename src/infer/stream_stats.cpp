@@ -41,18 +41,21 @@ void StreamStats::add(const StreamTimings& timings, int64_t frames) {
 
 nlohmann::json StreamStats::summary() const {
   const double max_ms = total_ms_.empty() ? 0.0 : *std::max_element(total_ms_.begin(), total_ms_.end());
-  return {
-      {"frames", frames_},
-      {"frames_per_second", frames_per_second(total_ms_, step_frames_, 0)},
-      {"steady_frames_per_second", frames_per_second(total_ms_, step_frames_, std::min<size_t>(2, steps()))},
-      {"step_ms_p50", percentile(total_ms_, 0.5)},
-      {"step_ms_p95", percentile(total_ms_, 0.95)},
-      {"step_ms_max", max_ms},
-      {"denoise_ms_mean", mean(denoise_ms_)},
-      {"recache_ms_mean", mean(recache_ms_)},
-      {"decode_ms_mean", mean(decode_ms_)},
-      {"rss_mib_at_frame_100", rss_at_100_ / 1048576.0},
-      {"rss_mib_at_end", resident_memory_bytes() / 1048576.0}};
+  const size_t warm = std::min<size_t>(2, total_ms_.size());
+  const std::vector<double> steady(total_ms_.begin() + static_cast<std::ptrdiff_t>(warm), total_ms_.end());
+  return {{"frames", frames_},
+          {"frames_per_second", frames_per_second(total_ms_, step_frames_, 0)},
+          {"steady_frames_per_second", frames_per_second(total_ms_, step_frames_, warm)},
+          {"step_ms_p50", percentile(total_ms_, 0.5)},
+          {"step_ms_p95", percentile(total_ms_, 0.95)},
+          {"steady_step_ms_p50", percentile(steady, 0.5)},
+          {"steady_step_ms_p95", percentile(steady, 0.95)},
+          {"step_ms_max", max_ms},
+          {"denoise_ms_mean", mean(denoise_ms_)},
+          {"recache_ms_mean", mean(recache_ms_)},
+          {"decode_ms_mean", mean(decode_ms_)},
+          {"rss_mib_at_frame_100", rss_at_100_ / 1048576.0},
+          {"rss_mib_at_end", resident_memory_bytes() / 1048576.0}};
 }
 
 }  // namespace dojo::infer

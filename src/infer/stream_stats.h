@@ -20,9 +20,10 @@ class StreamStats {
   int64_t frames() const { return frames_; }
   int64_t steps() const { return static_cast<int64_t>(total_ms_.size()); }
 
-  // {frames, frames_per_second over all steps, steady_frames_per_second without the first two
-  // (allocator and kernel warm-up), step_ms_p50 / p95 / max, denoise / recache / decode_ms_mean,
-  // rss_mib_at_frame_100 (0 before 100 frames), rss_mib_at_end}.
+  // {frames, frames_per_second and step_ms_p50 / p95 / max over all steps, the same as
+  // steady_frames_per_second and steady_step_ms_p50 / p95 without the first two steps (allocator
+  // and kernel warm-up), denoise / recache / decode_ms_mean, rss_mib_at_frame_100 (0 before 100
+  // frames), rss_mib_at_end}.
   nlohmann::json summary() const;
 
  private:

@@ -10,6 +10,9 @@ namespace dojo::io {
 
 // Transforms on uint8 RGB frames: [T, H, W, 3] or a single [H, W, 3] (the result keeps the rank).
 
+// Views a [H, W, 3] or [T, H, W, 3] tensor as [T, H, W, 3]; throws dojo::Error naming `what`.
+at::Tensor as_batch(const at::Tensor& frames, const char* what);
+
 // Crop rectangle. Offsets are floor((dim - size) / 2): with an odd remainder the extra row or
 // column is dropped at the bottom/right.
 struct CropBox {
@@ -17,9 +20,6 @@ struct CropBox {
 };
 // The largest centred box of aspect aspect_w:aspect_h inside h x w. The cropped dimension is
 // round-half-up(other_dim * ratio); e.g. 720x528 at 4:3 -> 704x528 at left 8.
-// Views a [H, W, 3] or [T, H, W, 3] tensor as [T, H, W, 3]; throws dojo::Error naming `what`.
-at::Tensor as_batch(const at::Tensor& frames, const char* what);
-
 CropBox center_crop_box(int64_t h, int64_t w, int64_t aspect_w, int64_t aspect_h);
 
 at::Tensor center_crop(const at::Tensor& frames, int64_t crop_h, int64_t crop_w);
