@@ -9,6 +9,7 @@
 #include "cli/options.h"
 #include "core/error.h"
 #include "io/video.h"
+#include "recipes/dojosim_policies.h"
 #include "sim/episode.h"
 #include "sim/generate.h"
 #include "sim/renderer.h"
@@ -33,6 +34,7 @@ void add_generate(CLI::App& sim) {
   auto out = std::make_shared<std::string>();
   auto size = std::make_shared<std::string>("64x64");
   auto json = std::make_shared<bool>(false);
+  auto policies = std::make_shared<std::string>();
   add_out_option(cmd, *out, "dataset directory")->required();
   cmd->add_option("--embodiment", o->embodiment, "human (action-free video) or robot (joint actions)")
       ->check(CLI::IsMember({"human", "robot"}))
@@ -58,12 +60,26 @@ void add_generate(CLI::App& sim) {
          "Robot train split: share of episodes moving the arm at random (play) instead of the bin task")
       ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
+  cmd->add_option("--policies", *policies,
+                  "Robot train split: the episodes run the policies of this policy-set file in turn (as "
+                  "`policy eval --policies`; scripted policies only), or 'default' for the built-in set "
+                  "of 13, instead of the expert/good/medium mix");
   add_json_option(cmd, *json);
   cmd->callback([=] {
     set_action([=] {
       const auto [h, w] = parse_size(*size);
       o->height = static_cast<int>(h);
       o->width = static_cast<int>(w);
+      if (!policies->empty()) {
+        const auto specs =
+            *policies == "default" ? recipes::default_policy_set() : recipes::read_policy_set(*policies);
+        for (const auto& spec : specs) {
+          if (!spec.scripted())
+            throw UsageError(*policies + ": policy '" + spec.name +
+                             "' is not scripted; only scripted policies can generate data");
+          o->policies.push_back({spec.name, recipes::scripted_policy_options(spec)});
+        }
+      }
       const auto summary = sim::generate_dataset(*out, *o);
       nlohmann::json j = {
           {"out", *out},
@@ -104,7 +120,7 @@ void add_render(CLI::App& sim) {
   cmd->add_option("--size", *size, "Frame size HEIGHTxWIDTH")->capture_default_str();
   add_seed_option(cmd, *seed);
   cmd->add_option("--steps", *steps, "Control steps (frames) at 10 Hz")->capture_default_str();
-  cmd->add_option("--behavior", *behavior, "Robot: bin_pick, pat, reach_miss, push, random_motion")
+  cmd->add_option("--behavior", *behavior, "Robot: bin_pick, pat, reach_miss, push, random_motion, idle")
       ->capture_default_str();
   cmd->add_option("--quality", *quality, "Robot bin policy: expert, good, medium, poor")
       ->capture_default_str();

@@ -40,13 +40,6 @@ struct WmTrainArgs {
   bool absolute_actions = false, whole_clip_actions = false, standardize_actions = false;
 };
 
-models::DitConfig model_preset(const std::string& name) {
-  if (name == "small") return models::DitConfig::small();
-  if (name == "2b") return models::DitConfig::released_2b();
-  if (name == "14b") return models::DitConfig::released_14b();
-  throw UsageError("--model must be small, 2b or 14b (got '" + name + "')");
-}
-
 void add_device_options(CLI::App* cmd, std::string& device, std::string& precision) {
   add_device_option(cmd, device);
   add_precision_option(cmd, precision);
@@ -73,7 +66,7 @@ int run_wm_train(const WmTrainArgs& a) {
   }
   job.out = a.out;
   job.init = a.init;
-  job.model = model_preset(a.model);
+  job.model = dit_architecture(a.model, "--model");
   if (a.whole_clip_actions) job.model.whole_clip_actions = 12;
   job.options.lr = a.lr;
   job.options.weight_decay = a.weight_decay;
@@ -240,9 +233,12 @@ void register_wm(CLI::App& app) {
   train_cmd->add_option(
       "--actions", t->actions,
       "dataset | latent | none | ground-truth (default: latent for pretrain, else dataset)");
-  train_cmd->add_option("--init", t->init, "Pretrained world-model checkpoint (posttrain)");
+  train_cmd->add_option("--init", t->init,
+                        "Pretrained world-model checkpoint (posttrain; a post-trained one with the same "
+                        "action slots is continued: its action layer and ranges kept)");
   add_out_option(train_cmd, t->out, "directory for checkpoint/, loss.csv and the latent caches")->required();
-  train_cmd->add_option("--model", t->model, "Network size: small | 2b | 14b")->capture_default_str();
+  train_cmd->add_option("--model", t->model, "Network size: small | 2b | 14b (or student_2b, tiny)")
+      ->capture_default_str();
   train_cmd->add_option("--steps", t->steps, "Total optimiser steps")->capture_default_str();
   train_cmd->add_option("--minutes", t->minutes,
                         "Stop (and checkpoint) after this many minutes; 0 = no limit");

@@ -34,14 +34,6 @@ struct SpeedArgs {
   bool json = false, fp32_weights = false, no_inference_mode = false;
 };
 
-models::DitConfig architecture(const std::string& name) {
-  if (name == "student_2b") return models::DitConfig::student_2b();
-  if (name == "released_2b") return models::DitConfig::released_2b();
-  if (name == "small") return models::DitConfig::small();
-  if (name == "tiny") return models::DitConfig::golden_tiny();
-  throw UsageError("--arch: unknown architecture '" + name + "' (student_2b, released_2b, small or tiny)");
-}
-
 // The networks of one run, built once and shared by the engines of every decoder row.
 struct Networks {
   models::ActionDit net{nullptr};
@@ -63,7 +55,7 @@ Networks build_networks(const SpeedArgs& a) {
     n.description = a.checkpoint;
   } else {
     torch::manual_seed(a.seed);
-    n.net = models::ActionDit(architecture(a.arch));
+    n.net = models::ActionDit(dit_architecture(a.arch, "--arch"));
     models::WanVaeConfig vae;
     vae.dim = a.vae_dim;
     n.tokenizer = models::WanVae(vae);
@@ -173,7 +165,8 @@ void register_wm_speed(CLI::App& wm) {
       "speed",
       "Time the streaming student (random weights of an architecture, or a checkpoint) per decoder: "
       "frames/s, step latency, stages, memory");
-  cmd->add_option("--arch", a->arch, "Random-weight network: student_2b | released_2b | small | tiny")
+  cmd->add_option("--arch", a->arch,
+                  "Random-weight network: student_2b | 2b (released_2b) | 14b | small | tiny")
       ->capture_default_str();
   cmd->add_option("--checkpoint", a->checkpoint, "Time this student checkpoint instead (needs --tokenizer)");
   cmd->add_option("--tokenizer", a->tokenizer, "The checkpoint's tokenizer");

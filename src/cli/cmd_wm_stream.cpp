@@ -146,9 +146,10 @@ int run_stream(StreamArgs a) {
     recorded = clip.actions;             // [48, 384]
   }
   if (engine.action_ranges().size() == 1) {
-    const auto& [slot, stats] = *engine.action_ranges().items().begin();
-    chunker.emplace(data::slot_by_name(slot),
-                    data::ArrayStats::from_json(stats, "world model actions." + slot));
+    // begin() of the object itself: a binding to *items().begin() would outlive its iterator.
+    const auto range = engine.action_ranges().begin();
+    chunker.emplace(data::slot_by_name(range.key()),
+                    data::ArrayStats::from_json(range.value(), "world model actions." + range.key()));
   }
   std::ifstream file;
   std::unique_ptr<ActionLines> lines;

@@ -10,6 +10,7 @@
 #include "core/log.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
+#include "models/dit.h"
 #ifdef DOJO_WITH_SIM
 #include "sim/generate.h"
 #endif
@@ -79,6 +80,15 @@ infer::SamplerOptions ModelArgs::sampler(const infer::WorldModel& model) const {
   s.action_guidance = action_guidance;
   s.solver = infer::parse_solver(solver);
   return s;
+}
+
+models::DitConfig dit_architecture(const std::string& name, const std::string& flag) {
+  if (name == "small") return models::DitConfig::small();
+  if (name == "2b" || name == "released_2b") return models::DitConfig::released_2b();
+  if (name == "14b" || name == "released_14b") return models::DitConfig::released_14b();
+  if (name == "student_2b") return models::DitConfig::student_2b();
+  if (name == "tiny") return models::DitConfig::golden_tiny();
+  throw UsageError(flag + ": unknown architecture '" + name + "' (small, 2b, 14b, student_2b or tiny)");
 }
 
 void SinkArgs::add_options(CLI::App* cmd) {

@@ -7,6 +7,9 @@
 namespace CLI {
 class App;
 }
+namespace dojo::models {
+struct DitConfig;
+}
 namespace dojo::infer {
 class WorldModel;
 struct SamplerOptions;
@@ -37,6 +40,11 @@ struct ModelArgs {
   // The model's trained sampler with the options given on the command line.
   infer::SamplerOptions sampler(const infer::WorldModel& model) const;
 };
+
+// The DiT architectures the commands that build one accept, by name: small (DojoSim scale), 2b or
+// released_2b, 14b or released_14b, student_2b (the causal student: 2B with a longer RoPE table),
+// tiny (the golden fixtures'). Throws UsageError naming `flag` for any other name.
+models::DitConfig dit_architecture(const std::string& name, const std::string& flag);
 
 // --sink-frames / --sink-position for the commands that stream a student; -1 / empty keep the
 // student's own settings.

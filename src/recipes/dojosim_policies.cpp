@@ -52,39 +52,10 @@ std::unique_ptr<sim::World> start_world(const eval::EpisodeStart& start) {
   return world;
 }
 
-sim::PolicyQuality quality_from_json(const nlohmann::json& j, const std::string& where) {
-  if (j.is_string()) return sim::PolicyQuality::preset(j.get<std::string>());
-  DOJO_CHECK(j.is_object(), where + ": 'quality' must be a preset name or an object of knobs");
-  sim::PolicyQuality q;
-  const JsonFields f(j, where + ".quality");
-  int64_t delay = q.delay_steps;
-  f.get("noise_std", q.noise_std);
-  f.get("delay_steps", delay);
-  f.get("miss_prob", q.miss_prob);
-  f.get("wrong_target_prob", q.wrong_target_prob);
-  f.get("wrong_object_prob", q.wrong_object_prob);
-  f.get("early_release_prob", q.early_release_prob);
-  f.get("speed", q.speed);
-  q.delay_steps = static_cast<int>(delay);
-  static const std::set<std::string> kKnown = {
-      "noise_std",         "delay_steps",        "miss_prob", "wrong_target_prob",
-      "wrong_object_prob", "early_release_prob", "speed"};
-  for (const auto& [key, value] : j.items())
-    DOJO_CHECK(kKnown.count(key), where + ".quality: unknown knob '" + key + "'");
-  for (double p : {q.miss_prob, q.wrong_target_prob, q.wrong_object_prob, q.early_release_prob})
-    DOJO_CHECK(p >= 0 && p <= 1, where + ".quality: probabilities must be in [0, 1]");
-  DOJO_CHECK(q.noise_std >= 0, where + ".quality: noise_std must be >= 0");
-  return q;
-}
-
 class ScriptedPolicy : public eval::Policy {
  public:
-  explicit ScriptedPolicy(PolicySpec spec) : spec_(std::move(spec)) {
-    if (spec_.behavior != "idle") {
-      options_.behavior = sim::parse_robot_behavior(spec_.behavior);
-      options_.quality = quality_from_json(spec_.quality, "policy '" + spec_.name + "'");
-    }
-  }
+  explicit ScriptedPolicy(PolicySpec spec)
+      : spec_(std::move(spec)), options_(scripted_policy_options(spec_)) {}
   const std::string& name() const override { return spec_.name; }
   bool open_loop() const override { return true; }
   void reset(const eval::EpisodeStart& start) override {
@@ -92,12 +63,9 @@ class ScriptedPolicy : public eval::Policy {
     world_ = start_world(start);
     // Each policy draws its own randomness per scene.
     controller_ =
-        spec_.behavior == "idle"
-            ? nullptr
-            : sim::make_robot_controller(*world_, options_, start.seed * 1000003 + stable_hash(spec_.name));
+        sim::make_robot_controller(*world_, options_, start.seed * 1000003 + stable_hash(spec_.name));
   }
-  torch::Tensor act(const torch::Tensor&, const torch::Tensor& last_command, int64_t n) override {
-    if (!controller_) return last_command.unsqueeze(0).expand({n, last_command.numel()}).clone();
+  torch::Tensor act(const torch::Tensor&, const torch::Tensor&, int64_t n) override {
     std::vector<torch::Tensor> rows;
     for (int64_t i = 0; i < n; ++i) {
       const auto command = controller_->act(*world_, step_++);
@@ -162,6 +130,14 @@ double DojoSimEnvironment::success_now() const {
   return sim::bin_success(*world_);
 }
 
+sim::RobotPolicyOptions scripted_policy_options(const PolicySpec& spec) {
+  DOJO_CHECK(spec.scripted(), "policy '" + spec.name + "' is not a scripted one");
+  sim::RobotPolicyOptions options;
+  options.behavior = sim::parse_robot_behavior(spec.behavior);
+  options.quality = sim::PolicyQuality::from_json(spec.quality, "policy '" + spec.name + "'");
+  return options;
+}
+
 std::unique_ptr<eval::Policy> make_scripted_policy(const PolicySpec& spec) {
   DOJO_CHECK(!spec.name.empty(), "scripted policy: a name is needed");
   DOJO_CHECK(spec.scripted(), "policy '" + spec.name + "' is not a scripted one");
@@ -175,20 +151,27 @@ std::vector<PolicySpec> default_policy_set() {
     for (const auto& [key, value] : k) j[key] = value;
     return j;
   };
+  const auto scripted = [](const char* name, const char* behavior, nlohmann::json quality) {
+    PolicySpec spec;
+    spec.name = name;
+    spec.behavior = behavior;
+    spec.quality = std::move(quality);
+    return spec;
+  };
   return {
-      {"expert", "bin_pick", "expert"},
-      {"good", "bin_pick", "good"},
-      {"medium", "bin_pick", "medium"},
-      {"poor", "bin_pick", "poor"},
-      {"slow", "bin_pick", knobs({{"speed", 0.6}})},
-      {"noisy", "bin_pick", knobs({{"noise_std", 0.05}})},
-      {"very-noisy", "bin_pick", knobs({{"noise_std", 0.1}})},
-      {"late", "bin_pick", knobs({{"delay_steps", 3}, {"noise_std", 0.02}})},
-      {"misses-half", "bin_pick", knobs({{"miss_prob", 0.5}})},
-      {"drops-half", "bin_pick", knobs({{"early_release_prob", 0.5}})},
-      {"wrong-place", "bin_pick", knobs({{"wrong_target_prob", 0.8}})},
-      {"random", "random_motion", "expert"},
-      {"idle", "idle", "expert"},
+      scripted("expert", "bin_pick", "expert"),
+      scripted("good", "bin_pick", "good"),
+      scripted("medium", "bin_pick", "medium"),
+      scripted("poor", "bin_pick", "poor"),
+      scripted("slow", "bin_pick", knobs({{"speed", 0.6}})),
+      scripted("noisy", "bin_pick", knobs({{"noise_std", 0.05}})),
+      scripted("very-noisy", "bin_pick", knobs({{"noise_std", 0.1}})),
+      scripted("late", "bin_pick", knobs({{"delay_steps", 3}, {"noise_std", 0.02}})),
+      scripted("misses-half", "bin_pick", knobs({{"miss_prob", 0.5}})),
+      scripted("drops-half", "bin_pick", knobs({{"early_release_prob", 0.5}})),
+      scripted("wrong-place", "bin_pick", knobs({{"wrong_target_prob", 0.8}})),
+      scripted("random", "random_motion", "expert"),
+      scripted("idle", "idle", "expert"),
   };
 }
 

@@ -25,6 +25,7 @@
 namespace dojo::sim {
 class Renderer;
 class World;
+struct RobotPolicyOptions;
 }  // namespace dojo::sim
 
 namespace dojo::recipes {
@@ -55,14 +56,14 @@ class DojoSimEnvironment : public eval::Environment {
 };
 
 // One policy of an evaluation, as a policy-set file names it. Scripted (the default): DojoSim's bin
-// policy at a quality (sim::PolicyQuality) or another behaviour ("idle": hold the start command;
-// "random_motion", "push", ... as in sim/skills.h). Learned: a behaviour-cloning checkpoint
+// policy at a quality (sim::PolicyQuality) or another behaviour ("idle", "random_motion", "push",
+// ... as in sim/skills.h). Learned: a behaviour-cloning checkpoint
 // (models/bc_policy.h). External: a command whose process speaks the step protocol
 // (serve/external_policy.h). The CLI turns specs into policies (learned and external ones need
 // layers beside this one).
 struct PolicySpec {
   std::string name;
-  std::string behavior = "bin_pick";  // idle, or a sim::RobotBehavior name (bin_pick, random_motion, ...)
+  std::string behavior = "bin_pick";  // a sim::RobotBehavior name (bin_pick, idle, random_motion, ...)
   nlohmann::json quality = "expert";  // a preset name or {noise_std, delay_steps, miss_prob, ...}
   std::filesystem::path checkpoint;   // non-empty: a learned policy
   std::string command;                // non-empty: an external policy
@@ -71,6 +72,9 @@ struct PolicySpec {
 };
 // Throws dojo::Error unless `spec` is scripted.
 std::unique_ptr<eval::Policy> make_scripted_policy(const PolicySpec& spec);
+// What the simulator runs for a scripted spec (its behaviour and quality knobs); throws dojo::Error
+// naming the policy for an unknown behaviour or knob.
+sim::RobotPolicyOptions scripted_policy_options(const PolicySpec& spec);
 
 // The built-in policy set: 13 scripted policies from expert to idle.
 std::vector<PolicySpec> default_policy_set();

@@ -16,6 +16,7 @@
 #include <thread>
 
 #include "core/error.h"
+#include "infer/stream_stats.h"
 
 namespace dojo::serve {
 
@@ -46,12 +47,6 @@ double metric(const std::string& text, const std::string& name) {
   const std::regex line("(^|\n)" + name + " ([0-9.e+]+)");
   std::smatch m;
   return std::regex_search(text, m, line) ? std::stod(m[2]) : 0.0;
-}
-
-double percentile(std::vector<double> xs, double p) {
-  if (xs.empty()) return 0;
-  std::sort(xs.begin(), xs.end());
-  return xs[std::min(xs.size() - 1, static_cast<size_t>(p * xs.size()))];
 }
 
 struct SessionResult {
@@ -247,10 +242,10 @@ LoadReport run_load(const LoadOptions& o) {
     latencies.insert(latencies.end(), r.latencies_ms.begin(), r.latencies_ms.end());
     steps.insert(steps.end(), r.server_step_ms.begin(), r.server_step_ms.end());
   }
-  report.server_step_ms_p50 = percentile(steps, 0.5);
-  report.server_step_ms_p95 = percentile(steps, 0.95);
-  report.latency_ms_p50 = percentile(latencies, 0.5);
-  report.latency_ms_p95 = percentile(latencies, 0.95);
+  report.server_step_ms_p50 = infer::percentile(steps, 0.5);
+  report.server_step_ms_p95 = infer::percentile(steps, 0.95);
+  report.latency_ms_p50 = infer::percentile(latencies, 0.5);
+  report.latency_ms_p95 = infer::percentile(latencies, 0.95);
   report.server_rss_mib_before = metric(before, "process_resident_memory_bytes") / (1 << 20);
   report.server_rss_mib_after = metric(after, "process_resident_memory_bytes") / (1 << 20);
   report.frames_dropped = static_cast<int64_t>(metric(after, "dojo_frames_dropped_total") -

@@ -42,6 +42,13 @@ nlohmann::json GenerateOptions::to_json() const {
       {"skills", skills},         {"quality", quality}};
   // Recorded only when used, so runs from before the option still resume.
   if (play_fraction > 0) j["play_fraction"] = play_fraction;
+  if (!policies.empty()) {
+    auto& list = j["policies"] = nlohmann::json::array();
+    for (const auto& p : policies)
+      list.push_back({{"name", p.name},
+                      {"behavior", to_string(p.options.behavior)},
+                      {"quality", p.options.quality.to_json()}});
+  }
   return j;
 }
 
@@ -50,7 +57,8 @@ namespace {
 // Everything one episode needs, derived from (options, index) only.
 struct PlannedEpisode {
   EpisodeSpec spec;
-  std::string split;  // the split label stored in info.json
+  std::string split;   // the split label stored in info.json
+  std::string policy;  // GenerateOptions::policies: the one drawn; empty otherwise
 };
 
 int default_frames(const GenerateOptions& o) { return o.split == "long-horizon" ? 600 : 64; }
@@ -87,12 +95,16 @@ PlannedEpisode plan_episode(const GenerateOptions& o, int index) {
     } else if (o.split == "train" && o.play_fraction > 0 &&
                data::uniform_index(rng, 1000000) < static_cast<uint64_t>(o.play_fraction * 1000000)) {
       controller.robot.behavior = RobotBehavior::kRandomMotion;
+    } else if (o.split == "train" && !o.policies.empty()) {
+      const auto& drawn = o.policies[static_cast<size_t>(index) % o.policies.size()];  // in turn: balanced
+      controller.robot = drawn.options;
+      plan.policy = drawn.name;
     } else if (o.split != "train") {
       std::string names;
       for (const auto& n : split_names()) names += (names.empty() ? "" : ", ") + n;
       throw UsageError("unknown split '" + o.split + "' (known: " + names + ")");
     }
-    if (controller.robot.behavior == RobotBehavior::kBinPick) {
+    if (controller.robot.behavior == RobotBehavior::kBinPick && plan.policy.empty()) {
       std::string preset = o.quality;
       if (preset.empty()) {
         // Training data mixes policy skill so the world model sees failures as well as success.
@@ -224,6 +236,11 @@ GenerateSummary generate_dataset(const fs::path& out, const GenerateOptions& opt
   DOJO_CHECK(options.width >= 16 && options.height >= 16 && options.width <= 1280 && options.height <= 960,
              "--size must be between 16x16 and 960x1280");
   (void)parse_embodiment(options.embodiment);
+  if (!options.policies.empty()) {
+    DOJO_CHECK(options.embodiment == "robot" && options.split == "train",
+               "--policies: only the robot train split runs a policy set");
+    DOJO_CHECK(options.quality.empty(), "--policies and --quality both choose the policy; give one");
+  }
 
   // Plan everything up front: a bad option fails before any work is done.
   std::vector<PlannedEpisode> plans;
@@ -272,6 +289,7 @@ GenerateSummary generate_dataset(const fs::path& out, const GenerateOptions& opt
         data::EpisodeData episode = to_episode_data(record);
         episode.meta["split"] = plans[index].split;
         episode.meta["episode_index"] = index;
+        if (!plans[index].policy.empty()) episode.meta["policy"] = plans[index].policy;
         data::write_episode(out / "episodes" / episode_id(index), episode, 10.0);
         frames += static_cast<int64_t>(record.frames.size());
         std::lock_guard<std::mutex> lock(mutex);

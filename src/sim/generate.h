@@ -11,6 +11,8 @@
 
 #include <nlohmann/json.hpp>
 
+#include "sim/skills.h"
+
 namespace dojo::sim {
 
 // The benchmark splits mirroring the paper's evaluation.
@@ -39,6 +41,16 @@ struct GenerateOptions {
   // the next motion predictable from the scene; play data is where a world model must read the
   // actions to know where the arm goes.
   double play_fraction = 0;
+  // Robot train split: each episode that is not play runs one of these in turn (episode i the
+  // (i mod n)-th; a named behaviour and quality: a policy set, as `dojo policy eval` uses) instead
+  // of the expert/good/medium mix; the name goes into the episode's meta as "policy". A world
+  // model trained only on near-expert demonstrations has never seen an arm hold still, dawdle or
+  // drop its object, and evaluating such policies in it needs it to have.
+  struct NamedPolicy {
+    std::string name;
+    RobotPolicyOptions options;
+  };
+  std::vector<NamedPolicy> policies;
 
   nlohmann::json to_json() const;
 };

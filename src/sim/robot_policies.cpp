@@ -5,8 +5,10 @@
 #include <algorithm>
 #include <cmath>
 #include <deque>
+#include <set>
 
 #include "core/error.h"
+#include "core/json_file.h"
 #include "sim/rng.h"
 #include "sim/robot_arm.h"
 #include "sim/skill_script.h"
@@ -144,6 +146,9 @@ class RobotController : public Controller {
         break;
       case RobotBehavior::kRandomMotion:
         plan_random(w, now);
+        break;
+      case RobotBehavior::kIdle:  // made a HoldController instead; kept for a complete switch
+        script_.wait(1.0);
         break;
     }
   }
@@ -362,6 +367,15 @@ class RobotController : public Controller {
   nlohmann::json log_;
 };
 
+// The policy that does nothing: every command is the one the arm already holds (after the settle
+// steps, the start pose), so the world stays as it is unless something else moves it.
+class HoldController : public Controller {
+ public:
+  std::vector<double> act(const World& world, int) override { return world.last_command(); }
+  std::string task_text() const override { return "hold still"; }
+  nlohmann::json describe() const override { return {{"behavior", "idle"}}; }
+};
+
 }  // namespace
 
 // ================================================================================================
@@ -393,6 +407,31 @@ PolicyQuality PolicyQuality::preset(const std::string& name) {
   throw UsageError("unknown policy quality '" + name + "' (expected expert, good, medium or poor)");
 }
 
+PolicyQuality PolicyQuality::from_json(const nlohmann::json& j, const std::string& where) {
+  if (j.is_string()) return preset(j.get<std::string>());
+  DOJO_CHECK(j.is_object(), where + ": 'quality' must be a preset name or an object of knobs");
+  PolicyQuality q;
+  const JsonFields f(j, where + ".quality");
+  int64_t delay = q.delay_steps;
+  f.get("noise_std", q.noise_std);
+  f.get("delay_steps", delay);
+  f.get("miss_prob", q.miss_prob);
+  f.get("wrong_target_prob", q.wrong_target_prob);
+  f.get("wrong_object_prob", q.wrong_object_prob);
+  f.get("early_release_prob", q.early_release_prob);
+  f.get("speed", q.speed);
+  q.delay_steps = static_cast<int>(delay);
+  static const std::set<std::string> kKnown = {
+      "noise_std",         "delay_steps",        "miss_prob", "wrong_target_prob",
+      "wrong_object_prob", "early_release_prob", "speed"};
+  for (const auto& [key, value] : j.items())
+    DOJO_CHECK(kKnown.count(key), where + ".quality: unknown knob '" + key + "'");
+  for (double p : {q.miss_prob, q.wrong_target_prob, q.wrong_object_prob, q.early_release_prob})
+    DOJO_CHECK(p >= 0 && p <= 1, where + ".quality: probabilities must be in [0, 1]");
+  DOJO_CHECK(q.noise_std >= 0, where + ".quality: noise_std must be >= 0");
+  return q;
+}
+
 nlohmann::json PolicyQuality::to_json() const {
   return {{"noise_std", noise_std},
           {"delay_steps", delay_steps},
@@ -415,16 +454,18 @@ const char* to_string(RobotBehavior behavior) {
       return "push";
     case RobotBehavior::kRandomMotion:
       return "random_motion";
+    case RobotBehavior::kIdle:
+      return "idle";
   }
   return "?";
 }
 
 RobotBehavior parse_robot_behavior(const std::string& name) {
-  for (int i = 0; i <= static_cast<int>(RobotBehavior::kRandomMotion); ++i) {
+  for (int i = 0; i <= static_cast<int>(RobotBehavior::kIdle); ++i) {
     if (name == to_string(static_cast<RobotBehavior>(i))) return static_cast<RobotBehavior>(i);
   }
   throw UsageError("unknown robot behavior '" + name +
-                   "' (expected bin_pick, pat, reach_miss, push or random_motion)");
+                   "' (expected bin_pick, pat, reach_miss, push, random_motion or idle)");
 }
 
 std::unique_ptr<Controller> make_robot_controller(const World& world, const RobotPolicyOptions& options,
@@ -434,6 +475,7 @@ std::unique_ptr<Controller> make_robot_controller(const World& world, const Robo
              "policy quality: speed must be in (0.1, 10)");
   DOJO_CHECK(options.quality.delay_steps >= 0 && options.quality.delay_steps < 100,
              "policy quality: delay_steps must be in [0, 100)");
+  if (options.behavior == RobotBehavior::kIdle) return std::make_unique<HoldController>();
   return std::make_unique<RobotController>(world, options, seed);
 }
 

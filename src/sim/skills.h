@@ -11,7 +11,7 @@
 // joint targets by the analytic IK in robot_arm.h. The bin policy is closed-loop per attempt:
 // each attempt targets the nearest object not yet in the bin, using its current pose. Quality
 // knobs degrade it in controlled ways (PolicyQuality). Counterfactual behaviours (pat,
-// reach-and-miss, push, random smooth joint motion) reuse the same machinery.
+// reach-and-miss, push, random smooth joint motion) reuse the same machinery; idle holds still.
 #pragma once
 
 #include <cstdint>
@@ -72,6 +72,9 @@ struct PolicyQuality {
 
   // Named presets: "expert", "good", "medium", "poor". Throws dojo::UsageError otherwise.
   static PolicyQuality preset(const std::string& name);
+  // A preset name or an object of the knobs above (absent ones keep their defaults); unknown knobs
+  // and out-of-range values throw dojo::Error naming `where`.
+  static PolicyQuality from_json(const nlohmann::json& j, const std::string& where);
   nlohmann::json to_json() const;
 };
 
@@ -81,6 +84,7 @@ enum class RobotBehavior {
   kReachMiss,     // reach for an object, grasp beside it, lift nothing
   kPush,          // push an object sideways with the closed gripper
   kRandomMotion,  // random smooth joint-space motion
+  kIdle,          // hold the settled start command: a policy that does nothing (quality ignored)
 };
 const char* to_string(RobotBehavior behavior);
 RobotBehavior parse_robot_behavior(const std::string& name);  // throws dojo::UsageError

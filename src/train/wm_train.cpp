@@ -302,10 +302,20 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   const bool resuming = checkpoint_exists(ckpt_dir);
   std::vector<data::DatasetInfo> infos;  // each dataset opened once
   for (const auto& spec : job.data) infos.push_back(data::open_dataset(spec.dataset)->info());
+  // Post-training from a model already post-trained on every robot slot of these datasets continues
+  // it (more or other robot data): its action layer and its action ranges stay, since new ranges
+  // would move every action it has learned to read.
+  nlohmann::json init_ranges = nlohmann::json::object();
+  if (!resuming && job.stage == WmStage::kPosttrain && !job.init.empty() && checkpoint_exists(job.init))
+    init_ranges = Checkpoint::open(resolve_checkpoint_dir(job.init)).config().value("actions", init_ranges);
+  bool continuing = !init_ranges.empty();
+  for (const auto& info : infos)
+    if (!info.action_slot.empty() && !init_ranges.contains(info.action_slot)) continuing = false;
   const auto action_ranges = resuming ? Checkpoint::open(resolve_checkpoint_dir(ckpt_dir))
                                             .config()
                                             .value("actions", nlohmann::json::object())
-                                      : robot_action_ranges(infos);
+                             : continuing ? init_ranges
+                                          : robot_action_ranges(infos);
   std::vector<LatentClips> sets;
   for (size_t i = 0; i < job.data.size(); ++i) {
     auto spec = job.data[i];
@@ -329,7 +339,10 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
     net.emplace(models::load_world_model(job.init));
     // A new action space: the first layer of both action MLPs starts afresh; everything else
     // (including fc2, which pretraining taught to speak adaLN) is fine-tuned.
-    (*net)->reinit_action_input_layer();
+    if (continuing)
+      LOG_INFO("wm train: ", job.init.string(), " is post-trained on these action slots; continuing it");
+    else
+      (*net)->reinit_action_input_layer();
   } else {
     net.emplace(job.model);
   }

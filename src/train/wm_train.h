@@ -109,7 +109,7 @@ struct WmTrainJob {
   WmStage stage = WmStage::kPretrain;
   std::vector<LatentCacheSpec> data;
   std::filesystem::path out;   // out/checkpoint, out/loss.csv, out/latents-<i>.safetensors
-  std::filesystem::path init;  // posttrain: the pretrained checkpoint
+  std::filesystem::path init;  // posttrain: the pretrained checkpoint (a post-trained one: continued)
   models::DitConfig model = models::DitConfig::small();
   WmTrainOptions options;
   int batch_size = 8;

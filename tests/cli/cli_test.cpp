@@ -1,4 +1,6 @@
 // End-to-end checks of the `dojo` executable: help, version JSON, bad usage.
+#include <algorithm>
+#include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -96,6 +98,39 @@ TEST(Cli, SharedOptionsReadTheSameEverywhere) {
     }
   }
 }
+
+#ifdef DOJO_WITH_SIM
+// `sim generate --policies`: the built-in set by name, a file's scripted policies in turn, and a
+// policy the simulator cannot run refused in one line naming the file and the policy.
+TEST(Cli, SimGenerateRunsAPolicySetInTurn) {
+  test::TempDir tmp;
+  const std::string common =
+      "sim generate --embodiment robot --episodes 2 --frames 12 --size 32x32 --workers 1";
+  auto r = test::run_dojo(common + " --policies default --out " + (tmp / "set").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto policy = [&](const std::string& dir, int episode) {
+    return nlohmann::json::parse(
+               test::read_file(tmp / dir / "episodes" / ("00000" + std::to_string(episode)) / "meta.json"))
+        .at("policy")
+        .get<std::string>();
+  };
+  EXPECT_EQ(policy("set", 0), "expert");  // the first two of the built-in set
+  EXPECT_EQ(policy("set", 1), "good");
+  std::ofstream(tmp / "mine.json")
+      << R"({"policies": [{"name": "still", "behavior": "idle"}, {"name": "shaky", "quality": {"noise_std": 0.1}}]})";
+  r = test::run_dojo(common + " --val-fraction 0 --policies " + (tmp / "mine.json").string() + " --out " +
+                     (tmp / "mine").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_EQ(policy("mine", 0), "still");
+  EXPECT_EQ(policy("mine", 1), "shaky");
+  std::ofstream(tmp / "remote.json") << R"({"policies": [{"name": "remote", "command": "true"}]})";
+  r = test::run_dojo(common + " --policies " + (tmp / "remote.json").string() + " --out " +
+                     (tmp / "r").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("remote.json: policy 'remote' is not scripted"), std::string::npos) << r.output;
+  EXPECT_EQ(std::count(r.output.begin(), r.output.end(), '\n'), 1) << r.output;
+}
+#endif
 
 TEST(Cli, NoCommandFails) {
   const auto result = test::run_dojo("");

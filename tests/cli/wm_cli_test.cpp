@@ -58,6 +58,28 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   EXPECT_EQ(config["actions"].begin().value().at("min"), stats.at("min"));
   EXPECT_EQ(config["actions"].begin().value().at("max"), stats.at("max"));
 
+  // Post-training the post-trained model on other data of the same action slot continues it: the
+  // action layer is not re-initialised (one step at a tiny rate leaves it where it was) and the
+  // action ranges stay the model's, not the new data's.
+  test::SyntheticOptions other = g;
+  other.seed = 7;
+  test::write_synthetic_dataset(tmp / "robot2", other);
+  const auto other_stats =
+      nlohmann::json::parse(test::read_file(tmp / "robot2" / "info.json")).at("stats").at("action");
+  ASSERT_NE(other_stats.at("max"), stats.at("max"));
+  r = test::run_dojo("--threads 1 wm train --stage posttrain --steps 1 --lr 1e-9 --data " +
+                     (tmp / "robot2").string() + " --tokenizer " + tok + " --batch 2 --hop 4 --init " +
+                     (tmp / "p" / "checkpoint").string() + " --out " + (tmp / "p2").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("continuing it"), std::string::npos) << r.output;
+  const auto continued = nlohmann::json::parse(test::read_file(tmp / "p2" / "checkpoint" / "config.json"));
+  EXPECT_EQ(continued.at("actions"), config.at("actions"));
+  const std::string fc1 = "net.action_embedder_B_D.fc1.weight";
+  const auto before = SafetensorsFile::open(tmp / "p" / "checkpoint" / "model.safetensors").tensor(fc1);
+  const auto after = SafetensorsFile::open(tmp / "p2" / "checkpoint" / "model.safetensors").tensor(fc1);
+  EXPECT_LT((after.to(torch::kFloat32) - before.to(torch::kFloat32)).abs().max().item<float>(), 1e-5)
+      << "the action layer was re-initialised";
+
   // LPIPS with random weights: the wiring is what is tested here (values are checked in metrics_test).
   torch::manual_seed(0);
   eval::LpipsVgg lpips;

@@ -114,4 +114,45 @@ TEST(Generate, EvaluationSplits) {
   EXPECT_THROW(generate_dataset(tmp / "bad", bad), Error);
 }
 
+TEST(Generate, PolicySetTakesTurnsAndIdleHoldsStill) {
+  test::TempDir tmp;
+  auto o = small("robot", 6);
+  o.val_fraction = 0;
+  GenerateOptions::NamedPolicy idle{"idle", {}}, slow{"slow", {}};
+  idle.options.behavior = RobotBehavior::kIdle;
+  slow.options.quality.speed = 0.6;
+  o.policies = {idle, slow};
+  generate_dataset(tmp / "p", o);
+  const auto store = data::EpisodeStore::open(tmp / "p");
+  std::map<std::string, int> drawn;
+  for (size_t i = 0; i < store.size(); ++i) {
+    const auto episode = store.load_arrays(i);
+    const auto name = episode.meta.at("policy").get<std::string>();
+    ++drawn[name];
+    const auto moved = (episode.actions - episode.actions[0]).abs().max().item<float>();  // [T, 6] vs row 0
+    if (name == "idle") {
+      EXPECT_EQ(moved, 0.0f) << "episode " << i << ": an idle policy's commands change";
+      EXPECT_EQ(episode.meta.at("success").get<double>(), 0.0) << "episode " << i;
+    } else {
+      EXPECT_GT(moved, 0.1f) << "episode " << i << ": the slow bin policy never moves";
+    }
+  }
+  EXPECT_EQ(drawn, (std::map<std::string, int>{{"idle", 3}, {"slow", 3}}))
+      << "the policies do not take turns";
+  // The set is part of the run's identity: another set in the same directory is refused.
+  o.policies = {idle};
+  const auto message = test::error_message([&] { generate_dataset(tmp / "p", o); });
+  EXPECT_NE(message.find("policies"), std::string::npos) << message;
+  // A set and a quality preset both choose the policy; human data runs no robot policy.
+  auto both = small("robot", 1);
+  both.policies = {idle};
+  both.quality = "poor";
+  EXPECT_NE(test::error_message([&] { generate_dataset(tmp / "both", both); }).find("--quality"),
+            std::string::npos);
+  auto human = small("human", 1);
+  human.policies = {idle};
+  EXPECT_NE(test::error_message([&] { generate_dataset(tmp / "human", human); }).find("robot train split"),
+            std::string::npos);
+}
+
 }  // namespace dojo::sim
