@@ -96,7 +96,7 @@ PlannedEpisode plan_episode(const GenerateOptions& o, int index) {
                data::uniform_index(rng, 1000000) < static_cast<uint64_t>(o.play_fraction * 1000000)) {
       controller.robot.behavior = RobotBehavior::kRandomMotion;
     } else if (o.split == "train" && !o.policies.empty()) {
-      const auto& drawn = o.policies[static_cast<size_t>(index) % o.policies.size()];  // in turn: balanced
+      const auto& drawn = o.policies[static_cast<size_t>(index) % o.policies.size()];  // in turn (play aside)
       controller.robot = drawn.options;
       plan.policy = drawn.name;
     } else if (o.split != "train") {
@@ -180,6 +180,11 @@ void claim_directory(const fs::path& out, const GenerateOptions& options) {
         throw Error(out.string() + ": holds a run with different options (" + key + " = " +
                     (existing.contains(key) ? existing[key].dump() : "absent") + ", asked " + value.dump() +
                     "); use another --out or the same options to resume");
+    // Options recorded only when used (play_fraction, policies): a run without one is another run.
+    for (const auto& [key, value] : existing.items())
+      if (!wanted.contains(key))
+        throw Error(out.string() + ": holds a run with different options (" + key + " = " + value.dump() +
+                    ", asked absent); use another --out or the same options to resume");
     return;
   }
   write_file_atomic(record, wanted.dump(2) + "\n");

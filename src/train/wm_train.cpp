@@ -305,12 +305,21 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   // Post-training from a model already post-trained on every robot slot of these datasets continues
   // it (more or other robot data): its action layer and its action ranges stay, since new ranges
   // would move every action it has learned to read.
+  // A pretrained model may record ranges too (robot data with --actions none): its action layer
+  // never read robot actions, so a checkpoint that says it was pretrained is not continued.
   nlohmann::json init_ranges = nlohmann::json::object();
-  if (!resuming && job.stage == WmStage::kPosttrain && !job.init.empty() && checkpoint_exists(job.init))
-    init_ranges = Checkpoint::open(resolve_checkpoint_dir(job.init)).config().value("actions", init_ranges);
-  bool continuing = !init_ranges.empty();
-  for (const auto& info : infos)
-    if (!info.action_slot.empty() && !init_ranges.contains(info.action_slot)) continuing = false;
+  if (!resuming && job.stage == WmStage::kPosttrain && !job.init.empty() && checkpoint_exists(job.init)) {
+    const auto init = Checkpoint::open(resolve_checkpoint_dir(job.init));
+    const bool pretrained = init.has_trainer_state() && init.trainer_extra().value("stage", "") == "pretrain";
+    if (!pretrained) init_ranges = init.config().value("actions", init_ranges);
+  }
+  bool continuing = !init_ranges.empty(), robot_data = false;
+  for (const auto& info : infos) {
+    if (info.action_slot.empty()) continue;
+    robot_data = true;
+    if (!init_ranges.contains(info.action_slot)) continuing = false;
+  }
+  continuing = continuing && robot_data;
   const auto action_ranges = resuming ? Checkpoint::open(resolve_checkpoint_dir(ckpt_dir))
                                             .config()
                                             .value("actions", nlohmann::json::object())

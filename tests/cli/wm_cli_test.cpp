@@ -67,7 +67,8 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   const auto other_stats =
       nlohmann::json::parse(test::read_file(tmp / "robot2" / "info.json")).at("stats").at("action");
   ASSERT_NE(other_stats.at("max"), stats.at("max"));
-  r = test::run_dojo("--threads 1 wm train --stage posttrain --steps 1 --lr 1e-9 --data " +
+  // Another seed: a re-initialised layer would not land on the weights it had before.
+  r = test::run_dojo("--threads 1 wm train --stage posttrain --steps 1 --lr 1e-9 --seed 1 --data " +
                      (tmp / "robot2").string() + " --tokenizer " + tok + " --batch 2 --hop 4 --init " +
                      (tmp / "p" / "checkpoint").string() + " --out " + (tmp / "p2").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
@@ -77,7 +78,7 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   const std::string fc1 = "net.action_embedder_B_D.fc1.weight";
   const auto before = SafetensorsFile::open(tmp / "p" / "checkpoint" / "model.safetensors").tensor(fc1);
   const auto after = SafetensorsFile::open(tmp / "p2" / "checkpoint" / "model.safetensors").tensor(fc1);
-  EXPECT_LT((after.to(torch::kFloat32) - before.to(torch::kFloat32)).abs().max().item<float>(), 1e-5)
+  EXPECT_LT((after.to(torch::kFloat32) - before.to(torch::kFloat32)).abs().max().item<float>(), 1e-7)
       << "the action layer was re-initialised";
 
   // LPIPS with random weights: the wiring is what is tested here (values are checked in metrics_test).

@@ -143,6 +143,9 @@ TEST(Generate, PolicySetTakesTurnsAndIdleHoldsStill) {
   o.policies = {idle};
   const auto message = test::error_message([&] { generate_dataset(tmp / "p", o); });
   EXPECT_NE(message.find("policies"), std::string::npos) << message;
+  o.policies.clear();  // and so is the expert/good/medium mix
+  const auto without = test::error_message([&] { generate_dataset(tmp / "p", o); });
+  EXPECT_NE(without.find("policies"), std::string::npos) << without;
   // A set and a quality preset both choose the policy; human data runs no robot policy.
   auto both = small("robot", 1);
   both.policies = {idle};
