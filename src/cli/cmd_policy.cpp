@@ -236,10 +236,7 @@ LoadedWorldModel load_world_model(const WorldModelSource& s, models::SuccessDete
   DOJO_CHECK(ranges.size() == 1 && ranges.contains("dojosim_robot"),
              s.checkpoint.string() + ": the model's actions are " + ranges.dump() +
                  "; DojoSim's policies command the 'dojosim_robot' slot (6 values)");
-  const auto range = ranges.begin();  // not *items().begin(): its iterator is a temporary
-  data::ActionChunker chunker(data::slot_by_name(range.key()),
-                              data::ArrayStats::from_json(range.value(), "model actions." + range.key()),
-                              static_cast<int>(loaded.per_step));
+  auto chunker = *data::single_slot_chunker(ranges, "model actions", static_cast<int>(loaded.per_step));
   loaded.environment = std::make_unique<eval::WorldModelEnvironment>(name, std::move(generator),
                                                                      std::move(chunker), std::move(detector));
   return loaded;

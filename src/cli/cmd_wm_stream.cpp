@@ -134,7 +134,6 @@ int run_stream(StreamArgs a) {
 
   // The start frame and, without --actions, the recorded actions (looped past their end).
   torch::Tensor first, recorded;
-  std::optional<data::ActionChunker> chunker;
   if (!a.image.empty()) {
     first = io::resize_center_crop(io::VideoReader(a.image).read_frame(0).unsqueeze(0), a.size, a.size);
   } else {
@@ -145,12 +144,7 @@ int run_stream(StreamArgs a) {
     first = clip.video.narrow(0, 0, 1);  // [1, H, W, 3]
     recorded = clip.actions;             // [48, 384]
   }
-  if (engine.action_ranges().size() == 1) {
-    // begin() of the object itself: a binding to *items().begin() would outlive its iterator.
-    const auto range = engine.action_ranges().begin();
-    chunker.emplace(data::slot_by_name(range.key()),
-                    data::ArrayStats::from_json(range.value(), "world model actions." + range.key()));
-  }
+  const auto chunker = data::single_slot_chunker(engine.action_ranges(), "world model actions");
   std::ifstream file;
   std::unique_ptr<ActionLines> lines;
   if (a.actions == "-") {

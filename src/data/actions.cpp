@@ -168,6 +168,14 @@ at::Tensor ActionChunker::push(const at::Tensor& raw_chunk) {
   return place_in_slot(relative, slot_);  // [chunk, 384]
 }
 
+std::optional<ActionChunker> single_slot_chunker(const nlohmann::json& ranges, const std::string& where,
+                                                 int chunk) {
+  if (!ranges.is_object() || ranges.size() != 1) return std::nullopt;
+  const auto range = ranges.begin();  // not *items().begin(): that iterator is a temporary
+  return ActionChunker(slot_by_name(range.key()),
+                       ArrayStats::from_json(range.value(), where + "." + range.key()), chunk);
+}
+
 at::Tensor human_action_placeholder(int64_t rows) {
   auto out = torch::zeros({rows, kUnifiedActionDim}, torch::kFloat32);  // [T, 384]
   out.slice(1, slots::kLatent.begin, slots::kLatent.end).fill_(1.0);

@@ -10,6 +10,7 @@
 
 #include <ATen/core/Tensor.h>
 
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -103,6 +104,12 @@ class ActionChunker {
   int chunk_;
   at::Tensor last_;  // the last raw row seen, normalised [w]
 };
+
+// The chunker of a model whose recorded action ranges ({slot name: ArrayStats json}, as its
+// config's "actions") hold exactly one slot; none when they hold several or none, since raw
+// commands then do not say which embodiment they drive. `where` names the ranges in errors.
+std::optional<ActionChunker> single_slot_chunker(const nlohmann::json& ranges, const std::string& where,
+                                                 int chunk = 4);
 
 // Human video carries no actions: zeros everywhere, ones in the latent slot. The ones act as
 // the mask the world model multiplies with the LAM's latent actions.

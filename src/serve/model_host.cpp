@@ -88,11 +88,7 @@ std::unique_ptr<Generator> ModelHost::make_generator(const std::string& model) c
 
 std::optional<data::ActionChunker> ModelHost::chunker(const std::string& model) const {
   const auto& h = find(model);
-  if (h.action_ranges.size() != 1) return std::nullopt;
-  const auto range = h.action_ranges.begin();  // not *items().begin(): its iterator is a temporary
-  return data::ActionChunker(data::slot_by_name(range.key()),
-                             data::ArrayStats::from_json(range.value(), "model actions." + range.key()),
-                             h.spec.streaming ? 4 : 12);
+  return data::single_slot_chunker(h.action_ranges, "model actions", h.spec.streaming ? 4 : 12);
 }
 
 std::optional<data::ArrayStats> ModelHost::command_stats(const std::string& model) const {

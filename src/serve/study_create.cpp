@@ -30,8 +30,8 @@ void check_names(const std::vector<std::string>& models) {
 }
 
 std::string numbered(size_t index) {
-  char number[16];
-  std::snprintf(number, sizeof number, "%03zu", index);
+  auto number = std::to_string(index);
+  if (number.size() < 3) number.insert(0, 3 - number.size(), '0');  // 007: names sort in order
   return number;
 }
 

@@ -3,6 +3,8 @@
 #include <ATen/CPUGeneratorImpl.h>
 #include <torch/torch.h>
 
+#include <nlohmann/json.hpp>
+
 #include "core/error.h"
 #include "test_util.h"
 
@@ -122,6 +124,32 @@ TEST(ActionChunker, StreamEqualsTheClipPipeline) {
   // No baseline: the first row is its own.
   chunker.reset();
   EXPECT_EQ(chunker.push(raw.narrow(0, 1, 4))[0].abs().sum().item<double>(), 0);
+}
+
+TEST(ActionChunker, OneRecordedSlotGivesTheModelsChunker) {
+  ArrayStats stats;
+  stats.min = {-2, 0, 5};
+  stats.max = {2, 10, 5};
+  stats.mean = stats.std = {0, 0, 0};
+  const nlohmann::json one = {{"dojosim_robot", stats.to_json()}};
+  auto chunker = single_slot_chunker(one, "model actions", 4);
+  ASSERT_TRUE(chunker.has_value());
+  EXPECT_EQ(chunker->width(), 3);
+  ActionChunker direct(slots::kDojoSimRobot, stats);
+  const auto raw = torch::tensor({{1.f, 2.f, 5.f}, {0.f, 4.f, 5.f}, {-1.f, 6.f, 5.f}, {2.f, 8.f, 5.f}});
+  EXPECT_TRUE(torch::equal(chunker->push(raw), direct.push(raw)));  // [4, 384] in the robot's slot
+  // Several slots or none: raw commands would not say which embodiment they drive.
+  EXPECT_FALSE(
+      single_slot_chunker({{"dojosim_robot", stats.to_json()}, {"g1", stats.to_json()}}, "m").has_value());
+  EXPECT_FALSE(single_slot_chunker(nlohmann::json::object(), "m").has_value());
+  // A broken range is refused naming where it was read.
+  try {
+    single_slot_chunker({{"dojosim_robot", {{"min", {0}}}}}, "model actions");
+    FAIL() << "a range without max was accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("model actions.dojosim_robot"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(single_slot_chunker({{"no_such_slot", stats.to_json()}}, "m"), Error);
 }
 
 }  // namespace
