@@ -42,6 +42,7 @@ struct WorldModelArgs {
 struct DetectorArgs {
   std::string out = "dojo_policy/detector", policies;
   int64_t scenes = 24, steps = 800, frames = 64, settle_frames = 12;
+  int64_t window = 3, stride = 1;  // the detector's input: frames per decision and their spacing
   uint64_t seed = 9000;
   bool world_model = false;  // frames from the world model's replays, labels from DojoSim
   WorldModelArgs wm;
@@ -295,6 +296,15 @@ nlohmann::json train_detector(const DetectorArgs& a) {
   job.data = data;
   job.out = out;
   job.steps = a.steps;
+  job.model.window = a.window;
+  job.model.stride = a.stride;
+  if (checkpoint_exists(out / "checkpoint")) {
+    const auto held = models::load_success_detector(out / "checkpoint")->config();
+    DOJO_CHECK(held.window == a.window && held.stride == a.stride,
+               (out / "checkpoint").string() + " is a detector of window " + std::to_string(held.window) +
+                   ", stride " + std::to_string(held.stride) +
+                   ": resume it with those, or give another --out");
+  }
   const auto r = train::run_success_training(job);
   const auto accuracy = [](const train::SuccessAccuracy& s) {
     return nlohmann::json{{"accuracy", s.accuracy},
@@ -306,10 +316,19 @@ nlohmann::json train_detector(const DetectorArgs& a) {
                                  {"loss", r.loss},
                                  {"train", accuracy(r.train)},
                                  {"heldout", accuracy(r.heldout)},
+                                 {"heldout_episodes",
+                                  {{"accuracy", r.heldout_episodes.accuracy},
+                                   {"balanced_accuracy", r.heldout_episodes.balanced_accuracy},
+                                   {"episodes", r.heldout_episodes.windows},
+                                   {"successes", r.heldout_episodes.positives}}},
+                                 {"window", a.window},
+                                 {"stride", a.stride},
                                  {"seconds", r.seconds}};
   write_file_atomic(out / "result.json", result.dump(2) + "\n");
   LOG_INFO("policy detector: held-out frames: accuracy ", r.heldout.accuracy, ", balanced ",
-           r.heldout.balanced_accuracy, " (", r.heldout.windows, " windows)");
+           r.heldout.balanced_accuracy, " (", r.heldout.windows,
+           " windows); held-out episodes by vote: accuracy ", r.heldout_episodes.accuracy, ", balanced ",
+           r.heldout_episodes.balanced_accuracy, " (", r.heldout_episodes.windows, " episodes)");
   return result;
 }
 
@@ -515,6 +534,16 @@ void register_policy(CLI::App& app) {
   detector
       ->add_option("--settle-frames", d->settle_frames, "Frames holding the last command (as `policy eval`)")
       ->check(CLI::Range(0, 100000))
+      ->capture_default_str();
+  detector
+      ->add_option("--window", d->window,
+                   "Frames one decision sees (a new detector; a resumed one keeps its own)")
+      ->check(CLI::Range(1, 64))
+      ->capture_default_str();
+  detector
+      ->add_option("--stride", d->stride,
+                   "Frames between a window's frames (> 1: the window spans more of the episode)")
+      ->check(CLI::Range(1, 64))
       ->capture_default_str();
   detector->add_flag("--world-model", d->world_model,
                      "Train on the world model's replays of the episodes (labels from DojoSim): the "

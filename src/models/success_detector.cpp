@@ -15,16 +15,18 @@ namespace dojo::models {
 namespace nn = torch::nn;
 
 nlohmann::json SuccessDetectorConfig::to_json() const {
-  return {{"window", window}, {"size", size}, {"width", width}};
+  return {{"window", window}, {"stride", stride}, {"size", size}, {"width", width}};
 }
 
 SuccessDetectorConfig SuccessDetectorConfig::from_json(const nlohmann::json& j) {
   SuccessDetectorConfig c;
   const JsonFields f(j, "success detector config");
   f.get("window", c.window);
+  f.get("stride", c.stride);  // absent in detectors saved before it existed: 1
   f.get("size", c.size);
   f.get("width", c.width);
   check_positive("success detector config", "window", c.window);
+  check_positive("success detector config", "stride", c.stride);
   check_positive("success detector config", "size", c.size);
   check_positive("success detector config", "width", c.width);
   DOJO_CHECK(c.size % 8 == 0, "success detector config: field 'size' must be a multiple of 8");
@@ -63,6 +65,15 @@ torch::Tensor SuccessDetectorImpl::forward(const torch::Tensor& windows) {
   return head->forward(pooled).squeeze(1);                                                // [B]
 }
 
+torch::Tensor window_ending_at(const SuccessDetectorConfig& config, const torch::Tensor& video, int64_t end) {
+  const int64_t first = end - config.span() + 1;
+  DOJO_CHECK(first >= 0 && end < video.size(0), "success detector: a window ending at frame " +
+                                                    std::to_string(end) + " needs frames from " +
+                                                    std::to_string(first));
+  return video.narrow(0, first, config.span())
+      .slice(0, 0, config.span(), config.stride);  // [window, H, W, 3]
+}
+
 torch::Tensor success_input(const SuccessDetector& detector, const torch::Tensor& windows_u8) {
   const int64_t k = detector->config().window, s = detector->config().size;
   DOJO_CHECK(windows_u8.dim() == 5 && windows_u8.size(1) == k && windows_u8.size(4) == 3 &&
@@ -89,12 +100,14 @@ torch::Tensor success_probability(SuccessDetector& detector, const torch::Tensor
 }
 
 double success_vote(SuccessDetector& detector, const torch::Tensor& video_u8, int64_t votes) {
-  const int64_t k = detector->config().window;
-  DOJO_CHECK(video_u8.dim() == 4 && video_u8.size(0) >= k,
-             "success detector: a video of at least " + std::to_string(k) + " frames [T, H, W, 3] is needed");
-  const int64_t T = video_u8.size(0), n = std::clamp<int64_t>(votes, 1, T - k + 1);
+  const int64_t span = detector->config().span();
+  DOJO_CHECK(
+      video_u8.dim() == 4 && video_u8.size(0) >= span,
+      "success detector: a video of at least " + std::to_string(span) + " frames [T, H, W, 3] is needed");
+  const int64_t T = video_u8.size(0), n = std::clamp<int64_t>(votes, 1, T - span + 1);
   std::vector<torch::Tensor> windows;
-  for (int64_t i = 0; i < n; ++i) windows.push_back(video_u8.narrow(0, T - k - i, k));
+  for (int64_t i = 0; i < n; ++i)
+    windows.push_back(window_ending_at(detector->config(), video_u8, T - 1 - i));
   const auto p = success_probability(detector, torch::stack(windows));  // [n]
   return (p > 0.5).to(torch::kFloat64).mean().item<double>();
 }

@@ -26,9 +26,12 @@ struct CheckpointData;
 namespace dojo::models {
 
 struct SuccessDetectorConfig {
-  int64_t window = 3;  // consecutive frames one decision sees (motion tells "at rest" from "falling")
+  int64_t window = 3;  // frames one decision sees (motion tells "at rest" from "falling")
+  int64_t stride = 1;  // frames between them: > 1 spans more of the episode with the same input
   int64_t size = 64;   // frames are resized to size x size (a multiple of 8)
   int64_t width = 24;  // channels of the first stage; doubled at each of the next two
+
+  int64_t span() const { return (window - 1) * stride + 1; }  // video frames one window covers
 
   nlohmann::json to_json() const;
   static SuccessDetectorConfig from_json(const nlohmann::json& j);  // throws dojo::Error naming the field
@@ -49,12 +52,15 @@ class SuccessDetectorImpl : public torch::nn::Module {
 };
 TORCH_MODULE(SuccessDetector);
 
+// The window of `video` [T, H, W, 3] that ends at frame `end`: frames end - (window - 1) stride,
+// ..., end, [window, H, W, 3].
+torch::Tensor window_ending_at(const SuccessDetectorConfig& config, const torch::Tensor& video, int64_t end);
 // uint8 windows [N, window, H, W, 3] of any frame size -> the detector's input [N, 3 window, S, S].
 torch::Tensor success_input(const SuccessDetector& detector, const torch::Tensor& windows_u8);
 // Success probabilities [N] of uint8 windows [N, window, H, W, 3], in eval mode, batched.
 torch::Tensor success_probability(SuccessDetector& detector, const torch::Tensor& windows_u8,
                                   int64_t batch = 64);
-// Temporal voting over the end of a video [T, H, W, 3] uint8 (T >= window): the last `votes`
+// Temporal voting over the end of a video [T, H, W, 3] uint8 (T >= span): the last `votes`
 // windows (ending at T-1, T-2, ...) each vote success when their probability exceeds 0.5; the
 // result is the share of windows that voted success, in [0, 1] (an episode succeeds above 0.5).
 double success_vote(SuccessDetector& detector, const torch::Tensor& video_u8, int64_t votes = 5);

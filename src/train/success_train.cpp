@@ -40,13 +40,13 @@ struct Windows {
   torch::Tensor episode, end, label;  // [N] long, [N] long, [N] float
 };
 
-Windows windows_of(const SuccessData& data, const torch::Tensor& which, int64_t k) {
+Windows windows_of(const SuccessData& data, const torch::Tensor& which, int64_t span) {
   const int64_t T = data.frames.size(1);
   std::vector<int64_t> episode, end;
   const auto mask = which.to(torch::kBool);
   for (int64_t e = 0; e < data.frames.size(0); ++e) {
     if (!mask[e].item<bool>()) continue;
-    for (int64_t t = k - 1; t < T; ++t) {
+    for (int64_t t = span - 1; t < T; ++t) {
       episode.push_back(e);
       end.push_back(t);
     }
@@ -60,10 +60,11 @@ Windows windows_of(const SuccessData& data, const torch::Tensor& which, int64_t 
 
 // uint8 windows [N, k, H, W, 3] ending at the given frames.
 torch::Tensor gather_windows(const SuccessData& data, const torch::Tensor& episode, const torch::Tensor& end,
-                             int64_t k) {
+                             const models::SuccessDetectorConfig& config) {
   std::vector<torch::Tensor> out;
   for (int64_t i = 0; i < episode.size(0); ++i)
-    out.push_back(data.frames[episode[i].item<int64_t>()].narrow(0, end[i].item<int64_t>() - k + 1, k));
+    out.push_back(
+        models::window_ending_at(config, data.frames[episode[i].item<int64_t>()], end[i].item<int64_t>()));
   return torch::stack(out);
 }
 
@@ -71,8 +72,8 @@ torch::Tensor gather_windows(const SuccessData& data, const torch::Tensor& episo
 
 SuccessAccuracy success_accuracy(models::SuccessDetector& detector, const SuccessData& data,
                                  const torch::Tensor& which) {
-  const int64_t k = detector->config().window;
-  const auto w = windows_of(data, which, k);
+  const auto& config = detector->config();
+  const auto w = windows_of(data, which, config.span());
   SuccessAccuracy a;
   a.windows = w.episode.size(0);
   if (a.windows == 0) return a;
@@ -80,7 +81,7 @@ SuccessAccuracy success_accuracy(models::SuccessDetector& detector, const Succes
   for (int64_t i = 0; i < a.windows; i += 256) {
     const int64_t n = std::min<int64_t>(256, a.windows - i);
     probs.push_back(models::success_probability(
-        detector, gather_windows(data, w.episode.narrow(0, i, n), w.end.narrow(0, i, n), k)));
+        detector, gather_windows(data, w.episode.narrow(0, i, n), w.end.narrow(0, i, n), config)));
   }
   const auto predicted = torch::cat(probs) > 0.5;  // [N]
   const auto truth = w.label > 0.5;
@@ -94,6 +95,32 @@ SuccessAccuracy success_accuracy(models::SuccessDetector& detector, const Succes
   return a;
 }
 
+SuccessAccuracy episode_accuracy(models::SuccessDetector& detector, const SuccessData& data,
+                                 const torch::Tensor& which, int64_t votes) {
+  std::vector<double> right_on_success, right_on_failure;
+  const auto mask = which.to(torch::kBool);
+  for (int64_t e = 0; e < data.frames.size(0); ++e) {
+    if (!mask[e].item<bool>()) continue;
+    const bool truth = data.labels[e][-1].item<float>() > 0.5f;  // the outcome at the episode's end
+    const bool called = models::success_vote(detector, data.frames[e], votes) > 0.5;
+    (truth ? right_on_success : right_on_failure).push_back(called == truth ? 1.0 : 0.0);
+  }
+  const auto mean = [](const std::vector<double>& v) {
+    double sum = 0;
+    for (double x : v) sum += x;
+    return v.empty() ? 1.0 : sum / static_cast<double>(v.size());
+  };
+  SuccessAccuracy a;
+  a.positives = static_cast<int64_t>(right_on_success.size());
+  a.windows = a.positives + static_cast<int64_t>(right_on_failure.size());
+  if (a.windows == 0) return a;
+  a.accuracy = (mean(right_on_success) * static_cast<double>(right_on_success.size()) +
+                mean(right_on_failure) * static_cast<double>(right_on_failure.size())) /
+               static_cast<double>(a.windows);
+  a.balanced_accuracy = 0.5 * (mean(right_on_success) + mean(right_on_failure));
+  return a;
+}
+
 SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
   DOJO_CHECK(job.batch_size > 1 && job.steps >= 0, "success train: batch must be > 1 and steps >= 0");
   const auto data = SuccessData::load(job.data);
@@ -103,10 +130,10 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
   const auto config = resuming ? models::SuccessDetectorConfig::from_json(
                                      Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config().at("config"))
                                : job.model;
-  const int64_t k = config.window;
-  DOJO_CHECK(data.frames.size(1) >= k,
-             job.data.string() + ": episodes are shorter than the detector's window");
-  const auto train_windows = windows_of(data, data.heldout.logical_not(), k);
+  DOJO_CHECK(data.frames.size(1) >= config.span(), job.data.string() +
+                                                       ": episodes are shorter than the detector's window (" +
+                                                       std::to_string(config.span()) + " frames)");
+  const auto train_windows = windows_of(data, data.heldout.logical_not(), config.span());
   const auto positive = torch::nonzero(train_windows.label > 0.5).flatten();
   const auto negative = torch::nonzero(train_windows.label <= 0.5).flatten();
   DOJO_CHECK(positive.numel() > 0 && negative.numel() > 0,
@@ -135,8 +162,9 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
              negative.index_select(0, torch::randint(negative.numel(), {job.batch_size - half}, gen))});
         const auto episode = train_windows.episode.index_select(0, pick);
         const auto end = train_windows.end.index_select(0, pick);
-        const auto target = train_windows.label.index_select(0, pick);                        // [B]
-        auto input = models::success_input(detector, gather_windows(data, episode, end, k));  // [B, 3k, S, S]
+        const auto target = train_windows.label.index_select(0, pick);  // [B]
+        auto input =
+            models::success_input(detector, gather_windows(data, episode, end, config));  // [B, 3k, S, S]
         const int64_t B = input.size(0);
         input = soften_like_generated(input, job.blur_probability, job.brightness, gen);
         // A mirrored scene is as successful as the original: flips double the scenes it sees.
@@ -151,6 +179,7 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
   detector->eval();
   r.train = success_accuracy(detector, data, data.heldout.logical_not());
   r.heldout = success_accuracy(detector, data, data.heldout);
+  r.heldout_episodes = episode_accuracy(detector, data, data.heldout, job.votes);
   return r;
 }
 

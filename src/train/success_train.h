@@ -34,6 +34,7 @@ struct SuccessTrainJob {
   double blur_probability = 0.5;
   double brightness = 0.1;
   uint64_t seed = 0;
+  int64_t votes = 5;  // windows voting on an episode's outcome in the episode-level score (as `policy eval`)
 };
 
 struct SuccessAccuracy {
@@ -46,6 +47,7 @@ struct SuccessTrainResult {
   int64_t steps = 0;
   double loss = 0;  // mean of the last 20 steps
   SuccessAccuracy train, heldout;
+  SuccessAccuracy heldout_episodes;  // per held-out episode: the vote over its last windows vs its outcome
   double seconds = 0;
 };
 
@@ -55,5 +57,11 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job);
 // The detector's per-window accuracy on episodes `which` [E] (bool) of `data`.
 SuccessAccuracy success_accuracy(models::SuccessDetector& detector, const SuccessData& data,
                                  const torch::Tensor& which);
+
+// Per episode of `which`: temporal voting over its last `votes` windows (models::success_vote,
+// as `policy eval` decides an episode) against its label at the last frame. `windows` counts
+// the episodes here, `positives` the successful ones.
+SuccessAccuracy episode_accuracy(models::SuccessDetector& detector, const SuccessData& data,
+                                 const torch::Tensor& which, int64_t votes);
 
 }  // namespace dojo::train

@@ -183,6 +183,39 @@ TEST(PolicyEval, SuccessDetectorLearnsFromLabelledFrames) {
     if (!data.heldout[e].item<bool>()) continue;
     EXPECT_EQ(models::success_vote(detector, data.frames[e]) > 0.5, success) << "episode " << e;
   }
+  // The episode-level score is that vote over the held-out episodes (all 6 read right above).
+  EXPECT_EQ(r.heldout_episodes.windows, 6);
+  EXPECT_EQ(r.heldout_episodes.positives, data.labels.index({data.heldout, T - 1}).sum().item<int64_t>());
+  EXPECT_DOUBLE_EQ(r.heldout_episodes.balanced_accuracy, 1.0);
+}
+
+TEST(PolicyEval, DetectorWindowSpansItsStride) {
+  models::SuccessDetectorConfig c;
+  c.window = 3;
+  c.stride = 4;
+  EXPECT_EQ(c.span(), 9);
+  const auto video = torch::arange(20, torch::kUInt8).view({20, 1, 1, 1}).expand({20, 8, 8, 3}).contiguous();
+  const auto w = models::window_ending_at(c, video, 19);  // frames 11, 15, 19
+  ASSERT_EQ(w.size(0), 3);
+  EXPECT_EQ(w[0][0][0][0].item<int>(), 11);
+  EXPECT_EQ(w[2][0][0][0].item<int>(), 19);
+  EXPECT_THROW(models::window_ending_at(c, video, 7), Error);  // would start before frame 0
+  // Saved with its stride; a config written before strides existed reads as stride 1.
+  EXPECT_EQ(models::SuccessDetectorConfig::from_json(c.to_json()).stride, 4);
+  EXPECT_EQ(models::SuccessDetectorConfig::from_json({{"window", 3}, {"size", 64}, {"width", 24}}).stride, 1);
+  try {
+    models::SuccessDetectorConfig::from_json({{"window", 3}, {"stride", 0}});
+    FAIL() << "stride 0 was accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("stride"), std::string::npos) << e.what();
+  }
+  // Voting reads the last windows at the stride; a video shorter than the span is refused.
+  c.size = 8;
+  c.width = 4;
+  models::SuccessDetector detector(c);
+  const double vote = models::success_vote(detector, video, 5);
+  EXPECT_TRUE(vote >= 0 && vote <= 1);
+  EXPECT_THROW(models::success_vote(detector, video.narrow(0, 0, 8)), Error);
 }
 
 TEST(PolicyEval, WorldModelRunsAPolicyClosedLoop) {
