@@ -42,7 +42,9 @@ struct WorldModelArgs {
 struct DetectorArgs {
   std::string out = "dojo_policy/detector", policies;
   int64_t scenes = 24, steps = 800, frames = 64, settle_frames = 12;
-  int64_t window = 3, stride = 1;  // the detector's input: frames per decision and their spacing
+  // The detector's input, frames per decision and their spacing: for a new detector (defaults 3
+  // and 1); a resumed one keeps its own, and refuses other values given here.
+  std::optional<int64_t> window, stride;
   uint64_t seed = 9000;
   bool world_model = false;  // frames from the world model's replays, labels from DojoSim
   WorldModelArgs wm;
@@ -258,6 +260,25 @@ void require_detector_frames(const fs::path& dir, const nlohmann::json& frames, 
 // DIR/checkpoint; DIR/result.json.
 nlohmann::json train_detector(const DetectorArgs& a) {
   const fs::path out = a.out;
+  // The detector's shape first: a window longer than the episode fails before any rendering.
+  models::SuccessDetectorConfig model;
+  if (checkpoint_exists(out / "checkpoint")) {
+    model = models::SuccessDetectorConfig::from_json(
+        Checkpoint::open(resolve_checkpoint_dir(out / "checkpoint")).config().at("config"));
+    DOJO_CHECK(
+        a.window.value_or(model.window) == model.window && a.stride.value_or(model.stride) == model.stride,
+        (out / "checkpoint").string() + " is a detector of window " + std::to_string(model.window) +
+            ", stride " + std::to_string(model.stride) + ": resume it with those, or give another --out");
+  } else {
+    model.window = a.window.value_or(model.window);
+    model.stride = a.stride.value_or(model.stride);
+  }
+  DOJO_CHECK(
+      model.span() + models::kSuccessVotes - 1 <= 1 + a.frames + a.settle_frames,
+      "policy detector: a window of " + std::to_string(model.window) + " frames " +
+          std::to_string(model.stride) + " apart spans " + std::to_string(model.span()) + " frames; its " +
+          std::to_string(models::kSuccessVotes) + " votes need episodes of at least " +
+          std::to_string(model.span() + models::kSuccessVotes - 1) + " (1 + --frames + --settle-frames)");
   std::optional<WorldModelSource> source;
   if (a.world_model) source = resolve_world_model(a.wm, "policy detector");
   const nlohmann::json frames = source ? source->fingerprint() : nlohmann::json("dojosim");
@@ -296,15 +317,7 @@ nlohmann::json train_detector(const DetectorArgs& a) {
   job.data = data;
   job.out = out;
   job.steps = a.steps;
-  job.model.window = a.window;
-  job.model.stride = a.stride;
-  if (checkpoint_exists(out / "checkpoint")) {
-    const auto held = models::load_success_detector(out / "checkpoint")->config();
-    DOJO_CHECK(held.window == a.window && held.stride == a.stride,
-               (out / "checkpoint").string() + " is a detector of window " + std::to_string(held.window) +
-                   ", stride " + std::to_string(held.stride) +
-                   ": resume it with those, or give another --out");
-  }
+  job.model = model;
   const auto r = train::run_success_training(job);
   const auto accuracy = [](const train::SuccessAccuracy& s) {
     return nlohmann::json{{"accuracy", s.accuracy},
@@ -321,8 +334,8 @@ nlohmann::json train_detector(const DetectorArgs& a) {
                                    {"balanced_accuracy", r.heldout_episodes.balanced_accuracy},
                                    {"episodes", r.heldout_episodes.windows},
                                    {"successes", r.heldout_episodes.positives}}},
-                                 {"window", a.window},
-                                 {"stride", a.stride},
+                                 {"window", model.window},
+                                 {"stride", model.stride},
                                  {"seconds", r.seconds}};
   write_file_atomic(out / "result.json", result.dump(2) + "\n");
   LOG_INFO("policy detector: held-out frames: accuracy ", r.heldout.accuracy, ", balanced ",
@@ -537,14 +550,12 @@ void register_policy(CLI::App& app) {
       ->capture_default_str();
   detector
       ->add_option("--window", d->window,
-                   "Frames one decision sees (a new detector; a resumed one keeps its own)")
-      ->check(CLI::Range(1, 64))
-      ->capture_default_str();
+                   "Frames one decision sees (default 3; a resumed detector keeps its own)")
+      ->check(CLI::Range(1, 64));
   detector
       ->add_option("--stride", d->stride,
-                   "Frames between a window's frames (> 1: the window spans more of the episode)")
-      ->check(CLI::Range(1, 64))
-      ->capture_default_str();
+                   "Frames between a window's frames (default 1; > 1: the window spans more of the episode)")
+      ->check(CLI::Range(1, 64));
   detector->add_flag("--world-model", d->world_model,
                      "Train on the world model's replays of the episodes (labels from DojoSim): the "
                      "detector then reads generated video as `policy eval` shows it");

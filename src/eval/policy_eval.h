@@ -82,7 +82,8 @@ class Environment {
 class WorldModelEnvironment : public Environment {
  public:
   WorldModelEnvironment(std::string name, std::unique_ptr<infer::Generator> generator,
-                        data::ActionChunker chunker, models::SuccessDetector detector, int64_t votes = 5);
+                        data::ActionChunker chunker, models::SuccessDetector detector,
+                        int64_t votes = models::kSuccessVotes);
   ~WorldModelEnvironment() override;
   std::string name() const override { return name_; }
   torch::Tensor reset(const EpisodeStart& start) override;

@@ -63,7 +63,8 @@ torch::Tensor success_probability(SuccessDetector& detector, const torch::Tensor
 // Temporal voting over the end of a video [T, H, W, 3] uint8 (T >= span): the last `votes`
 // windows (ending at T-1, T-2, ...) each vote success when their probability exceeds 0.5; the
 // result is the share of windows that voted success, in [0, 1] (an episode succeeds above 0.5).
-double success_vote(SuccessDetector& detector, const torch::Tensor& video_u8, int64_t votes = 5);
+inline constexpr int64_t kSuccessVotes = 5;  // windows voting on an episode (policy eval, held-out scores)
+double success_vote(SuccessDetector& detector, const torch::Tensor& video_u8, int64_t votes = kSuccessVotes);
 
 // Checkpoint directory: config.json {"model": "success_detector", "config": ...}, weights as
 // "detector.<name>".

@@ -1,7 +1,6 @@
 #include "serve/study_create.h"
 
 #include <algorithm>
-#include <cstdio>
 #include <set>
 
 #include "core/atomic_file.h"

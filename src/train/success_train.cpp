@@ -97,27 +97,23 @@ SuccessAccuracy success_accuracy(models::SuccessDetector& detector, const Succes
 
 SuccessAccuracy episode_accuracy(models::SuccessDetector& detector, const SuccessData& data,
                                  const torch::Tensor& which, int64_t votes) {
-  std::vector<double> right_on_success, right_on_failure;
+  int64_t successes = 0, failures = 0, right_on_success = 0, right_on_failure = 0;
   const auto mask = which.to(torch::kBool);
   for (int64_t e = 0; e < data.frames.size(0); ++e) {
     if (!mask[e].item<bool>()) continue;
     const bool truth = data.labels[e][-1].item<float>() > 0.5f;  // the outcome at the episode's end
     const bool called = models::success_vote(detector, data.frames[e], votes) > 0.5;
-    (truth ? right_on_success : right_on_failure).push_back(called == truth ? 1.0 : 0.0);
+    (truth ? successes : failures) += 1;
+    (truth ? right_on_success : right_on_failure) += called == truth ? 1 : 0;
   }
-  const auto mean = [](const std::vector<double>& v) {
-    double sum = 0;
-    for (double x : v) sum += x;
-    return v.empty() ? 1.0 : sum / static_cast<double>(v.size());
-  };
   SuccessAccuracy a;
-  a.positives = static_cast<int64_t>(right_on_success.size());
-  a.windows = a.positives + static_cast<int64_t>(right_on_failure.size());
+  a.windows = successes + failures;
+  a.positives = successes;
   if (a.windows == 0) return a;
-  a.accuracy = (mean(right_on_success) * static_cast<double>(right_on_success.size()) +
-                mean(right_on_failure) * static_cast<double>(right_on_failure.size())) /
-               static_cast<double>(a.windows);
-  a.balanced_accuracy = 0.5 * (mean(right_on_success) + mean(right_on_failure));
+  a.accuracy = static_cast<double>(right_on_success + right_on_failure) / static_cast<double>(a.windows);
+  // A class with no episodes counts as read right, as in success_accuracy.
+  const auto rate = [](int64_t right, int64_t n) { return n ? static_cast<double>(right) / n : 1.0; };
+  a.balanced_accuracy = 0.5 * (rate(right_on_success, successes) + rate(right_on_failure, failures));
   return a;
 }
 

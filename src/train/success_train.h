@@ -34,7 +34,7 @@ struct SuccessTrainJob {
   double blur_probability = 0.5;
   double brightness = 0.1;
   uint64_t seed = 0;
-  int64_t votes = 5;  // windows voting on an episode's outcome in the episode-level score (as `policy eval`)
+  int64_t votes = models::kSuccessVotes;  // windows voting on an episode in the episode-level score
 };
 
 struct SuccessAccuracy {

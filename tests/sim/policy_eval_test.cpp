@@ -186,6 +186,8 @@ TEST(PolicyEval, SuccessDetectorLearnsFromLabelledFrames) {
   // The episode-level score is that vote over the held-out episodes (all 6 read right above).
   EXPECT_EQ(r.heldout_episodes.windows, 6);
   EXPECT_EQ(r.heldout_episodes.positives, data.labels.index({data.heldout, T - 1}).sum().item<int64_t>());
+  EXPECT_GT(r.heldout_episodes.positives, 0);  // both outcomes among them, so the score means something
+  EXPECT_LT(r.heldout_episodes.positives, 6);
   EXPECT_DOUBLE_EQ(r.heldout_episodes.balanced_accuracy, 1.0);
 }
 
@@ -198,8 +200,10 @@ TEST(PolicyEval, DetectorWindowSpansItsStride) {
   const auto w = models::window_ending_at(c, video, 19);  // frames 11, 15, 19
   ASSERT_EQ(w.size(0), 3);
   EXPECT_EQ(w[0][0][0][0].item<int>(), 11);
+  EXPECT_EQ(w[1][0][0][0].item<int>(), 15);
   EXPECT_EQ(w[2][0][0][0].item<int>(), 19);
-  EXPECT_THROW(models::window_ending_at(c, video, 7), Error);  // would start before frame 0
+  EXPECT_THROW(models::window_ending_at(c, video, 7), Error);   // would start before frame 0
+  EXPECT_THROW(models::window_ending_at(c, video, 20), Error);  // past the last frame
   // Saved with its stride; a config written before strides existed reads as stride 1.
   EXPECT_EQ(models::SuccessDetectorConfig::from_json(c.to_json()).stride, 4);
   EXPECT_EQ(models::SuccessDetectorConfig::from_json({{"window", 3}, {"size", 64}, {"width", 24}}).stride, 1);
@@ -212,10 +216,20 @@ TEST(PolicyEval, DetectorWindowSpansItsStride) {
   // Voting reads the last windows at the stride; a video shorter than the span is refused.
   c.size = 8;
   c.width = 4;
+  torch::manual_seed(3);
   models::SuccessDetector detector(c);
-  const double vote = models::success_vote(detector, video, 5);
-  EXPECT_TRUE(vote >= 0 && vote <= 1);
-  EXPECT_THROW(models::success_vote(detector, video.narrow(0, 0, 8)), Error);
+  // Frames of random colours: strided and consecutive windows see different frames.
+  const auto noise = torch::randint(0, 256, {20, 8, 8, 3}).to(torch::kUInt8);
+  std::vector<torch::Tensor> last;
+  for (int64_t i = 0; i < 5; ++i) last.push_back(models::window_ending_at(c, noise, 19 - i));
+  const auto p = models::success_probability(detector, torch::stack(last));  // [5]
+  EXPECT_DOUBLE_EQ(models::success_vote(detector, noise, 5),
+                   (p > 0.5).to(torch::kFloat64).mean().item<double>());
+  // The detector's output does depend on which frames it sees (else the vote above proves little).
+  std::vector<torch::Tensor> consecutive;
+  for (int64_t i = 0; i < 5; ++i) consecutive.push_back(noise.narrow(0, 17 - i, 3));
+  EXPECT_FALSE(torch::allclose(p, models::success_probability(detector, torch::stack(consecutive))));
+  EXPECT_THROW(models::success_vote(detector, noise.narrow(0, 0, 8)), Error);
 }
 
 TEST(PolicyEval, WorldModelRunsAPolicyClosedLoop) {

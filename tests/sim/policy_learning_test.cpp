@@ -297,6 +297,19 @@ TEST(PolicyCli, DetectorLearnsFromWorldModelReplaysAndTheEvaluationUsesIt) {
                      (tmp / "d2").string());
   EXPECT_NE(r.exit_code, 0);
   EXPECT_NE(r.output.find("no world model at " + (tmp / "nowhere").string()), std::string::npos) << r.output;
+  // The detector's window: a resumed detector keeps its own (3 consecutive frames here) and
+  // refuses another; a window longer than the episodes is refused before anything is rendered.
+  r = test::run_dojo("policy detector --world-model --scenes 2 --steps 20 --window 4" + model + set +
+                     " --out " + detector.string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("is a detector of window 3, stride 1: resume it with those"), std::string::npos)
+      << r.output;
+  r = test::run_dojo("policy detector --window 4 --stride 8" + short_episodes + " --out " +
+                     (tmp / "d3").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("spans 25 frames; its 5 votes need episodes of at least 29"), std::string::npos)
+      << r.output;
+  EXPECT_FALSE(fs::exists(tmp / "d3" / "data.safetensors"));
 }
 
 }  // namespace
