@@ -67,9 +67,10 @@ torch::Tensor SuccessDetectorImpl::forward(const torch::Tensor& windows) {
 
 torch::Tensor window_ending_at(const SuccessDetectorConfig& config, const torch::Tensor& video, int64_t end) {
   const int64_t first = end - config.span() + 1;
-  DOJO_CHECK(first >= 0 && end < video.size(0), "success detector: a window ending at frame " +
-                                                    std::to_string(end) + " needs frames from " +
-                                                    std::to_string(first));
+  DOJO_CHECK(first >= 0 && end < video.size(0),
+             "success detector: a window ending at frame " + std::to_string(end) + " needs frames " +
+                 std::to_string(first) + ".." + std::to_string(end) + " of a video of " +
+                 std::to_string(video.size(0)) + " frames");
   return video.narrow(0, first, config.span())
       .slice(0, 0, config.span(), config.stride);  // [window, H, W, 3]
 }

@@ -1,6 +1,7 @@
 #include "serve/study_create.h"
 
 #include <algorithm>
+#include <cstdio>
 #include <set>
 
 #include "core/atomic_file.h"
@@ -29,8 +30,8 @@ void check_names(const std::vector<std::string>& models) {
 }
 
 std::string numbered(size_t index) {
-  auto number = std::to_string(index);
-  if (number.size() < 3) number.insert(0, 3 - number.size(), '0');  // 007: names sort in order
+  char number[24];  // room for any size_t: GCC checks the bound
+  std::snprintf(number, sizeof number, "%03zu", index);
   return number;
 }
 

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <deque>
 #include <sstream>
 
@@ -83,9 +84,9 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
   teacher.eval();
   for (int64_t k = 0; k < shards; ++k) {
     const int64_t begin = k * spec.shard_clips, count = std::min(spec.shard_clips, n - begin);
-    auto index = std::to_string(k);
-    if (index.size() < 5) index.insert(0, 5 - index.size(), '0');  // shard-00042: listed in order
-    const auto file = dir / ("shard-" + index + ".safetensors");
+    char name[40];  // room for any long long: GCC checks the bound
+    std::snprintf(name, sizeof(name), "shard-%05lld.safetensors", static_cast<long long>(k));
+    const auto file = dir / name;
     nlohmann::json shard_meta = meta;
     shard_meta["clips"] = {begin, begin + count};
     if (fs::exists(file)) {
