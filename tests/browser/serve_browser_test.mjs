@@ -13,6 +13,7 @@ import { tmpdir } from "node:os";
 import { join } from "node:path";
 import assert from "node:assert/strict";
 
+let server = null;  // declared before the first fail(): it reads it
 let chromium;
 try {
   ({ chromium } = await import("playwright-core"));
@@ -28,7 +29,6 @@ const args = process.argv.slice(2);
 const benchSeconds = args.includes("--bench") ? Number(args[args.indexOf("--bench") + 1]) : 0;
 const benchSessions = args.includes("--sessions") ? Number(args[args.indexOf("--sessions") + 1]) : 1;
 
-let server = null;
 function fail(message) {
   if (server) server.kill("SIGKILL");
   console.error("FAIL: " + message);
