@@ -5,7 +5,8 @@
 #   scripts/train_reference.sh [WORK_DIR=ref_work]
 #
 # 1. `dojo demo` makes the datasets, the LAM, the tokenizer, the keypoint probe and a pretrained
-#    world model (its stage budgets; --reference none so it does not score an older set).
+#    world model (its stage budgets; --tokenizer train so it trains its own tokenizer rather than
+#    copying the shipped one; --reference none so it does not score an older set).
 # 2. Pretraining continues to 3500 steps on 768 human clips (the demo caches 192).
 # 3. Post-training from that checkpoint: 5000 steps on every robot training clip, conditioning
 #    noise 0.3 (docs/action_following.md).
@@ -18,7 +19,7 @@ WORK=${1:-ref_work}
 DOJO=${DOJO:-build/dojo}
 REF=models/reference
 
-"$DOJO" demo --out "$WORK" --reference none
+"$DOJO" demo --out "$WORK" --tokenizer train --reference none
 if [[ ! -d $WORK/ref_pretrain ]]; then  # resume the demo's pretraining in a copy (optimizer state and all)
   mkdir -p "$WORK/ref_pretrain" && cp -r "$WORK/wm_pretrain/checkpoint" "$WORK/ref_pretrain/"
 fi

@@ -13,19 +13,26 @@ namespace dojo::cli {
 void register_demo(CLI::App& app) {
   auto* cmd =
       app.add_subcommand("demo",
-                         "The whole pipeline on the built-in DojoSim world: generate data, train LAM, "
-                         "tokenizer and world model (pretrain + post-train), roll out, evaluate, and "
-                         "write report.html");
+                         "The whole pipeline on the built-in DojoSim world: generate data, train the LAM "
+                         "and the world model (pretrain + post-train) on the shipped tokenizer, distill "
+                         "the real-time student, roll out, evaluate, and write report.html");
   auto o = std::make_shared<recipes::DemoOptions>();
   auto out = std::make_shared<std::string>(o->out.string());
   auto reference = std::make_shared<std::string>();
+  auto tokenizer = std::make_shared<std::string>();
   add_out_option(cmd, *out, "demo directory (datasets, models, report.html)")->capture_default_str();
   cmd->add_option("--minutes,-m", o->minutes,
                   "Share this many minutes between the training stages instead of their step budgets "
                   "(results then depend on the machine)")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--lam-steps", o->lam_steps, "LAM training steps")->capture_default_str();
-  cmd->add_option("--tokenizer-steps", o->tokenizer_steps, "Tokenizer training steps")->capture_default_str();
+  cmd->add_option("--tokenizer", *tokenizer,
+                  "Tokenizer checkpoint to use as is, as the paper uses Wan2.1's VAE pretrained (default: "
+                  "the reference set's, models/reference/tokenizer, when present); \"train\" to train one "
+                  "here (--tokenizer-steps; about 13 more minutes on 2 cores)");
+  cmd->add_option("--tokenizer-steps", o->tokenizer_steps,
+                  "Tokenizer training steps (with --tokenizer train)")
+      ->capture_default_str();
   cmd->add_option("--probe-steps", o->probe_steps, "Keypoint probe training steps")->capture_default_str();
   cmd->add_option("--pretrain-steps", o->pretrain_steps, "World-model pretraining steps")
       ->capture_default_str();
@@ -55,12 +62,18 @@ void register_demo(CLI::App& app) {
   add_workers_option(cmd, o->workers);
   add_device_option(cmd, o->device);
   add_precision_option(cmd, o->precision);
-  cmd->callback([o, out, reference] {
-    set_action([o, out, reference] {
+  cmd->callback([o, out, reference, tokenizer] {
+    set_action([o, out, reference, tokenizer] {
       o->out = *out;
       o->reference = *reference == "none" ? std::filesystem::path() : std::filesystem::path(*reference);
       if (reference->empty() && std::filesystem::exists(default_reference_dir() / "wm_posttrain"))
         o->reference = default_reference_dir();
+      if (tokenizer->empty()) {
+        const auto shipped = default_reference_dir() / "tokenizer";
+        if (std::filesystem::exists(shipped / "config.json")) o->tokenizer = shipped;
+      } else if (*tokenizer != "train") {
+        o->tokenizer = *tokenizer;
+      }
       o->matmul_threads = global_options().threads;  // an explicit --threads wins
       const auto s = recipes::run_demo(*o);
       std::printf("\nDreamDojo.cpp demo finished in %.1f min. Open %s in a browser.\n\n%s\n",

@@ -13,6 +13,7 @@
 
 #include "core/atomic_file.h"
 #include "core/autocast.h"
+#include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/json_file.h"
 #include "core/log.h"
@@ -85,6 +86,35 @@ double matmul_gflops(int threads) {
   return reps * 2.0 * 1024 * 1024 * 1024 / seconds_since(t0) / 1e9;
 }
 
+// Left in OUT/tokenizer by a tokenizer copied in rather than trained there.
+constexpr const char* kCopiedMarker = "copied_from.json";
+
+// The tokenizer checkpoint at `from` (weights and config; no trainer state) as
+// DIR/checkpoint, crash-safely, replacing whatever DIR held (a tokenizer trained there before).
+void copy_tokenizer(const fs::path& from, const fs::path& dir) {
+  const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(from));
+  const std::string model = ckpt.config().value("model", "");
+  DOJO_CHECK(model == "wan21_vae", (from / "config.json").string() + ": not a tokenizer (model \"" + model +
+                                       "\", expected wan21_vae)");
+  (void)models::load_tokenizer(from);  // the weights fit the config
+  CheckpointData data;
+  data.config = ckpt.config();
+  data.model = ckpt.model().tensors(/*copy=*/true);
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  write_file_atomic(dir / kCopiedMarker, nlohmann::json{{"from", from.string()}}.dump(2) + "\n");
+  save_checkpoint(dir / "checkpoint", data);
+}
+
+// `to` as a hard link to `from` (a copy across file systems) unless `to` exists or `from` does not.
+void link_if_absent(const fs::path& from, const fs::path& to) {
+  if (fs::exists(to) || !fs::exists(from)) return;
+  fs::create_directories(to.parent_path());
+  std::error_code error;
+  fs::create_hard_link(from, to, error);
+  if (error) fs::copy_file(from, to);
+}
+
 // Runs `body` unless OUT/stages/<name>.json records a finished run with the same settings. Returns
 // the record: {"settings", "result", "seconds", "finished"}; written atomically when the stage ends.
 nlohmann::json run_stage(const fs::path& out, const std::string& name, const nlohmann::json& settings,
@@ -154,6 +184,10 @@ DemoSummary run_demo(const DemoOptions& o) {
       DOJO_CHECK(fs::exists(o.reference / part / "config.json"),
                  (o.reference / part).string() + ": missing from the reference model set");
   }
+  if (!o.tokenizer.empty())
+    DOJO_CHECK(
+        fs::exists(o.tokenizer / "config.json"),
+        (o.tokenizer / "config.json").string() + ": missing (--tokenizer names a tokenizer checkpoint)");
   const fs::path out = o.out;
   fs::create_directories(out);
   const auto start = std::chrono::steady_clock::now();
@@ -176,13 +210,14 @@ DemoSummary run_demo(const DemoOptions& o) {
                                                 {"fast_decoder", o.fast_decoder_steps}};
   const std::map<std::string, double> time_share = {
       {"lam", 0.09}, {"tokenizer", 0.36}, {"probe", 0.05}, {"wm_pretrain", 0.22}, {"wm_posttrain", 0.28}};
+  const bool trains_tokenizer = o.tokenizer.empty();
   auto stage_minutes = [&](const std::string& name) -> double {
     if (o.minutes <= 0) return 0;
     double later = 0;
     bool after = false;
     for (const char* s : {"lam", "tokenizer", "probe", "wm_pretrain", "wm_posttrain"}) {
       if (s == name) after = true;
-      if (after) later += time_share.at(s);
+      if (after && (trains_tokenizer || std::string(s) != "tokenizer")) later += time_share.at(s);
     }
     const double left = o.minutes * 0.9 - seconds_since(start) / 60.0;  // 10% kept for evaluation
     return std::max(0.05, left * time_share.at(name) / later);
@@ -192,6 +227,7 @@ DemoSummary run_demo(const DemoOptions& o) {
     double reference_s = 0;
     for (const auto& c : kCosts) {
       if (std::string(c.name) == "eval_reference" && o.reference.empty()) continue;
+      if (std::string(c.name) == "tokenizer" && !trains_tokenizer) continue;
       reference_s += c.fixed_s + c.step_s * (steps.count(c.name) ? steps.at(c.name) : 0);
     }
     if (o.minutes > 0)
@@ -258,44 +294,58 @@ DemoSummary run_demo(const DemoOptions& o) {
     return nlohmann::json{{"mse", s.mse}, {"psnr", s.psnr}};
   });
 
-  // 3. Tokenizer.
-  LOG_INFO("[3/10] tokenizer: Wan2.1-architecture VAE");
+  // 3. Tokenizer: a trained one copied in as is (the paper, too, takes its VAE pretrained: Wan2.1's),
+  // or trained here. Either way it lands in OUT/tokenizer/checkpoint, where the commands that take
+  // --demo look for it.
   const fs::path tokenizer = out / "tokenizer" / "checkpoint";
-  stages["tokenizer"] =
-      run_stage(out, "tokenizer", {{"budget", budget_settings("tokenizer")}, {"data", stages["data"]}}, [&] {
-        models::WanVaeConfig cfg;
-        cfg.dim = 16;
-        // Seeded before the weights are drawn: the LAM stage draws from the global generator as it
-        // trains, so without this the tokenizer's initialisation would depend on whether the LAM
-        // stage ran in this process or was re-used, and for how many steps.
-        torch::manual_seed(o.seed);
-        models::WanVae vae(cfg);
-        models::init_frame_by_frame(vae);  // image phase first; a resumed run loads over this
-        data::ClipConfig clip;
-        // 9 frames = 3 latent frames: the first chunk and one steady-state chunk that decodes from
-        // the causal caches of the one before (trained on 5 frames only, latent frames >= 2 of the
-        // world model's 13-frame clips decoded to flat colour).
-        clip.num_frames = 9;
-        clip.strides = {1, 2};
-        clip.height = clip.width = 64;
-        const auto batches =
-            train::tokenizer_batches({{out / "human", "all"}, {out / "robot", "train"}}, clip,
-                                     /*clip_batch=*/4, /*image_batch=*/8, /*workers=*/1, o.seed);
-        train::TokenizerTrainOptions t = train::recommended_tokenizer_options();
-        t.warmup_steps = 20;
-        t.steps = o.minutes > 0 ? 1000000 : o.tokenizer_steps;
-        t.time_budget_s = stage_minutes("tokenizer") * 60;
-        t.save_every = 100;
-        t.checkpoint_dir = tokenizer;
-        t.loss_curve = out / "tokenizer" / "loss.csv";
-        t.stats_batches = 8;
-        t.next_image_batch = batches.images;
-        fs::create_directories(out / "tokenizer");
-        torch::manual_seed(o.seed);
-        const auto r = train::train_tokenizer(vae, batches.clips, t);
-        return nlohmann::json{
-            {"steps", r.steps_done}, {"recon_first", r.first_loss}, {"recon_last", r.last_loss}};
-      });
+  if (!o.tokenizer.empty()) {
+    LOG_INFO("[3/10] tokenizer: ", o.tokenizer.string(),
+             " as is (trained beforehand, as the paper's VAE is)");
+    const auto from = fs::absolute(o.tokenizer).lexically_normal();
+    stages["tokenizer"] = run_stage(out, "tokenizer", {{"copied_from", from.string()}}, [&] {
+      copy_tokenizer(from, out / "tokenizer");
+      return nlohmann::json{{"copied_from", from.string()}};
+    });
+  } else {
+    LOG_INFO("[3/10] tokenizer: Wan2.1-architecture VAE");
+    stages["tokenizer"] = run_stage(
+        out, "tokenizer", {{"budget", budget_settings("tokenizer")}, {"data", stages["data"]}}, [&] {
+          // A copied tokenizer has no trainer state to resume: training starts afresh.
+          if (fs::exists(out / "tokenizer" / kCopiedMarker)) fs::remove_all(out / "tokenizer");
+          models::WanVaeConfig cfg;
+          cfg.dim = 16;
+          // Seeded before the weights are drawn: the LAM stage draws from the global generator as
+          // it trains, so without this the tokenizer's initialisation would depend on whether the
+          // LAM stage ran in this process or was re-used, and for how many steps.
+          torch::manual_seed(o.seed);
+          models::WanVae vae(cfg);
+          models::init_frame_by_frame(vae);  // image phase first; a resumed run loads over this
+          data::ClipConfig clip;
+          // 9 frames = 3 latent frames: the first chunk and one steady-state chunk that decodes
+          // from the causal caches of the one before (trained on 5 frames only, latent frames >= 2
+          // of the world model's 13-frame clips decoded to flat colour).
+          clip.num_frames = 9;
+          clip.strides = {1, 2};
+          clip.height = clip.width = 64;
+          const auto batches =
+              train::tokenizer_batches({{out / "human", "all"}, {out / "robot", "train"}}, clip,
+                                       /*clip_batch=*/4, /*image_batch=*/8, /*workers=*/1, o.seed);
+          train::TokenizerTrainOptions t = train::recommended_tokenizer_options();
+          t.warmup_steps = 20;
+          t.steps = o.minutes > 0 ? 1000000 : o.tokenizer_steps;
+          t.time_budget_s = stage_minutes("tokenizer") * 60;
+          t.save_every = 100;
+          t.checkpoint_dir = tokenizer;
+          t.loss_curve = out / "tokenizer" / "loss.csv";
+          t.stats_batches = 8;
+          t.next_image_batch = batches.images;
+          fs::create_directories(out / "tokenizer");
+          torch::manual_seed(o.seed);
+          const auto r = train::train_tokenizer(vae, batches.clips, t);
+          return nlohmann::json{
+              {"steps", r.steps_done}, {"recon_first", r.first_loss}, {"recon_last", r.last_loss}};
+        });
+  }
 
   // 4. Keypoint probe: where the arm and the hand are, to score rollouts by.
   LOG_INFO("[4/10] keypoint probe: finds the arm and the hand in a frame");
@@ -399,6 +449,9 @@ DemoSummary run_demo(const DemoOptions& o) {
         // "An attention sink").
         job.student.sink_frames = 1;
         job.out = out / "student_warmup";
+        // Its 13-frame latent cache is post-training's (the same clips, tokenizer and action ranges):
+        // linked rather than encoded again. The cache checks its spec, so a mismatch only re-encodes.
+        link_if_absent(out / "wm_posttrain" / "latents-0.safetensors", job.out / "latents-0.safetensors");
         job.steps = o.warmup_steps;
         job.save_every = 100;
         job.seed = o.seed;

@@ -1,6 +1,7 @@
 // `dojo demo` as a library recipe: the whole system on the built-in DojoSim world, on a laptop
 // CPU, with no data or weights to download. DojoSim generates human and robot episodes; a small
-// LAM learns latent actions from video alone; a small tokenizer learns the latent space; a
+// LAM learns latent actions from video alone; a small tokenizer gives the latent space (trained
+// beforehand and copied in, as the paper takes Wan2.1's VAE pretrained, or trained here); a
 // keypoint probe learns where the arm and the hand are; the world model is pretrained on human
 // video with latent actions, post-trained on robot actions, rolled out on held-out,
 // out-of-distribution and counterfactual episodes and scored against a copy-the-first-frame
@@ -42,6 +43,9 @@ struct DemoOptions {
   double posttrain_condition_noise = 0.3;
   // > 0: share this many minutes between the training stages instead (machine-dependent results).
   double minutes = 0;
+  // A trained tokenizer checkpoint to copy in and use as is (the CLI's default: the reference set's);
+  // empty: train one here for tokenizer_steps.
+  std::filesystem::path tokenizer;
   // A reference model set (models/reference) to evaluate beside the demo's own models; empty:
   // none. Its tokenizer, probe and world model are used as a set.
   std::filesystem::path reference;

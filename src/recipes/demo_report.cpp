@@ -135,12 +135,18 @@ std::string write_demo_report(const fs::path& out, const nlohmann::json& stages)
   write_file_atomic(out / "eval.md", md);
 
   eval::HtmlReport html("DreamDojo.cpp demo on DojoSim");
+  const bool tokenizer_copied =
+      stages.contains("tokenizer") &&
+      stages["tokenizer"].value("result", nlohmann::json::object()).contains("copied_from");
   html.paragraph(
       "Everything below was made by `dojo demo` on this machine: DojoSim generated human and robot episodes; "
       "a "
-      "small latent action model learned actions from video alone; a small Wan2.1-architecture tokenizer "
-      "learned "
-      "the latent space; a keypoint probe learned to find the arm and the hand; the action-conditioned DiT "
+      "small latent action model learned actions from video alone; " +
+      std::string(tokenizer_copied
+                      ? "a small Wan2.1-architecture tokenizer trained beforehand gave the latent "
+                        "space (copied in, as the paper takes its VAE pretrained); "
+                      : "a small Wan2.1-architecture tokenizer learned the latent space; ") +
+      "a keypoint probe learned to find the arm and the hand; the action-conditioned DiT "
       "was "
       "pretrained on human video with latent actions and post-trained on robot actions. It then rolled out "
       "49-frame videos (4 chunks of 12 actions, 3 autoregressive resets) from the first frame and the "
@@ -230,8 +236,9 @@ std::string write_demo_report(const fs::path& out, const nlohmann::json& stages)
                   {series(out / "wm_pretrain" / "loss.csv", "loss", "pretrain (human, latent actions)"),
                    series(out / "wm_posttrain" / "loss.csv", "loss", "post-train (robot actions)")},
                   "step", "loss", true, 20);
-  html.line_chart("Tokenizer: reconstruction MSE", {series(out / "tokenizer" / "loss.csv", "recon", "recon")},
-                  "step", "mse", true, 20);
+  if (fs::exists(out / "tokenizer" / "loss.csv"))  // trained here, not copied in
+    html.line_chart("Tokenizer: reconstruction MSE",
+                    {series(out / "tokenizer" / "loss.csv", "recon", "recon")}, "step", "mse", true, 20);
   html.line_chart("LAM: reconstruction PSNR", {series(out / "lam" / "loss.csv", "psnr", "psnr")}, "step",
                   "dB", false, 20);
   html.line_chart("Keypoint probe: loss", {series(out / "probe" / "loss.csv", "loss", "loss")}, "step",

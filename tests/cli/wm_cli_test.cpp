@@ -159,16 +159,30 @@ TEST(WmCli, DemoRunsEndToEndOnTinyStepBudgetsAndReusesFinishedStages) {
       "--eval-episodes 2 --frames 50 --sampler-steps 2 --workers 1 "
       "--reference none --out " +
       out;
-  auto r = test::run_dojo(command);
+  // A tokenizer that is not one fails at once, before anything is generated.
+  auto r = test::run_dojo(command + " --tokenizer " + (tmp / "no_tokenizer").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("no_tokenizer/config.json: missing"), std::string::npos) << r.output;
+  EXPECT_FALSE(std::filesystem::exists(out));
+
+  // By default the shipped tokenizer is copied in, not trained.
+  r = test::run_dojo(command);
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("expected ~"), std::string::npos) << r.output;
+  EXPECT_EQ(r.output.find("tokenizer train:"), std::string::npos) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(tmp / "demo" / "tokenizer" / "checkpoint" / "model.safetensors"));
+  // The student's warm-up reads post-training's latent cache instead of encoding the clips again.
+  EXPECT_NE(r.output.find("clips from " + out + "/student_warmup/latents-0.safetensors"), std::string::npos)
+      << r.output;
   const auto html = test::read_file(tmp / "demo" / "report.html");
   EXPECT_NE(html.find("data:video/mp4;base64,"), std::string::npos);
   EXPECT_NE(html.find("<polyline"), std::string::npos);
   EXPECT_NE(html.find("Does the model use the actions?"), std::string::npos);
   for (const char* split : {"val", "ood-objects", "counterfactual"})
     EXPECT_NE(html.find(std::string("<td>") + split + "</td>"), std::string::npos) << split;
+  EXPECT_NE(html.find("trained beforehand"), std::string::npos);
   const auto demo = nlohmann::json::parse(test::read_file(tmp / "demo" / "demo.json"));
+  EXPECT_TRUE(demo["tokenizer"]["result"].contains("copied_from")) << demo["tokenizer"].dump();
   ASSERT_EQ(demo["eval"]["result"].size(), 3u);
   EXPECT_TRUE(demo["eval"]["result"][0].contains("shuffled_actions"));
   EXPECT_TRUE(demo["eval"]["result"][0]["world_model"].contains("keypoint_error_px"));
