@@ -7,7 +7,6 @@
 
 #include "cli/commands.h"
 #include "cli/options.h"
-#include "core/runtime.h"
 #include "train/fast_decoder_train.h"
 
 namespace dojo::cli {
@@ -41,8 +40,8 @@ int run_fast_decoder(const FastDecoderArgs& a) {
   job.time_budget_s = a.minutes * 60;
   job.save_every = a.save_every;
   job.seed = a.seed;
-  // Convolutions on small frames: one OpenMP thread leaves both cores to the BLAS pool.
-  ScopedThreads matmul_bound(matmul_bound_command_threads("tokenizer fast-decoder", false));
+  // Convolutions only: every thread (one left a core idle: 1.73 against 2.66 steps/s on 2 cores,
+  // docs/benchmarks.md).
   const auto r = train::run_fast_decoder_training(job);
   std::printf(
       "fast decoder: %lld steps on %lld clips, loss %.5f, held-out PSNR against the Wan decoder %.2f dB "

@@ -485,7 +485,8 @@ DemoSummary run_demo(const DemoOptions& o) {
         job.batch_size = 4;  // half the default: the demo's time budget
         job.steps = o.fast_decoder_steps;
         job.seed = o.seed;
-        ScopedThreads matmul_bound(matmul_threads(false));
+        // Convolutions (the Wan encoder and decoder, the fast decoder): every thread, unlike the
+        // matmul-bound stages. 1.54x the steps/s of one thread (docs/benchmarks.md).
         const auto r = train::run_fast_decoder_training(job);
         return nlohmann::json{{"steps", r.steps}, {"heldout_psnr_vs_wan", r.heldout_psnr}};
       });

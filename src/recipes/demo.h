@@ -33,7 +33,8 @@ struct DemoOptions {
   // Intra-op threads for the matmul-bound stages (LAM, world model, rollouts); 0: the runtime's
   // choice (core/runtime.h, matmul_bound_threads).
   int matmul_threads = 0;
-  // Stage budgets in optimisation steps (about 30 minutes on 2 cores in all).
+  // Stage budgets in optimisation steps (with the tokenizer copied in: 27 minutes on the 2-core
+  // reference machine, docs/benchmarks.md).
   int64_t lam_steps = 1500, tokenizer_steps = 2700, probe_steps = 600, pretrain_steps = 1200,
           posttrain_steps = 1500;
   // The real-time student: warm-up steps, Self-Forcing iterations, fast-decoder steps.

@@ -152,7 +152,9 @@ TEST(StreamCli, SpeedTimesEachDecoderOnRandomWeights) {
     const double fps = row.at("steady_frames_per_second");
     EXPECT_GT(fps, 0) << row;
     EXPECT_LE(row.at("step_ms_p50").get<double>(), row.at("step_ms_max").get<double>());
-    if (kv_mib >= 0) EXPECT_DOUBLE_EQ(row.at("kv_cache_mib").get<double>(), kv_mib);  // the same ring
+    if (kv_mib >= 0) {
+      EXPECT_DOUBLE_EQ(row.at("kv_cache_mib").get<double>(), kv_mib);  // the same ring
+    }
     kv_mib = row.at("kv_cache_mib");
   }
   EXPECT_EQ(report["rows"][0].at("decoder"), "none");
