@@ -6,6 +6,7 @@
 
 #include "cli/commands.h"
 #include "cli/options.h"
+#include "core/error.h"
 #include "recipes/demo.h"
 
 namespace dojo::cli {
@@ -26,10 +27,12 @@ void register_demo(CLI::App& app) {
                   "(results then depend on the machine)")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--lam-steps", o->lam_steps, "LAM training steps")->capture_default_str();
-  cmd->add_option("--tokenizer", *tokenizer,
-                  "Tokenizer checkpoint to use as is, as the paper uses Wan2.1's VAE pretrained (default: "
-                  "the reference set's, models/reference/tokenizer, when present); \"train\" to train one "
-                  "here (--tokenizer-steps; about 13 more minutes on 2 cores)");
+  cmd->add_option(
+      "--tokenizer", *tokenizer,
+      "Tokenizer checkpoint to use as is, as the paper uses Wan2.1's VAE pretrained (default: "
+      "the reference set's, models/reference/tokenizer, when present); \"train\" to train one "
+      "here (--tokenizer-steps; 13 more minutes on the 2-core reference machine, 31 on the slowest "
+      "measured)");
   cmd->add_option("--tokenizer-steps", o->tokenizer_steps,
                   "Tokenizer training steps (with --tokenizer train)")
       ->capture_default_str();
@@ -62,8 +65,8 @@ void register_demo(CLI::App& app) {
   add_workers_option(cmd, o->workers);
   add_device_option(cmd, o->device);
   add_precision_option(cmd, o->precision);
-  cmd->callback([o, out, reference, tokenizer] {
-    set_action([o, out, reference, tokenizer] {
+  cmd->callback([cmd, o, out, reference, tokenizer] {
+    set_action([cmd, o, out, reference, tokenizer] {
       o->out = *out;
       o->reference = *reference == "none" ? std::filesystem::path() : std::filesystem::path(*reference);
       if (reference->empty() && std::filesystem::exists(default_reference_dir() / "wm_posttrain"))
@@ -74,6 +77,8 @@ void register_demo(CLI::App& app) {
       } else if (*tokenizer != "train") {
         o->tokenizer = *tokenizer;
       }
+      if (!o->tokenizer.empty() && cmd->count("--tokenizer-steps") > 0)
+        throw UsageError("demo: --tokenizer-steps trains a tokenizer: give --tokenizer train with it");
       o->matmul_threads = global_options().threads;  // an explicit --threads wins
       const auto s = recipes::run_demo(*o);
       std::printf("\nDreamDojo.cpp demo finished in %.1f min. Open %s in a browser.\n\n%s\n",

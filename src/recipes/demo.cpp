@@ -89,8 +89,9 @@ double matmul_gflops(int threads) {
 // Left in OUT/tokenizer by a tokenizer copied in rather than trained there.
 constexpr const char* kCopiedMarker = "copied_from.json";
 
-// The tokenizer checkpoint at `from` (weights and config; no trainer state) as
-// DIR/checkpoint, crash-safely, replacing whatever DIR held (a tokenizer trained there before).
+// The tokenizer checkpoint at `from` (weights and config; no trainer state) as DIR/checkpoint.
+// Written beside DIR and renamed into place; a tokenizer trained in DIR earlier is kept as
+// DIR.trained rather than deleted.
 void copy_tokenizer(const fs::path& from, const fs::path& dir) {
   const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(from));
   const std::string model = ckpt.config().value("model", "");
@@ -100,10 +101,28 @@ void copy_tokenizer(const fs::path& from, const fs::path& dir) {
   CheckpointData data;
   data.config = ckpt.config();
   data.model = ckpt.model().tensors(/*copy=*/true);
+  const fs::path staging = dir.string() + ".copying";
+  fs::remove_all(staging);
+  save_checkpoint(staging / "checkpoint", data);
+  write_file_atomic(staging / kCopiedMarker, nlohmann::json{{"from", from.string()}}.dump(2) + "\n");
+  if (fs::exists(dir) && !fs::exists(dir / kCopiedMarker)) {
+    const fs::path kept = dir.string() + ".trained";
+    fs::remove_all(kept);
+    fs::rename(dir, kept);
+    LOG_INFO("demo: the tokenizer trained in ", dir.string(), " is kept as ", kept.string());
+  }
   fs::remove_all(dir);
-  fs::create_directories(dir);
-  write_file_atomic(dir / kCopiedMarker, nlohmann::json{{"from", from.string()}}.dump(2) + "\n");
-  save_checkpoint(dir / "checkpoint", data);
+  fs::rename(staging, dir);
+}
+
+// A new tokenizer invalidates every model trained on its latents: their checkpoints would resume
+// at their last step and train no further, so they go (their stages then run afresh).
+void discard_models_on_old_latents(const fs::path& out) {
+  for (const char* stage : {"wm_pretrain", "wm_posttrain", "student_warmup", "student", "fast_decoder"})
+    if (fs::exists(out / stage)) {
+      LOG_INFO("demo: the tokenizer changed; discarding ", (out / stage).string());
+      fs::remove_all(out / stage);
+    }
 }
 
 // `to` as a hard link to `from` (a copy across file systems) unless `to` exists or `from` does not.
@@ -112,7 +131,10 @@ void link_if_absent(const fs::path& from, const fs::path& to) {
   fs::create_directories(to.parent_path());
   std::error_code error;
   fs::create_hard_link(from, to, error);
-  if (error) fs::copy_file(from, to);
+  if (!error) return;
+  const fs::path partial = to.string() + ".partial";  // another file system: copied, then renamed
+  fs::copy_file(from, partial, fs::copy_options::overwrite_existing);
+  fs::rename(partial, to);
 }
 
 // Runs `body` unless OUT/stages/<name>.json records a finished run with the same settings. Returns
@@ -302,7 +324,10 @@ DemoSummary run_demo(const DemoOptions& o) {
     LOG_INFO("[3/10] tokenizer: ", o.tokenizer.string(),
              " as is (trained beforehand, as the paper's VAE is)");
     const auto from = fs::absolute(o.tokenizer).lexically_normal();
-    stages["tokenizer"] = run_stage(out, "tokenizer", {{"copied_from", from.string()}}, [&] {
+    const auto shipped = Checkpoint::open(resolve_checkpoint_dir(from));
+    const nlohmann::json settings = {{"copied_from", from.string()}, {"bytes", shipped.model().file_size()}};
+    stages["tokenizer"] = run_stage(out, "tokenizer", settings, [&] {
+      discard_models_on_old_latents(out);
       copy_tokenizer(from, out / "tokenizer");
       return nlohmann::json{{"copied_from", from.string()}};
     });
@@ -310,6 +335,7 @@ DemoSummary run_demo(const DemoOptions& o) {
     LOG_INFO("[3/10] tokenizer: Wan2.1-architecture VAE");
     stages["tokenizer"] = run_stage(
         out, "tokenizer", {{"budget", budget_settings("tokenizer")}, {"data", stages["data"]}}, [&] {
+          discard_models_on_old_latents(out);
           // A copied tokenizer has no trainer state to resume: training starts afresh.
           if (fs::exists(out / "tokenizer" / kCopiedMarker)) fs::remove_all(out / "tokenizer");
           models::WanVaeConfig cfg;

@@ -154,7 +154,7 @@ TEST(WmCli, DemoRunsEndToEndOnTinyStepBudgetsAndReusesFinishedStages) {
   test::TempDir tmp;
   const auto out = (tmp / "demo").string();
   const std::string command =
-      "--threads 1 demo --lam-steps 3 --tokenizer-steps 3 --probe-steps 3 --pretrain-steps 3 "
+      "--threads 1 demo --lam-steps 3 --probe-steps 3 --pretrain-steps 3 "
       "--posttrain-steps 3 --warmup-steps 3 --self-forcing-steps 3 --fast-decoder-steps 3 --episodes 2 "
       "--eval-episodes 2 --frames 50 --sampler-steps 2 --workers 1 "
       "--reference none --out " +
@@ -163,6 +163,10 @@ TEST(WmCli, DemoRunsEndToEndOnTinyStepBudgetsAndReusesFinishedStages) {
   auto r = test::run_dojo(command + " --tokenizer " + (tmp / "no_tokenizer").string());
   EXPECT_NE(r.exit_code, 0);
   EXPECT_NE(r.output.find("no_tokenizer/config.json: missing"), std::string::npos) << r.output;
+  EXPECT_FALSE(std::filesystem::exists(out));
+  r = test::run_dojo(command + " --tokenizer-steps 3");  // steps for a tokenizer that is not trained
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_NE(r.output.find("give --tokenizer train with it"), std::string::npos) << r.output;
   EXPECT_FALSE(std::filesystem::exists(out));
 
   // By default the shipped tokenizer is copied in, not trained.
