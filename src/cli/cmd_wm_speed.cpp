@@ -4,8 +4,10 @@
 // This is how the GPU rows of docs/benchmarks.md are made (the 2B network at 480x640 needs no
 // trained weights), and it builds in the engine-only configuration (DOJO_ENGINE_ONLY).
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cstdio>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -31,7 +33,7 @@ struct SpeedArgs {
   int student_steps = 0;
   std::string device = "cpu", precision = "fp32";
   uint64_t seed = 0;
-  bool json = false, fp32_weights = false, no_inference_mode = false;
+  bool json = false, fp32_weights = false, no_inference_mode = false, no_cuda_graphs = false;
 };
 
 // The networks of one run, built once and shared by the engines of every decoder row.
@@ -82,14 +84,18 @@ nlohmann::json time_decoder(const Networks& n, const std::string& decoder, const
   o.decode = decoder != "none";
   o.cast_weights = !a.fp32_weights;
   o.inference_mode = !a.no_inference_mode;
+  o.cuda_graphs = !a.no_cuda_graphs;
   if (decoder == "fast") o.fast_decoder = n.fast_decoder;
   infer::StreamingEngine engine(n.net, n.tokenizer, o);
   torch::manual_seed(a.seed);
   const auto first = torch::randint(0, 256, {1, height, width, 3}, torch::kUInt8);  // [1, H, W, 3]
   const auto actions = torch::randn({1, 4, n.net->config.action_dim}) * 0.1;        // [1, 4, 384]
   engine.reset(first, a.seed);
-  // Until the window is full the cache grows each step (new allocations, longer attention).
-  const int64_t warmup = a.warmup >= 0 ? a.warmup : n.student.window_frames + 3;
+  // Until the window is full the cache grows each step (new allocations, longer attention); with
+  // CUDA graphs, the window + 1 steps after it capture a graph per ring slot.
+  const bool graphs = engine.graphs_enabled();
+  const int64_t warmup =
+      a.warmup >= 0 ? a.warmup : n.student.window_frames + 3 + (graphs ? n.student.window_frames + 1 : 0);
   for (int64_t i = 0; i < warmup; ++i) engine.step(actions);
   infer::StreamStats stats;
   for (int64_t i = 0; i < a.steps; ++i) {
@@ -99,7 +105,41 @@ nlohmann::json time_decoder(const Networks& n, const std::string& decoder, const
   auto row = stats.summary();
   row["decoder"] = decoder;
   row["kv_cache_mib"] = engine.cache_bytes() / 1048576.0;
+  row["cuda_graph_replays"] = engine.graph_replays();
   return row;
+}
+
+// The latents of the same stream with the hops replayed from CUDA graphs and dispatched eagerly:
+// the largest absolute difference over 2 windows + 3 steps, each with fresh actions: the ring is
+// full after a window, and the window + 1 steps after that capture every slot's graph and replay
+// one again. Empty when graphs do not apply (the CPU, a build without them, the teleop alignment).
+std::optional<double> graphs_against_eager(const Networks& n, const SpeedArgs& a, torch::Device device,
+                                           Precision precision, int64_t height, int64_t width) {
+  const int64_t steps = 2 * n.student.window_frames + 3;
+  torch::manual_seed(a.seed);
+  const auto first = torch::randint(0, 256, {1, height, width, 3}, torch::kUInt8);   // [1, H, W, 3]
+  const auto actions = torch::randn({steps, 1, 4, n.net->config.action_dim}) * 0.1;  // per step [1, 4, 384]
+  std::vector<torch::Tensor> latents[2];
+  for (int graphs = 1; graphs >= 0; --graphs) {  // graphed first: it says whether they apply
+    infer::StreamingEngine::Options o;
+    o.student = n.student;
+    o.device = device;
+    o.precision = precision;
+    o.decode = false;
+    o.cast_weights = !a.fp32_weights;
+    o.inference_mode = !a.no_inference_mode;
+    o.cuda_graphs = graphs == 1;
+    infer::StreamingEngine engine(n.net, n.tokenizer, o);
+    if (graphs == 1 && !engine.graphs_enabled()) return std::nullopt;
+    engine.reset(first, a.seed);
+    for (int64_t i = 0; i < steps; ++i) latents[graphs].push_back(engine.step(actions[i]).to(torch::kCPU));
+    DOJO_CHECK(graphs == 0 || engine.graph_replays() > 0,
+               "wm speed: no step replayed a CUDA graph (capture failed: see the warning above)");
+  }
+  double worst = 0;
+  for (int64_t i = 0; i < steps; ++i)
+    worst = std::max(worst, (latents[0][i] - latents[1][i]).abs().max().item<double>());
+  return worst;
 }
 
 int run_speed(const SpeedArgs& a) {
@@ -131,6 +171,14 @@ int run_speed(const SpeedArgs& a) {
       {"timed_steps", a.steps},
       {"torch", torch_version()},
       {"rows", nlohmann::json::array()}};
+  std::optional<double> diff;
+  if (!a.no_cuda_graphs) diff = graphs_against_eager(networks, a, device, precision, height, width);
+  const bool graphs = diff.has_value();
+  report["cuda_graphs"] = graphs;
+  if (graphs) {
+    LOG_INFO("wm speed: CUDA graphs against eager dispatch, largest latent difference ", *diff);
+    report["cuda_graphs_max_abs_diff"] = *diff;
+  }
   for (const auto& decoder : a.decoders) {
     LOG_INFO("wm speed: decoder ", decoder, ", ", a.steps, " timed steps");
     report["rows"].push_back(time_decoder(networks, decoder, a, device, precision, height, width));
@@ -144,6 +192,9 @@ int run_speed(const SpeedArgs& a) {
               a.size.c_str(), device.str().c_str(), to_string(precision).c_str(),
               static_cast<long long>(s.window_frames), static_cast<long long>(s.sink_frames), s.steps,
               torch_version().c_str());
+  if (graphs)
+    std::printf("Hops replayed as CUDA graphs; largest latent difference against eager dispatch: %.3g\n\n",
+                report["cuda_graphs_max_abs_diff"].get<double>());
   std::printf(
       "| decoder | frames/s | step p50 ms | step p95 ms | denoise ms | re-cache ms | decode ms | "
       "KV cache MiB | RSS MiB (frame 100 / end) |\n|---|---|---|---|---|---|---|---|---|\n");
@@ -179,7 +230,8 @@ void register_wm_speed(CLI::App& wm) {
       ->capture_default_str();
   cmd->add_option("--steps", a->steps, "Timed steps per row (4 frames each)")->capture_default_str();
   cmd->add_option("--warmup", a->warmup,
-                  "Untimed steps first (default: the window + 3, so the cache is full)");
+                  "Untimed steps first (default: the window + 3, so the cache is full; with CUDA graphs "
+                  "a window + 1 more, so every graph is captured)");
   cmd->add_option("--window", a->window, "Window in latent frames (default: the checkpoint's, else 3)");
   a->sink.add_options(cmd);
   cmd->add_option("--student-steps", a->student_steps, "Hops per latent frame, 1-4 (default: 4)");
@@ -187,6 +239,10 @@ void register_wm_speed(CLI::App& wm) {
                 "Below fp32, keep float32 weights for autocast to cast at every op (the slower path)");
   cmd->add_flag("--no-inference-mode", a->no_inference_mode,
                 "Stream under a plain no-grad guard instead of inference mode (for comparison)");
+  cmd->add_flag("--no-cuda-graphs", a->no_cuda_graphs,
+                "On CUDA, dispatch the hops op by op instead of replaying them as CUDA graphs (with graphs, "
+                "the run first checks their latents against eager dispatch and reports the largest "
+                "difference)");
   add_seed_option(cmd, a->seed);
   add_json_option(cmd, a->json);
   add_device_option(cmd, a->device);

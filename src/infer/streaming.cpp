@@ -351,8 +351,25 @@ void StreamingEngine::rebuild_teleop_cache(const torch::Tensor& fresh) {
 }
 
 torch::Tensor StreamingEngine::denoise_cached(const torch::Tensor& noise, const torch::Tensor& actions) {
+  if (graphs_enabled() && cache_.front().ring_full()) {  // before: each step attends more keys
+    try {
+      return denoise_graphed(noise, actions);
+    } catch (const Error& e) {
+      LOG_WARN("streaming: ", e.what(), "; the hops run eagerly from now on");
+      graphs_failed_ = true;
+      hop_graphs_.clear();
+    }
+  }
+  return run_hops(noise, actions, frames_ - position_base_, torch::Tensor(), torch::Tensor());
+}
+
+torch::Tensor StreamingEngine::run_hops(const torch::Tensor& noise, const torch::Tensor& actions,
+                                        int64_t offset, const torch::Tensor& rope_cos,
+                                        const torch::Tensor& rope_sin) {
   auto base = inputs(actions);
-  base.frame_offset = frames_ - position_base_;  // RoPE index of the new frame
+  base.frame_offset = offset;  // RoPE index of the new frame
+  base.rope_cos = rope_cos;
+  base.rope_sin = rope_sin;
   base.kv_cache = &cache_;
   base.store_kv = false;  // hops read the cache; the clean pass writes it
   auto x = noise;         // TrigFlow state at t = π/2
@@ -368,6 +385,62 @@ torch::Tensor StreamingEngine::denoise_cached(const torch::Tensor& noise, const 
     }
   }
   return x0;
+}
+
+bool StreamingEngine::graphs_enabled() const {
+  // The teleop compatibility mode re-stores its whole window every step; it stays eager.
+  return options_.cuda_graphs && options_.device.is_cuda() && options_.use_cache && !graphs_failed_ &&
+         CapturedCall::available() && options_.student.action_alignment != ActionAlignment::kReleasedTeleop;
+}
+
+torch::Tensor StreamingEngine::denoise_graphed(const torch::Tensor& noise, const torch::Tensor& actions) {
+  // A graph holds the addresses of the cache buffers and of its input buffers: made again when
+  // either changed (a new batch size, window or precision reallocates them).
+  std::vector<const void*> cache_buffers;
+  for (const auto& c : cache_) {
+    cache_buffers.push_back(c.k.data_ptr());
+    cache_buffers.push_back(c.v.data_ptr());
+  }
+  if (cache_buffers != graphed_cache_ || !graph_noise_.defined() || graph_noise_.sizes() != noise.sizes() ||
+      graph_actions_.sizes() != actions.sizes()) {
+    hop_graphs_.clear();
+    graph_noise_ = graph_actions_ = graph_rope_cos_ = graph_rope_sin_ = torch::Tensor();
+    graphed_cache_ = cache_buffers;
+  }
+  // What changes from step to step reaches the graph through buffers: the noise, the actions and
+  // the new frame's RoPE angles (its position grows until the next rebase). Which slot its keys
+  // go to is decided on the host, so each slot has its own graph.
+  const int64_t offset = frames_ - position_base_;
+  DOJO_CHECK(offset > 0, "streaming: a graphed frame cannot be frame 0 (it has no actions)");
+  const int64_t p = net_->config.patch_spatial;
+  const auto [cos, sin] =
+      net_->rope_cos_sin(1, latent_shape_[3] / p, latent_shape_[4] / p, offset);  // [S, 1, d]
+  if (!graph_noise_.defined()) {
+    graph_noise_ = torch::empty_like(noise);
+    graph_actions_ = torch::empty_like(actions);
+    graph_rope_cos_ = torch::empty_like(cos);
+    graph_rope_sin_ = torch::empty_like(sin);
+  }
+  graph_noise_.copy_(noise);
+  graph_actions_.copy_(actions);
+  graph_rope_cos_.copy_(cos);
+  graph_rope_sin_.copy_(sin);
+  auto& graph = hop_graphs_[cache_.front().ring_slot()];
+  if (!graph.call) {
+    // Every slot's graph draws its temporaries from the first one's pool: they replay one at a
+    // time and their outputs stay referenced (HopGraph::x0).
+    const CapturedCall* pool = nullptr;
+    for (const auto& [slot, other] : hop_graphs_)
+      if (other.call) pool = other.call.get();
+    const int device = options_.device.has_index() ? options_.device.index() : -1;
+    // offset only decides here that the frame is not frame 0 (checked above) and range checks.
+    graph.call = std::make_unique<CapturedCall>(
+        [&] { graph.x0 = run_hops(graph_noise_, graph_actions_, offset, graph_rope_cos_, graph_rope_sin_); },
+        device, pool);
+  }
+  graph.call->replay();
+  ++graph_replays_;
+  return graph.x0.clone();  // [B, 16, 1, h, w]; the next replay overwrites graph.x0
 }
 
 torch::Tensor StreamingEngine::denoise_reference(const torch::Tensor& noise, const torch::Tensor& actions) {

@@ -19,6 +19,7 @@
 #include <deque>
 #include <filesystem>
 #include <functional>
+#include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -26,6 +27,7 @@
 
 #include "core/autocast.h"
 #include "diffusion/samplers.h"
+#include "infer/cuda_graph.h"
 #include "models/dit.h"
 #include "models/fast_decoder.h"
 #include "models/wan_vae.h"
@@ -114,6 +116,15 @@ class StreamingEngine {
     // Run reset() and step() under c10::InferenceMode (less dispatch per op; streaming.cpp says
     // why). false: under a plain no-grad guard, for comparison.
     bool inference_mode = true;
+    // On a CUDA device with a CUDA libtorch: once the window is full, replay each step's hops as
+    // one CUDA graph (infer/cuda_graph.h), captured per ring slot, instead of dispatching their
+    // ops one by one. The same kernels on the same memory: the latents agree bit for bit with the
+    // eager path (`dojo wm speed` checks; docs/benchmarks.md). Applies with the KV cache and the
+    // training or released_offline alignment. If a capture fails (e.g. out of memory) the hops
+    // run eagerly for the engine's life, with a warning. The networks' weights must keep their
+    // storage while the engine streams (training in place does; cast_weights of another engine at
+    // another precision would not). Ignored on the CPU.
+    bool cuda_graphs = true;
   };
 
   StreamingEngine(models::ActionDit student, models::WanVae tokenizer, Options options);
@@ -144,6 +155,11 @@ class StreamingEngine {
 
   const StreamTimings& last_timings() const { return timings_; }
   int64_t latent_frames() const { return frames_; }  // latent frames so far, frame 0 included
+  // Whether full-window steps replay their hops from CUDA graphs: Options::cuda_graphs on a CUDA
+  // device, a build with graph capture, the KV cache, an alignment they apply to, no failed capture.
+  bool graphs_enabled() const;
+  // Steps whose hops were replayed from a CUDA graph, since construction.
+  int64_t graph_replays() const { return graph_replays_; }
   const Options& options() const { return options_; }
   models::ActionDit& net() { return net_; }
   models::WanVae& tokenizer() { return tokenizer_; }
@@ -158,6 +174,12 @@ class StreamingEngine {
   torch::Tensor step_stream(const torch::Tensor& actions);                // step() in inference mode
   torch::Tensor decode(const torch::Tensor& x0);  // [B, 16, 1, h, w] -> [B, n, H, W, 3] uint8
   torch::Tensor denoise_cached(const torch::Tensor& noise, const torch::Tensor& actions);
+  // The student hops on the cache for a new frame at RoPE index `offset` (or at the positions of
+  // rope_cos/rope_sin when given): noise [B, 16, 1, h, w] -> x̂0.
+  torch::Tensor run_hops(const torch::Tensor& noise, const torch::Tensor& actions, int64_t offset,
+                         const torch::Tensor& rope_cos, const torch::Tensor& rope_sin);
+  // run_hops replayed from a CUDA graph of this ring slot, captured on first use.
+  torch::Tensor denoise_graphed(const torch::Tensor& noise, const torch::Tensor& actions);
   torch::Tensor denoise_reference(const torch::Tensor& noise, const torch::Tensor& actions);
   // One new latent frame: denoised with `generate_with`, cached with `cache_with`.
   torch::Tensor generate(const torch::Tensor& generate_with, const torch::Tensor& cache_with);
@@ -189,6 +211,20 @@ class StreamingEngine {
   // Compatibility modes: the last chunks received (offline lag) and the last window latents (teleop).
   std::deque<torch::Tensor> recent_chunks_, window_latents_;
   StreamTimings timings_;
+  // CUDA graphs of the hops, one per ring slot (the slot a frame's keys go to is fixed at capture),
+  // sharing one memory pool, and the static buffers they read. They stay valid while the cache's
+  // buffers do (a reset with the same batch and window keeps them) and are dropped otherwise.
+  struct HopGraph {
+    std::unique_ptr<CapturedCall> call;
+    torch::Tensor x0;  // [B, 16, 1, h, w], its output, overwritten by each replay
+  };
+  std::map<int64_t, HopGraph> hop_graphs_;
+  std::vector<const void*> graphed_cache_;         // the cache buffers' addresses the graphs were made on
+  torch::Tensor graph_noise_;                      // [B, 16, 1, h, w]
+  torch::Tensor graph_actions_;                    // [B, 4, 384]
+  torch::Tensor graph_rope_cos_, graph_rope_sin_;  // [S, 1, head_dim], the new frame's positions
+  bool graphs_failed_ = false;                     // a capture failed: eager from then on
+  int64_t graph_replays_ = 0;
   nlohmann::json action_ranges_ = nlohmann::json::object();
 };
 

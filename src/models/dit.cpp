@@ -168,13 +168,23 @@ void DitKvCache::place_sink(const torch::Tensor& cos, const torch::Tensor& sin) 
 void DitKvCache::set_ring(int64_t window_frames, int64_t tokens_per_frame, int64_t sink_frames) {
   DOJO_CHECK(window_frames >= 0 && tokens_per_frame > 0 && sink_frames >= 0 && sink_frames <= window_frames,
              "DitKvCache: ring needs a window >= 0, tokens > 0 and 0 <= sink <= window");
-  k = v = torch::Tensor();
+  // The same layout keeps its buffers (a new stream writes over them as it fills): no allocation,
+  // and their addresses stay those that captured CUDA graphs of the streaming engine hold.
+  if (!ring() || window_frames != ring_frames_ || tokens_per_frame != ring_tokens_) k = v = torch::Tensor();
   ring_frames_ = window_frames;
   ring_tokens_ = tokens_per_frame;
   sink_frames_ = sink_frames;
   sink_tokens_ = sink_frames * tokens_per_frame;
   sink_keys_ = torch::Tensor();
   committed_ = 0;
+}
+
+int64_t DitKvCache::ring_slot() const {
+  // The slot after the newest committed frame: empty while filling, then the oldest one after the
+  // sink, which falls out of the window now.
+  const int64_t slots = ring_frames_ + 1;
+  return committed_ < sink_frames_ ? committed_
+                                   : sink_frames_ + (committed_ - sink_frames_) % (slots - sink_frames_);
 }
 
 std::pair<torch::Tensor, torch::Tensor> DitKvCache::attend(const torch::Tensor& k_new,
@@ -197,11 +207,7 @@ std::pair<torch::Tensor, torch::Tensor> DitKvCache::attend(const torch::Tensor& 
     committed_ = 0;  // a new batch or dtype: nothing cached is valid
     sink_keys_ = torch::Tensor();
   }
-  // The slot after the newest committed frame: empty while filling, then the oldest one after the
-  // sink, which falls out of the window now.
-  const int64_t slot = committed_ < sink_frames_
-                           ? committed_
-                           : sink_frames_ + (committed_ - sink_frames_) % (slots - sink_frames_);
+  const int64_t slot = ring_slot();
   DOJO_CHECK(!(torch::GradMode::is_enabled() && k_new.requires_grad()),
              "DitKvCache: the ring layout is for inference; train through the growing layout");
   torch::NoGradGuard no_grad;  // entries are stored detached, as in the growing layout
@@ -416,7 +422,31 @@ torch::Tensor ActionDitImpl::project_context(const torch::Tensor& context) {
   return config.use_crossattn_projection ? crossattn_proj->forward(ctx) : ctx;  // [B, L, C]
 }
 
+std::pair<torch::Tensor, torch::Tensor> ActionDitImpl::rope_cos_sin(int64_t frames, int64_t hp, int64_t wp,
+                                                                    int64_t frame_offset) const {
+  const auto& c = config;
+  const auto angles = rope_angles_3d(pos_embedder->dim_spatial_range, pos_embedder->dim_temporal_range,
+                                     frames, hp, wp, frame_offset, c.rope_h_extrapolation_ratio,
+                                     c.rope_w_extrapolation_ratio, c.rope_t_extrapolation_ratio)
+                          .flatten(1, 2);  // [L, 1, d]
+  return {angles.cos(), angles.sin()};
+}
+
 torch::Tensor ActionDitImpl::forward(const DitInputs& in) { return forward_impl(in, nullptr); }
+
+torch::Tensor ActionDitImpl::action_scale_on(const torch::TensorOptions& options) {
+  c10::InferenceMode normal_tensors(false);  // usable by training after an inference-mode forward
+  torch::NoGradGuard no_grad;
+  if (action_scale_of_ != config.action_scale) {
+    const auto values = config.action_scale_tensor();  // [action_dim]
+    for (auto& t : action_scales_) t.copy_(values);    // in place: captured addresses stay valid
+    action_scale_of_ = config.action_scale;
+  }
+  for (const auto& t : action_scales_)
+    if (t.device() == options.device() && t.dtype() == options.dtype()) return t;
+  action_scales_.push_back(config.action_scale_tensor().to(options));
+  return action_scales_.back();
+}
 
 std::map<std::string, torch::Tensor> ActionDitImpl::forward_with_intermediates(const DitInputs& in) {
   std::map<std::string, torch::Tensor> out;
@@ -465,14 +495,24 @@ torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
   auto x = x_embedder->linear(patches);  // [B, T, Hp, Wp, D]
   keep("x_embedded", x);
 
-  // RoPE for absolute frames [frame_offset, frame_offset + T).
-  const auto angles =
-      rope_angles_3d(pos_embedder->dim_spatial_range, pos_embedder->dim_temporal_range, T, Hp, Wp,
-                     in.frame_offset, c.rope_h_extrapolation_ratio, c.rope_w_extrapolation_ratio,
-                     c.rope_t_extrapolation_ratio);  // [L, 1, 1, d]
-  keep("rope_emb", angles);
-  const auto angles_L_1_d = angles.flatten(1, 2);
-  const auto cos = angles_L_1_d.cos(), sin = angles_L_1_d.sin();  // [L, 1, d]
+  // RoPE for absolute frames [frame_offset, frame_offset + T), unless given.
+  torch::Tensor cos = in.rope_cos, sin = in.rope_sin;  // [L, 1, d]
+  if (cos.defined() || sin.defined()) {
+    const int64_t head_dim = D / c.num_heads;
+    DOJO_CHECK(cos.defined() && sin.defined() && cos.dim() == 3 && cos.size(0) == L && cos.size(1) == 1 &&
+                   cos.size(2) == head_dim && sin.sizes() == cos.sizes(),
+               "DiT: rope_cos and rope_sin must both be [" + std::to_string(L) + ", 1, " +
+                   std::to_string(head_dim) + "]");
+  } else {
+    const auto angles =
+        rope_angles_3d(pos_embedder->dim_spatial_range, pos_embedder->dim_temporal_range, T, Hp, Wp,
+                       in.frame_offset, c.rope_h_extrapolation_ratio, c.rope_w_extrapolation_ratio,
+                       c.rope_t_extrapolation_ratio);  // [L, 1, 1, d]
+    keep("rope_emb", angles);
+    const auto angles_L_1_d = angles.flatten(1, 2);
+    cos = angles_L_1_d.cos();
+    sin = angles_L_1_d.sin();
+  }
 
   // Text context.
   torch::Tensor context;  // [B, Lc, C]
@@ -501,7 +541,7 @@ torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
   auto t_emb = t_emb_raw;
   const int64_t lead = in.frame_offset == 0 ? 1 : 0;
   const auto actions = in.actions.defined() && !c.action_scale.empty()
-                           ? in.actions * c.action_scale_tensor().to(in.actions.options())
+                           ? in.actions * action_scale_on(in.actions.options())
                            : in.actions;
   const int64_t action_frames = T - lead;
   if (actions.defined() && c.whole_clip_actions > 0) {

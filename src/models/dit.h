@@ -187,10 +187,15 @@ struct DitKvCache {
   void keep_last(int64_t tokens);
   void clear();
   // Switches to the ring layout holding window_frames committed frames of tokens_per_frame each,
-  // the first sink_frames of which (<= window_frames) are never overwritten.
+  // the first sink_frames of which (<= window_frames) are never overwritten. Empties the cache; a
+  // ring of the same window and frame size keeps its buffers.
   void set_ring(int64_t window_frames, int64_t tokens_per_frame, int64_t sink_frames = 0);
   bool ring() const { return ring_tokens_ > 0; }
   int64_t committed_frames() const { return committed_; }
+  // Ring: the slot the next call's frame is written to, and whether every slot is in use (from
+  // then on each call attends the same number of keys).
+  int64_t ring_slot() const;
+  bool ring_full() const { return ring() && committed_ >= ring_frames_; }
   // Growing layout: the first `tokens` entries form an attention sink (kept by keep_last).
   void set_sink(int64_t tokens);
   // Rotates every cached key by the angles whose cos/sin are given ([head_dim], broadcast over
@@ -343,6 +348,10 @@ struct DitInputs {
   // projection costs 2·512·100352·1024 FLOPs, so callers project it once.
   torch::Tensor projected_context;
   int64_t frame_offset = 0;  // absolute temporal RoPE index of x's first latent frame (student streaming)
+  // Optional: the RoPE cos and sin of this call's tokens, [L, 1, head_dim] (rope_cos_sin), used in
+  // place of frame_offset's. A replayed CUDA graph reads its positions from these buffers, since
+  // a position captured as a number would stay fixed.
+  torch::Tensor rope_cos, rope_sin;
   // Optional self-attention mask over this call's tokens (queries) and cached + this call's tokens
   // (keys): boolean keep-mask or additive float, broadcastable to [B, heads, L, cached + L].
   torch::Tensor self_attn_mask;
@@ -366,6 +375,10 @@ class ActionDitImpl : public torch::nn::Module {
   int64_t num_parameters() const;  // learned parameters (buffers excluded)
   // Projected text context crossattn_proj(context) (constant for a fixed prompt: cache it).
   torch::Tensor project_context(const torch::Tensor& context);
+  // RoPE cos and sin [T·hp·wp, 1, head_dim] (float32) of T latent frames from frame_offset, on
+  // a grid of hp x wp patches: what forward() computes for its tokens.
+  std::pair<torch::Tensor, torch::Tensor> rope_cos_sin(int64_t frames, int64_t hp, int64_t wp,
+                                                       int64_t frame_offset) const;
 
   DitConfig config;
   torch::Tensor accum_video_sample_counter, accum_image_sample_counter, accum_iteration, accum_train_in_hours;
@@ -382,6 +395,14 @@ class ActionDitImpl : public torch::nn::Module {
 
  private:
   torch::Tensor forward_impl(const DitInputs& in, std::map<std::string, torch::Tensor>* capture);
+  // config.action_scale as a tensor on the actions' device and dtype, made once per device and
+  // dtype and updated in place when the config changes: a copy from host memory at every forward
+  // would also break CUDA graph capture, and a graph keeps reading the address it captured. The
+  // one place forward() writes module state, so a network takes one forward at a time (as the
+  // server's per-model turns and the trainers give it).
+  torch::Tensor action_scale_on(const torch::TensorOptions& options);
+  std::vector<torch::Tensor> action_scales_;  // [action_dim] each, one per device and dtype
+  std::vector<double> action_scale_of_;       // the config values they hold
 };
 TORCH_MODULE(ActionDit);
 

@@ -289,6 +289,48 @@ TEST(Streaming, DecodesWithTheFastDecoderWhenGiven) {
   EXPECT_TRUE(video.narrow(1, 0, 1).equal(expect));
 }
 
+// On a GPU the hops of a full window are replayed from a CUDA graph per ring slot: the latents are
+// those of the eager path, bit for bit, in fp32 and bf16, with both alignments the graphs take, as
+// the ring turns over, across RoPE rebases (a table of 6 frames) and a second stream on the same
+// buffers.
+TEST(Streaming, CudaGraphsReplayTheEagerLatents_CUDA) {
+  DOJO_REQUIRE_CUDA();
+  if (!CapturedCall::available()) GTEST_SKIP() << "built without CUDA graphs";
+  auto config = train::test_fixtures::tiny_dit(/*live_actions=*/true, /*width=*/64);
+  config.max_img_h = config.max_img_w = 8;
+  config.max_frames = 6;  // rebases from the 6th latent frame on
+  const auto first = torch::randint(0, 255, {1, 32, 32, 3}, torch::kByte);
+  const int64_t window = 2, steps = 2 * window + 5;
+  const auto actions = actions_for(steps, 1, 6);
+  for (const auto alignment : {ActionAlignment::kTraining, ActionAlignment::kReleasedOffline}) {
+    for (const auto precision : {Precision::kFloat32, Precision::kBFloat16}) {
+      StreamingEngine::Options o;
+      o.device = torch::Device(torch::kCUDA, 0);
+      o.precision = precision;
+      o.decode = false;
+      o.student.window_frames = window;
+      o.student.sink_frames = alignment == ActionAlignment::kTraining ? 1 : 0;
+      o.student.action_alignment = alignment;
+      torch::manual_seed(0);
+      models::ActionDit net(config);
+      models::WanVae vae(models::WanVaeConfig::tiny());
+      o.cuda_graphs = false;
+      StreamingEngine eager(net, vae, o);
+      o.cuda_graphs = true;
+      StreamingEngine graphed(net, vae, o);
+      ASSERT_TRUE(graphed.graphs_enabled());
+      for (int pass = 0; pass < 2; ++pass) {
+        const auto a = run(eager, first, actions, 8 + pass), b = run(graphed, first, actions, 8 + pass);
+        for (size_t i = 0; i < a.size(); ++i)
+          EXPECT_TRUE(torch::equal(a[i], b[i])) << to_string(alignment) << " pass " << pass << " step " << i;
+      }
+      // Steps with a full window (from step `window` on) replay: 2 passes of steps - window + 1.
+      EXPECT_EQ(graphed.graph_replays(), 2 * (steps - window + 1));
+      EXPECT_EQ(eager.graph_replays(), 0);
+    }
+  }
+}
+
 // The released offline script's alignment: the first w latents use their own chunks, later ones
 // are generated with chunk k - (w - 1) and cached with their own; the cached path and the plain
 // reference implement it alike.

@@ -579,6 +579,77 @@ TEST(DitSmall, RingSinkKeepsTheFirstFrameAndMovesByRotation) {
   EXPECT_GT(moved_by, 1e-2) << "the position is in the keys";
 }
 
+// A stream's frames through a ring with the RoPE angles handed in as tensors (as a replayed CUDA
+// graph reads them) equal the frames positioned by frame_offset; the ring reports its slots.
+TEST(DitSmall, RopeGivenAsTensorsEqualsFrameOffsetAndRingSlotsTurnOver) {
+  test::OneThread one_thread;
+  const auto c = DitConfig::small();
+  ActionDit net(c);
+  default_init_with_actions(*net, 31);
+  net->eval();
+  torch::NoGradGuard no_grad;
+  const int64_t T = 6, H = 8, W = 8, S = (H / 2) * (W / 2), k = c.actions_per_latent_frame;
+  const auto in = random_inputs(c, 1, T, H, W, 32);
+  std::vector<DitKvCache> by_offset(c.num_blocks), by_tensor(c.num_blocks);
+  for (auto& e : by_offset) e.set_ring(/*window=*/2, S, /*sink=*/1);
+  for (auto& e : by_tensor) e.set_ring(2, S, 1);
+  std::vector<int64_t> slots;
+  for (int64_t t = 0; t < T; ++t) {
+    slots.push_back(by_tensor[0].ring_slot());
+    EXPECT_EQ(by_tensor[0].ring_full(), t >= 2) << "frame " << t;
+    const auto expected = net->forward(frame_step(in, t, k, by_offset));
+    auto given = frame_step(in, t, k, by_tensor);
+    std::tie(given.rope_cos, given.rope_sin) = net->rope_cos_sin(1, H / 2, W / 2, t);  // [S, 1, d]
+    EXPECT_TRUE(torch::equal(net->forward(given), expected)) << "frame " << t;
+  }
+  // Slot 0 holds the sink for good; the other two turn over.
+  EXPECT_EQ(slots, (std::vector<int64_t>{0, 1, 2, 1, 2, 1}));
+  // A new stream of the same layout reuses the buffers (their addresses are what CUDA graphs hold).
+  const void* buffer = by_tensor[0].k.data_ptr();
+  by_tensor[0].set_ring(2, S, 0);
+  EXPECT_EQ(by_tensor[0].k.data_ptr(), buffer);
+  EXPECT_EQ(by_tensor[0].committed_frames(), 0);
+  EXPECT_EQ(by_tensor[0].ring_slot(), 0);
+  by_tensor[0].set_ring(3, S, 0);
+  EXPECT_FALSE(by_tensor[0].k.defined());
+  auto wrong = frame_step(in, 0, k, by_tensor);
+  wrong.rope_cos = torch::zeros({S + 1, 1, c.model_channels / c.num_heads});
+  wrong.rope_sin = wrong.rope_cos;
+  EXPECT_NE(test::error_message([&] { net->forward(wrong); }).find("rope_cos"), std::string::npos);
+}
+
+// The action scale is applied from a tensor kept with the network, made again when the config's
+// scale changes (post-training sets it) and usable for training after an inference-mode forward.
+TEST(DitSmall, ActionScaleFollowsTheConfig) {
+  test::OneThread one_thread;
+  auto c = DitConfig::small();
+  ActionDit net(c);
+  default_init_with_actions(*net, 41);
+  const auto in = random_inputs(c, 1, 3, 8, 8, 42);
+  auto scaled_by_hand = in;
+  scaled_by_hand.actions = in.actions * 2;
+  torch::Tensor unscaled;
+  {
+    torch::NoGradGuard no_grad;
+    unscaled = net->forward(scaled_by_hand);
+  }
+  net->config.action_scale.assign(static_cast<size_t>(c.action_dim), 2.0);
+  {
+    c10::InferenceMode inference;
+    EXPECT_TRUE(torch::equal(net->forward(in), unscaled));
+  }
+  auto with_grad = in;  // actions that need a gradient: the product saves the scale for backward
+  with_grad.actions = in.actions.clone().requires_grad_(true);
+  const auto trained = net->forward(with_grad);  // the same scale with autograd, after inference mode
+  EXPECT_TRUE(torch::equal(trained.detach(), unscaled));
+  trained.pow(2).mean().backward();
+  net->config.action_scale.assign(static_cast<size_t>(c.action_dim), 1.0);
+  torch::NoGradGuard no_grad;
+  EXPECT_GT(max_abs(net->forward(in), unscaled), 1e-4);
+  EXPECT_TRUE(net->action_embedder_B_D->fc1->weight.grad().defined());
+  EXPECT_TRUE(with_grad.actions.grad().defined());
+}
+
 TEST(DitKvCache, SinkTokensSurviveTrimmingAndArePlacedFromTheirStoredKeys) {
   DitKvCache c;
   const auto entries = torch::arange(1.0, 7.0).view({1, 1, 6, 1}).repeat({1, 1, 1, 2});  // [1, 1, 6, 2]
