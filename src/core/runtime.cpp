@@ -9,6 +9,7 @@
 #include <nlohmann/json.hpp>
 #include <thread>
 
+#include "core/blas_kernels.h"
 #include "core/error.h"
 
 namespace dojo {
@@ -143,6 +144,7 @@ nlohmann::json version_info() {
   info["cuda_available"] = cuda_available();
   info["cuda_devices"] = cuda_device_count();
   info["blas"] = blas_library();
+  if (const auto kernels = blas_kernels(); !kernels.empty()) info["blas_kernels"] = kernels;
   info["threads"] = threads();
   info["hardware_threads"] = std::thread::hardware_concurrency();
 #ifdef DOJO_WITH_SIM

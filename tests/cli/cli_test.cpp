@@ -5,6 +5,7 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "core/blas_kernels.h"
 #include "test_util.h"
 
 namespace dojo {
@@ -23,6 +24,22 @@ TEST(Cli, VersionJson) {
   EXPECT_EQ(info["threads"], 2);
   EXPECT_EQ(info["git_commit"].get<std::string>().empty(), false);
   EXPECT_TRUE(info["cuda_available"].is_boolean());
+}
+
+// OpenBLAS on a CPU newer than itself runs its SSE3 kernels at a quarter of the speed; the
+// executable then starts itself again with OPENBLAS_CORETYPE set (core/blas_kernels.h). This
+// process was started that way, so the variable is taken away for the child.
+TEST(Cli, OpenBlasRunsKernelsThisCpuSupports) {
+  const char* set = std::getenv("OPENBLAS_CORETYPE");
+  const std::string saved = set != nullptr ? set : "";
+  unsetenv("OPENBLAS_CORETYPE");
+  const auto result = test::run_dojo("version --json");
+  if (set != nullptr) setenv("OPENBLAS_CORETYPE", saved.c_str(), 1);
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  const auto info = nlohmann::json::parse(result.output);
+  if (!info.contains("blas_kernels")) GTEST_SKIP() << "the BLAS is not OpenBLAS: " << info["blas"];
+  if (blas_kernels_for_this_cpu().empty()) GTEST_SKIP() << "a CPU without AVX2";
+  EXPECT_FALSE(is_fallback_blas_kernels(info["blas_kernels"].get<std::string>())) << info["blas_kernels"];
 }
 
 TEST(Cli, UnknownCommandFailsWithUsageError) {

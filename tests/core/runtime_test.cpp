@@ -3,6 +3,7 @@
 #include <nlohmann/json.hpp>
 #include <thread>
 
+#include "core/blas_kernels.h"
 #include "core/error.h"
 #include "test_util.h"
 
@@ -80,6 +81,17 @@ TEST(Runtime, VersionInfoHasRequiredFields) {
   for (const char* key : {"version", "git_commit", "torch_version", "cuda_available", "blas", "threads"})
     EXPECT_TRUE(info.contains(key)) << key;
   EXPECT_FALSE(info["blas"].get<std::string>().empty());
+}
+
+// The kernel sets OpenBLAS falls back to predate AVX2, in any spelling; its AVX2 and AVX-512 sets
+// are not fallbacks.
+TEST(Runtime, FallbackBlasKernelsAreTheOldOnes) {
+  for (const char* old : {"Prescott", "PRESCOTT", "Core2", "Nehalem", "Sandybridge"})
+    EXPECT_TRUE(is_fallback_blas_kernels(old)) << old;
+  for (const char* current : {"Haswell", "SkylakeX", "Cooperlake", "Zen", ""})
+    EXPECT_FALSE(is_fallback_blas_kernels(current)) << current;
+  const auto wanted = blas_kernels_for_this_cpu();
+  EXPECT_TRUE(wanted.empty() || wanted == "Haswell" || wanted == "SkylakeX") << wanted;
 }
 
 }  // namespace dojo
