@@ -68,10 +68,8 @@ int run_distill(DistillArgs a) {
   job.time_budget_s = a.minutes * 60;
   job.save_every = a.save_every;
   job.seed = a.seed;
-  const auto r = [&] {
-    ScopedThreads matmul_bound(matmul_bound_command_threads("distill", false));
-    return train::run_distillation(job);
-  }();
+  job.matmul_threads = matmul_bound_command_threads("distill", false);
+  const auto r = train::run_distillation(job);
   if (job.stage == train::DistillStage::kWarmup)
     std::printf(
         "distill warm-up: %lld steps on %lld teacher trajectories, loss %.4f -> %.4f, fixed-batch loss "

@@ -86,10 +86,8 @@ int run_wm_train(const WmTrainArgs& a) {
   job.time_budget_s = a.minutes * 60.0;
   job.save_every = a.save_every;
   job.seed = a.seed;
-  const auto r = [&] {
-    ScopedThreads matmul_bound(matmul_bound_command_threads("wm train", job.device.is_cuda()));
-    return train::run_wm_training(job);
-  }();
+  job.matmul_threads = matmul_bound_command_threads("wm train", job.device.is_cuda());
+  const auto r = train::run_wm_training(job);
   std::printf(
       "wm %s: %lld steps, loss %.4f -> %.4f, fixed-batch loss %.4f -> %.4f, %.1f clips/s, %lld cached clips\n"
       "checkpoint %s/checkpoint, loss curve %s/loss.csv\n",

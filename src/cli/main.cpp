@@ -11,6 +11,7 @@
 #include "cli/options.h"
 #include "core/blas_kernels.h"
 #include "core/error.h"
+#include "core/heap.h"
 #include "core/log.h"
 #include "core/runtime.h"
 
@@ -120,6 +121,7 @@ void check_command_words(const CLI::App& app, int argc, char** argv) {
 int main(int argc, char** argv) {
   using namespace dojo;
   use_the_cpus_blas_kernels(argv);  // may start this program again, with OPENBLAS_CORETYPE set
+  keep_freed_memory_in_the_heap();
   CLI::App app{
       "dojo: DreamDojo.cpp, a C++ engine for generalist robot world models.\n"
       "Run `dojo <command> --help` for the options of a command."};

@@ -422,7 +422,7 @@ DemoSummary run_demo(const DemoOptions& o) {
     job.seed = o.seed;
     job.device = device;
     job.precision = precision;
-    ScopedThreads matmul_bound(matmul_threads(device.is_cuda()));
+    job.matmul_threads = matmul_threads(device.is_cuda());  // once its latent cache is encoded
     const auto r = train::run_wm_training(job);
     return nlohmann::json{{"steps", r.steps},
                           {"loss_first", r.first_loss},
@@ -481,7 +481,7 @@ DemoSummary run_demo(const DemoOptions& o) {
         job.steps = o.warmup_steps;
         job.save_every = 100;
         job.seed = o.seed;
-        ScopedThreads matmul_bound(matmul_threads(false));
+        job.matmul_threads = matmul_threads(false);  // once the latent caches are encoded
         const auto warmup = train::run_distillation(job);
         job.stage = train::DistillStage::kSelfForcing;
         job.init = out / "student_warmup" / "checkpoint";

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdio>
 #include <deque>
+#include <optional>
 #include <sstream>
 
 #include "core/atomic_file.h"
@@ -13,6 +14,7 @@
 #include "core/error.h"
 #include "core/log.h"
 #include "core/progress.h"
+#include "core/runtime.h"
 #include "core/safetensors.h"
 #include "data/episode_source.h"
 #include "diffusion/samplers.h"
@@ -227,6 +229,8 @@ DistillResult run_warmup(const DistillJob& job) {
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint";
   const auto data = teacher_data(job, 13, "latents");
+  std::optional<ScopedThreads> matmul_bound;
+  if (job.matmul_threads > 0) matmul_bound.emplace(job.matmul_threads);
   const auto& clips = data.clips;
   const auto& action_ranges = data.action_ranges;
   const auto& fingerprint = data.fingerprint;
@@ -339,6 +343,8 @@ DistillResult run_self_forcing(const DistillJob& job) {
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint", critic_dir = job.out / "critic";
   const auto data = teacher_data(job, static_cast<int>(1 + 4 * (sf.max_frames - 1)), "latents-long");
+  std::optional<ScopedThreads> matmul_bound;
+  if (job.matmul_threads > 0) matmul_bound.emplace(job.matmul_threads);
   const auto& clips = data.clips;  // latents [N, 16, max_frames, h, w], actions [N, 4 (max_frames − 1), 384]
   const int64_t n = clips.size();
 

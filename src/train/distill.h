@@ -76,6 +76,9 @@ struct DistillJob {
   double time_budget_s = 0;
   int64_t save_every = 200;
   uint64_t seed = 0;
+  // > 0: intra-op threads once the latent caches are ready (as WmTrainJob::matmul_threads): the
+  // trajectories and the training are matmul-bound, encoding the caches is not.
+  int matmul_threads = 0;
 };
 
 struct DistillResult {

@@ -14,6 +14,7 @@
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
+#include "core/runtime.h"
 #include "core/state_dict.h"
 #include "data/actions.h"
 #include "data/episode_source.h"
@@ -337,6 +338,8 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   }
   const auto clips = concat_latent_clips(sets);
   const int64_t n = clips.size();
+  std::optional<ScopedThreads> matmul_bound;
+  if (job.matmul_threads > 0) matmul_bound.emplace(job.matmul_threads);
 
   torch::manual_seed(job.seed);
   std::optional<models::ActionDit> net;

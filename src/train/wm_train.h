@@ -125,6 +125,10 @@ struct WmTrainJob {
   bool standardize_actions = false;
   torch::Device device = torch::kCPU;         // where the network trains (latent caching stays on CPU)
   Precision precision = Precision::kFloat32;  // bf16: autocast forward, float32 master weights
+  // > 0: intra-op threads for the training steps, set once the latent caches are ready. Encoding
+  // them is convolution-bound and runs on the caller's threads; the steps are matmul-bound
+  // (core/runtime.h, matmul_bound_threads).
+  int matmul_threads = 0;
 };
 
 struct WmTrainResult {
