@@ -4,8 +4,9 @@
 // the kernel on free, and trims the top of the heap beyond 128 KiB; libtorch frees and allocates
 // tensors of the same sizes every training step, so their pages faulted in again each time: the
 // kernel's page-fault path took 14% of the main thread's time in a profile of the small DiT's
-// training on 2 cores (perf), and keeping freed memory in the heap raised it from 2.68 to 3.35
-// steps/s (docs/benchmarks.md). The price is a resident size that stays at its peak.
+// training on 2 cores (perf); keeping freed memory in the heap cut page faults 10x and raised it
+// from 2.41-2.55 to 2.73-3.05 steps/s (docs/benchmarks.md). The price is a resident size that
+// stays at its peak.
 #pragma once
 
 namespace dojo {
