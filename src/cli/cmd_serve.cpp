@@ -25,7 +25,7 @@ struct ServeArgs {
   serve::ServeOptions server;
   std::string demo = "dojo_demo", student, teacher, tokenizer, fast_decoder, data, split = "val";
   std::string device = "cpu", precision = "fp32";
-  bool no_teacher = false;
+  bool no_teacher = false, no_cuda_graphs = false;
 };
 
 // The models: given ones, else those `dojo demo` wrote into --demo.
@@ -66,6 +66,7 @@ serve::ModelHost::Options host_options(const ServeArgs& a) {
   o.split = a.split;
   o.device = parse_device(a.device);
   o.precision = parse_precision(a.precision);
+  o.cuda_graphs = !a.no_cuda_graphs;
   return o;
 }
 
@@ -178,6 +179,9 @@ void register_serve(CLI::App& app) {
       ->capture_default_str();
   add_device_option(cmd, a->device);
   add_precision_option(cmd, a->precision);
+  cmd->add_flag(
+      "--no-cuda-graphs", a->no_cuda_graphs,
+      "On CUDA, the streaming models dispatch their hops op by op instead of replaying CUDA graphs");
   cmd->callback([a] { set_action([a] { return run_serve(*a); }); });
 }
 

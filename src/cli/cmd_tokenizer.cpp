@@ -33,7 +33,8 @@ struct TrainArgs {
   // 9 frames (3 latent frames) so the steady-state causal chunk is trained, not only the first
   // two latent frames; world-model clips decode 4 latent frames.
   int batch = 4, image_batch = 16, frames = 9, size = 64, dim = 16, workers = 2, crop = 0;
-  double lr = 0, kl = 0, minutes = 0, image_fraction = 0, edge_weight = 0;
+  double lr = 0, kl = 0, minutes = 0, image_fraction = 0, edge_weight = 0, hard_pixel_weight = 0,
+         hard_pixel_fraction = 0;
   bool cosine = true, sample = false;
   uint64_t seed = 0;
 
@@ -43,6 +44,8 @@ struct TrainArgs {
     sample = r.sample_posterior, loss = r.l1 ? "l1" : "mse";
     image_fraction = r.image_fraction;
     edge_weight = r.edge_weight;
+    hard_pixel_weight = r.hard_pixel_weight;
+    hard_pixel_fraction = r.hard_pixel_fraction;
   }
 };
 
@@ -78,6 +81,8 @@ int run_train(const TrainArgs& a) {
   o.sample_posterior = a.sample;
   o.l1 = a.loss == "l1";
   o.edge_weight = a.edge_weight;
+  o.hard_pixel_weight = a.hard_pixel_weight;
+  o.hard_pixel_fraction = a.hard_pixel_fraction;
   o.save_every = a.save_every;
   o.crop = a.crop;
   o.image_fraction = a.image_fraction;
@@ -236,6 +241,18 @@ void register_tokenizer(CLI::App& app) {
       ->add_option("--edge-weight", ta->edge_weight,
                    "Weight of the edge term (L1 of pixel-gradient differences) added to the loss")
       ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  train_cmd
+      ->add_option(
+          "--hard-pixel-weight", ta->hard_pixel_weight,
+          "Weight of the mean error of each frame's worst pixels (--hard-pixel-fraction) added to the "
+          "loss: small objects a pixel loss lets vanish")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  train_cmd
+      ->add_option("--hard-pixel-fraction", ta->hard_pixel_fraction,
+                   "Share of each frame's pixels that term averages")
+      ->check(CLI::Range(1e-4, 1.0))
       ->capture_default_str();
   train_cmd
       ->add_flag("--sample-posterior,!--decode-mean", ta->sample,

@@ -94,7 +94,7 @@ struct StreamArgs {
               precision = "fp32";
   int64_t frames = 48;
   int window = -1, student_steps = 0, size = 64;
-  bool raw = false, no_cache = false, no_decode = false, json = false;
+  bool raw = false, no_cache = false, no_decode = false, json = false, no_cuda_graphs = false;
   uint64_t seed = 0;
 };
 
@@ -112,6 +112,7 @@ int run_stream(StreamArgs a) {
   infer::StreamingEngine::Options o;
   o.use_cache = !a.no_cache;
   o.decode = !a.no_decode;
+  o.cuda_graphs = !a.no_cuda_graphs;
   o.device = parse_device(a.device);
   o.precision = parse_precision(a.precision);
   if (!a.fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(a.fast_decoder);
@@ -257,6 +258,8 @@ void register_wm_stream(CLI::App& wm) {
   cmd->add_flag("--no-cache", a->no_cache,
                 "Recompute the whole history every hop (the plain reference path)");
   cmd->add_flag("--no-decode", a->no_decode, "Generate latents only (times the DiT alone)");
+  cmd->add_flag("--no-cuda-graphs", a->no_cuda_graphs,
+                "On CUDA, dispatch the hops op by op instead of replaying them as CUDA graphs");
   add_seed_option(cmd, a->seed);
   add_out_option(cmd, a->out, "mp4 file");
   add_json_option(cmd, a->json);

@@ -45,6 +45,7 @@ void ModelHost::load() {
       infer::StreamingEngine::Options o;
       o.device = options_.device;
       o.precision = options_.precision;
+      o.cuda_graphs = options_.cuda_graphs;
       if (!h->spec.fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(h->spec.fast_decoder);
       h->prototype = std::make_unique<infer::StreamingEngine>(
           infer::StreamingEngine::load(h->spec.checkpoint, h->spec.tokenizer, o));

@@ -53,6 +53,7 @@ class ModelHost {
     std::string split = "val";
     torch::Device device = torch::kCPU;
     Precision precision = Precision::kFloat32;
+    bool cuda_graphs = true;  // streaming models on CUDA replay their hops as CUDA graphs
   };
   explicit ModelHost(Options options);
   ~ModelHost();

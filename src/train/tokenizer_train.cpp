@@ -65,8 +65,17 @@ torch::Tensor edge_l1(const torch::Tensor& a, const torch::Tensor& b) {
   return along_h + along_w;
 }
 
+torch::Tensor hard_pixel_l1(const torch::Tensor& a, const torch::Tensor& b, double fraction) {
+  const auto error = (a - b).abs().mean(1);                                   // [B, T, H, W]
+  const auto per_frame = error.reshape({error.size(0) * error.size(1), -1});  // [B*T, H*W]
+  const auto k = std::clamp<int64_t>(static_cast<int64_t>(fraction * static_cast<double>(per_frame.size(1))),
+                                     1, per_frame.size(1));
+  return std::get<0>(per_frame.topk(k, /*dim=*/1)).mean();
+}
+
 TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, double kl_weight, bool sample_posterior,
-                             bool l1, double edge_weight) {
+                             bool l1, double edge_weight, double hard_pixel_weight,
+                             double hard_pixel_fraction) {
   auto enc = vae->encode(video, /*chunked=*/false);     // mu, log_var: [B, z, T', h, w]
   const auto log_var = enc.log_var.clamp(-30.0, 20.0);  // the release's clamp
   auto z = enc.mu;
@@ -77,6 +86,8 @@ TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, double kl_
   // L1 penalises small errors more than MSE does, which sharpens edges late in training.
   loss.recon = l1 ? torch::l1_loss(recon, video) : loss.mse;
   if (edge_weight > 0) loss.recon = loss.recon + edge_weight * edge_l1(recon, video);
+  if (hard_pixel_weight > 0)
+    loss.recon = loss.recon + hard_pixel_weight * hard_pixel_l1(recon, video, hard_pixel_fraction);
   // KL(N(mu, sigma) || N(0, 1)), mean over latent elements.
   loss.kl = 0.5 * (enc.mu.pow(2) + log_var.exp() - 1.0 - log_var).mean();
   loss.total = loss.recon + kl_weight * loss.kl;
@@ -152,7 +163,8 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
         const double lr = tokenizer_lr(o, s.index, s.budget_fraction);
         for (auto& group : opt.param_groups())
           static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
-        auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior, o.l1, o.edge_weight);
+        auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior, o.l1, o.edge_weight,
+                                   o.hard_pixel_weight, o.hard_pixel_fraction);
         opt.zero_grad();
         loss.total.backward();
         if (o.grad_clip > 0) torch::nn::utils::clip_grad_norm_(params, o.grad_clip);

@@ -32,6 +32,11 @@ struct TokenizerTrainOptions {
   // reconstruction loss. Thin structures (the arm, small objects) are a small part of the pixels,
   // so a pixel loss alone learns the background first; their outlines dominate this term.
   double edge_weight = 0;
+  // Weight of hard_pixel_l1 (the mean error of each frame's worst `hard_pixel_fraction` of
+  // pixels) added to the reconstruction loss. A 5-pixel cube is under 1 % of a 64x64 frame: the
+  // mean loss barely moves when it vanishes, the worst pixels' mean does (docs/benchmarks.md).
+  double hard_pixel_weight = 0;
+  double hard_pixel_fraction = 0.02;
   int64_t warmup_steps = 0;  // linear lr warm-up from lr / warmup_steps
   bool cosine = false;       // cosine decay from lr to min_lr_fraction * lr after warm-up
   double min_lr_fraction = 0.05;
@@ -81,12 +86,17 @@ struct TokenizerLoss {
 
 // video: [B, 3, T, H, W] in [-1, 1], T = 1 + 4k.
 TokenizerLoss tokenizer_loss(models::WanVae& vae, const torch::Tensor& video, double kl_weight,
-                             bool sample_posterior, bool l1 = false, double edge_weight = 0);
+                             bool sample_posterior, bool l1 = false, double edge_weight = 0,
+                             double hard_pixel_weight = 0, double hard_pixel_fraction = 0.02);
 
 // Mean absolute difference of the spatial gradients (neighbour differences along H and along
 // W) of two videos [B, C, T, H, W]: zero when they differ by a constant, large at misplaced or
 // blurred edges.
 torch::Tensor edge_l1(const torch::Tensor& a, const torch::Tensor& b);
+
+// Mean absolute error (averaged over channels) of the `fraction` of pixels of each frame of two
+// videos [B, C, T, H, W] where they differ most (at least one pixel a frame).
+torch::Tensor hard_pixel_l1(const torch::Tensor& a, const torch::Tensor& b, double fraction);
 
 struct TokenizerTrainResult {
   int64_t steps_done = 0;                // total optimisation steps (including resumed ones)

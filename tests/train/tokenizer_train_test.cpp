@@ -253,6 +253,38 @@ TEST(TokenizerTrainer, EdgeLossSeesEdgesNotOffsets) {
               2.0 * edge_l1(vae->decode(vae->encode(video, false).mu, false), video).item<double>(), 1e-4);
 }
 
+TEST(TokenizerTrainer, HardPixelLossSeesASmallObjectThatVanished) {
+  // A 2x2 "cube" on a flat 16x16 frame, erased in the reconstruction: 4 of 256 pixels.
+  auto truth = torch::zeros({1, 3, 1, 16, 16});
+  truth.index_put_({0, 0, 0, torch::indexing::Slice(6, 8), torch::indexing::Slice(6, 8)}, 1.5);
+  const auto erased = torch::zeros_like(truth);
+  const double mean_l1 = torch::l1_loss(erased, truth).item<double>();  // 1.5 * 4 / (3 * 256)
+  EXPECT_NEAR(mean_l1, 1.5 * 4 / 768, 1e-6);
+  // The worst 4 pixels' channel-mean error: the whole cube, 1.5 / 3 each.
+  EXPECT_NEAR(hard_pixel_l1(erased, truth, 4.0 / 256).item<double>(), 0.5, 1e-6);
+  // A fraction over the cube's share averages in flawless pixels; under one pixel still takes one.
+  EXPECT_NEAR(hard_pixel_l1(erased, truth, 8.0 / 256).item<double>(), 0.25, 1e-6);
+  EXPECT_NEAR(hard_pixel_l1(erased, truth, 1e-6).item<double>(), 0.5, 1e-6);
+  // Each frame is ranked on its own: a second, perfect frame adds its own worst pixels (zeros).
+  const auto two = torch::cat({truth, torch::zeros_like(truth)}, 2);
+  EXPECT_NEAR(hard_pixel_l1(torch::zeros_like(two), two, 4.0 / 256).item<double>(), 0.25, 1e-6);
+  // Its gradient reaches the vanished pixels only (their red channel, the one in error).
+  const auto recon = erased.clone().requires_grad_(true);
+  hard_pixel_l1(recon, truth, 4.0 / 256).backward();
+  EXPECT_EQ(recon.grad().ne(0).sum().item<int64_t>(), 4);
+  EXPECT_EQ(recon.grad().ne(0).logical_and(truth.ne(0)).sum().item<int64_t>(), 4);
+  // The trainer adds it with its weight.
+  const auto video = moving_squares(2, 5, 24, 3);
+  torch::manual_seed(0);
+  models::WanVae vae(models::WanVaeConfig::tiny());
+  const auto plain = tokenizer_loss(vae, video, 0, false, true, 0);
+  const auto with_hard = tokenizer_loss(vae, video, 0, false, true, 0, 3.0, 0.05);
+  EXPECT_NEAR(
+      with_hard.recon.item<double>() - plain.recon.item<double>(),
+      3.0 * hard_pixel_l1(vae->decode(vae->encode(video, false).mu, false), video, 0.05).item<double>(),
+      1e-4);
+}
+
 TEST(TokenizerTrainer, VideoConversionsRoundTrip) {
   const auto x = moving_squares(2, 5, 16, 3);
   const auto u8 = model_to_video(x);
