@@ -173,7 +173,7 @@ void draw_markers(at::Tensor& frames, const at::Tensor& points, const at::Tensor
       const auto y = static_cast<int64_t>(p[t][k][1].item<double>() * static_cast<double>(H));
       const auto& c = colors[static_cast<size_t>(k) % colors.size()];
       for (int64_t d = -radius; d <= radius; ++d)
-        for (const auto [yy, xx] : {std::pair<int64_t, int64_t>{y + d, x}, {y, x + d}})
+        for (const auto& [yy, xx] : {std::pair<int64_t, int64_t>{y + d, x}, {y, x + d}})
           if (yy >= 0 && yy < H && xx >= 0 && xx < W)
             for (int ch = 0; ch < 3; ++ch) acc[t][yy][xx][ch] = c[static_cast<size_t>(ch)];
     }
