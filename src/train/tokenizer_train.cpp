@@ -73,24 +73,22 @@ torch::Tensor hard_pixel_l1(const torch::Tensor& a, const torch::Tensor& b, doub
   return std::get<0>(per_frame.topk(k, /*dim=*/1)).mean();
 }
 
-TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, double kl_weight, bool sample_posterior,
-                             bool l1, double edge_weight, double hard_pixel_weight,
-                             double hard_pixel_fraction) {
+TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, const TokenizerTrainOptions& o) {
   auto enc = vae->encode(video, /*chunked=*/false);     // mu, log_var: [B, z, T', h, w]
   const auto log_var = enc.log_var.clamp(-30.0, 20.0);  // the release's clamp
   auto z = enc.mu;
-  if (sample_posterior) z = z + torch::exp(0.5 * log_var) * torch::randn_like(z);
+  if (o.sample_posterior) z = z + torch::exp(0.5 * log_var) * torch::randn_like(z);
   const auto recon = vae->decode(z, /*chunked=*/false);  // [B, 3, T, H, W]
   TokenizerLoss loss;
   loss.mse = torch::mse_loss(recon, video);
   // L1 penalises small errors more than MSE does, which sharpens edges late in training.
-  loss.recon = l1 ? torch::l1_loss(recon, video) : loss.mse;
-  if (edge_weight > 0) loss.recon = loss.recon + edge_weight * edge_l1(recon, video);
-  if (hard_pixel_weight > 0)
-    loss.recon = loss.recon + hard_pixel_weight * hard_pixel_l1(recon, video, hard_pixel_fraction);
+  loss.recon = o.l1 ? torch::l1_loss(recon, video) : loss.mse;
+  if (o.edge_weight > 0) loss.recon = loss.recon + o.edge_weight * edge_l1(recon, video);
+  if (o.hard_pixel_weight > 0)
+    loss.recon = loss.recon + o.hard_pixel_weight * hard_pixel_l1(recon, video, o.hard_pixel_fraction);
   // KL(N(mu, sigma) || N(0, 1)), mean over latent elements.
   loss.kl = 0.5 * (enc.mu.pow(2) + log_var.exp() - 1.0 - log_var).mean();
-  loss.total = loss.recon + kl_weight * loss.kl;
+  loss.total = loss.recon + o.kl_weight * loss.kl;
   return loss;
 }
 
@@ -163,8 +161,7 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
         const double lr = tokenizer_lr(o, s.index, s.budget_fraction);
         for (auto& group : opt.param_groups())
           static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
-        auto loss = tokenizer_loss(vae, video, o.kl_weight, o.sample_posterior, o.l1, o.edge_weight,
-                                   o.hard_pixel_weight, o.hard_pixel_fraction);
+        auto loss = tokenizer_loss(vae, video, o);
         opt.zero_grad();
         loss.total.backward();
         if (o.grad_clip > 0) torch::nn::utils::clip_grad_norm_(params, o.grad_clip);

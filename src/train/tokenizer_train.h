@@ -84,10 +84,10 @@ struct TokenizerLoss {
   torch::Tensor mse;               // MSE of the reconstruction (for logs, whatever the loss)
 };
 
-// video: [B, 3, T, H, W] in [-1, 1], T = 1 + 4k.
-TokenizerLoss tokenizer_loss(models::WanVae& vae, const torch::Tensor& video, double kl_weight,
-                             bool sample_posterior, bool l1 = false, double edge_weight = 0,
-                             double hard_pixel_weight = 0, double hard_pixel_fraction = 0.02);
+// video: [B, 3, T, H, W] in [-1, 1], T = 1 + 4k. The loss terms and weights come from
+// `options` (kl_weight, sample_posterior, l1, edge_weight, hard_pixel_weight/_fraction).
+TokenizerLoss tokenizer_loss(models::WanVae& vae, const torch::Tensor& video,
+                             const TokenizerTrainOptions& options);
 
 // Mean absolute difference of the spatial gradients (neighbour differences along H and along
 // W) of two videos [B, C, T, H, W]: zero when they differ by a constant, large at misplaced or

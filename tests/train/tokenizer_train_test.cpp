@@ -247,8 +247,13 @@ TEST(TokenizerTrainer, EdgeLossSeesEdgesNotOffsets) {
   // The trainer adds it with its weight.
   torch::manual_seed(0);
   models::WanVae vae(models::WanVaeConfig::tiny());
-  const auto plain = tokenizer_loss(vae, video, 0, false, true, 0);  // posterior mean: deterministic
-  const auto with_edges = tokenizer_loss(vae, video, 0, false, true, 2.0);
+  TokenizerTrainOptions terms;  // L1 of the posterior mean (deterministic), no KL
+  terms.kl_weight = 0;
+  terms.sample_posterior = false;
+  terms.l1 = true;
+  const auto plain = tokenizer_loss(vae, video, terms);
+  terms.edge_weight = 2.0;
+  const auto with_edges = tokenizer_loss(vae, video, terms);
   EXPECT_NEAR(with_edges.recon.item<double>() - plain.recon.item<double>(),
               2.0 * edge_l1(vae->decode(vae->encode(video, false).mu, false), video).item<double>(), 1e-4);
 }
@@ -277,8 +282,14 @@ TEST(TokenizerTrainer, HardPixelLossSeesASmallObjectThatVanished) {
   const auto video = moving_squares(2, 5, 24, 3);
   torch::manual_seed(0);
   models::WanVae vae(models::WanVaeConfig::tiny());
-  const auto plain = tokenizer_loss(vae, video, 0, false, true, 0);
-  const auto with_hard = tokenizer_loss(vae, video, 0, false, true, 0, 3.0, 0.05);
+  TokenizerTrainOptions terms;  // L1 of the posterior mean (deterministic), no KL, no edge term
+  terms.kl_weight = 0;
+  terms.sample_posterior = false;
+  terms.l1 = true;
+  const auto plain = tokenizer_loss(vae, video, terms);
+  terms.hard_pixel_weight = 3.0;
+  terms.hard_pixel_fraction = 0.05;
+  const auto with_hard = tokenizer_loss(vae, video, terms);
   EXPECT_NEAR(
       with_hard.recon.item<double>() - plain.recon.item<double>(),
       3.0 * hard_pixel_l1(vae->decode(vae->encode(video, false).mu, false), video, 0.05).item<double>(),
