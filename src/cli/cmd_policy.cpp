@@ -37,6 +37,7 @@ namespace {
 struct WorldModelArgs {
   std::string demo = "dojo_demo", student, teacher, tokenizer, fast_decoder;
   std::string device = "cpu", precision = "fp32";
+  int teacher_steps = 0;  // the teacher's sampler steps (0: the ones it was trained with)
 };
 
 struct DetectorArgs {
@@ -172,15 +173,18 @@ fs::path pick(const std::string& given, const fs::path& fallback) {
 struct WorldModelSource {
   fs::path checkpoint, tokenizer, fast_decoder;  // fast_decoder may be empty (the Wan decoder)
   bool teacher = false;
+  int teacher_steps = 0;
   std::string device, precision;
   // What the model's frames depend on (journals and detector data record it).
   nlohmann::json fingerprint() const {
     const auto where = [](const fs::path& p) { return fs::absolute(p).lexically_normal().string(); };
-    return {{"world_model", where(checkpoint)},
-            {"tokenizer", where(tokenizer)},
-            {"fast_decoder", fast_decoder.empty() ? "" : where(fast_decoder)},
-            {"device", device},
-            {"precision", precision}};
+    nlohmann::json j = {{"world_model", where(checkpoint)},
+                        {"tokenizer", where(tokenizer)},
+                        {"fast_decoder", fast_decoder.empty() ? "" : where(fast_decoder)},
+                        {"device", device},
+                        {"precision", precision}};
+    if (teacher_steps > 0) j["teacher_steps"] = teacher_steps;  // absent: the trained sampler (older data)
+    return j;
   }
 };
 
@@ -197,6 +201,9 @@ WorldModelSource resolve_world_model(const WorldModelArgs& a, const std::string&
     s.fast_decoder = demo / "fast_decoder" / "checkpoint";
   s.device = a.device;
   s.precision = a.precision;
+  s.teacher_steps = a.teacher_steps;
+  DOJO_CHECK(s.teacher_steps == 0 || s.teacher,
+             who + ": --teacher-steps applies to a --teacher world model only (the student takes 4 hops)");
   DOJO_CHECK(checkpoint_exists(s.checkpoint),
              who + ": no world model at " + s.checkpoint.string() +
                  " (give --student or --teacher, or --demo DIR of a finished `dojo demo`)");
@@ -224,7 +231,7 @@ LoadedWorldModel load_world_model(const WorldModelSource& s, models::SuccessDete
     loaded.teacher = std::make_unique<infer::WorldModel>(
         infer::WorldModel::load(s.checkpoint, s.tokenizer, device, parse_precision(s.precision)));
     ranges = loaded.teacher->action_ranges();
-    generator = infer::make_teacher_generator(*loaded.teacher);
+    generator = infer::make_teacher_generator(*loaded.teacher, nullptr, s.teacher_steps);
     loaded.per_step = infer::WorldModel::kChunkActions;
     name = "teacher";
   } else {
@@ -484,6 +491,9 @@ void add_world_model_options(CLI::App* cmd, WorldModelArgs& wm) {
   cmd->add_option("--demo", wm.demo, "Take the models from this `dojo demo` output")->capture_default_str();
   cmd->add_option("--student", wm.student, "Student checkpoint (default: the demo's)");
   cmd->add_option("--teacher", wm.teacher, "Use this teacher checkpoint instead (12-frame chunks)");
+  cmd->add_option("--teacher-steps", wm.teacher_steps,
+                  "With --teacher: sampler steps per chunk (default: the trained sampler's, 35)")
+      ->check(CLI::NonNegativeNumber);
   cmd->add_option("--tokenizer", wm.tokenizer, "Tokenizer checkpoint (default: the demo's)");
   cmd->add_option("--fast-decoder", wm.fast_decoder, "Student's fast decoder (default: the demo's)");
   add_device_option(cmd, wm.device);

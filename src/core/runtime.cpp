@@ -11,6 +11,7 @@
 
 #include "core/blas_kernels.h"
 #include "core/error.h"
+#include "dojo_git_commit.h"  // generated at build time: DOJO_GIT_COMMIT
 
 namespace dojo {
 

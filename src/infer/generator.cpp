@@ -3,6 +3,7 @@
 #include <chrono>
 #include <optional>
 
+#include "core/error.h"
 #include "core/timing.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
@@ -46,7 +47,10 @@ class StudentGenerator : public Generator {
 
 class TeacherGenerator : public Generator {
  public:
-  TeacherGenerator(WorldModel& model, std::mutex* turn) : model_(model), turn_(turn) {}
+  TeacherGenerator(WorldModel& model, std::mutex* turn, int sampler_steps)
+      : model_(model), turn_(turn), sampler_(model.trained_sampler()) {
+    if (sampler_steps > 0) sampler_.steps = sampler_steps;
+  }
   torch::Tensor reset(const torch::Tensor& first, uint64_t seed) override {
     Turn turn(turn_);
     seed_ = seed;
@@ -59,8 +63,8 @@ class TeacherGenerator : public Generator {
     Turn turn(turn_);
     const auto t0 = Clock::now();
     const auto video = model_.predict_chunk(last_, actions.unsqueeze(0), seed_ + chunk_++,
-                                            model_.trained_sampler());  // [1, 13, H, W, 3]
-    const auto frames = video[0].narrow(0, 1, 12);                      // [12, H, W, 3]
+                                            sampler_);  // [1, 13, H, W, 3]
+    const auto frames = video[0].narrow(0, 1, 12);      // [12, H, W, 3]
     last_ = frames.narrow(0, 11, 1);
     last_step_seconds_ = seconds_since(t0);
     return frames;
@@ -69,6 +73,7 @@ class TeacherGenerator : public Generator {
  private:
   WorldModel& model_;
   std::mutex* turn_;
+  SamplerOptions sampler_;
   torch::Tensor last_;  // [1, H, W, 3]
   uint64_t seed_ = 0;
   int64_t chunk_ = 0;
@@ -80,8 +85,9 @@ std::unique_ptr<Generator> make_student_generator(StreamingEngine engine, std::m
   return std::make_unique<StudentGenerator>(std::move(engine), turn);
 }
 
-std::unique_ptr<Generator> make_teacher_generator(WorldModel& model, std::mutex* turn) {
-  return std::make_unique<TeacherGenerator>(model, turn);
+std::unique_ptr<Generator> make_teacher_generator(WorldModel& model, std::mutex* turn, int sampler_steps) {
+  DOJO_CHECK(sampler_steps >= 0, "teacher sampler steps must be >= 0 (0: the trained sampler's)");
+  return std::make_unique<TeacherGenerator>(model, turn, sampler_steps);
 }
 
 }  // namespace dojo::infer

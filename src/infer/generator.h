@@ -36,6 +36,8 @@ std::unique_ptr<Generator> make_student_generator(StreamingEngine engine, std::m
 // The teacher streams chunk by chunk: 12 actions -> 12 frames, each chunk conditioned on the last
 // frame of the one before (35 sampler steps a chunk: slow, but the quality path). `model` must
 // outlive the generator.
-std::unique_ptr<Generator> make_teacher_generator(WorldModel& model, std::mutex* turn = nullptr);
+// `sampler_steps` > 0 overrides the steps of the model's trained sampler (fewer: faster chunks).
+std::unique_ptr<Generator> make_teacher_generator(WorldModel& model, std::mutex* turn = nullptr,
+                                                  int sampler_steps = 0);
 
 }  // namespace dojo::infer

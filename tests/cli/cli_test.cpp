@@ -1,5 +1,6 @@
 // End-to-end checks of the `dojo` executable: help, version JSON, bad usage.
 #include <algorithm>
+#include <cstdio>
 #include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
@@ -23,6 +24,18 @@ TEST(Cli, VersionJson) {
   const auto info = nlohmann::json::parse(result.output);
   EXPECT_EQ(info["threads"], 2);
   EXPECT_EQ(info["git_commit"].get<std::string>().empty(), false);
+  // The commit is read at build time: after a new commit, a rebuild names it (not the one the
+  // build directory was configured at).
+  std::string head;
+  if (FILE* git = popen(
+          ("git -C '" + std::string(DOJO_SOURCE_DIR) + "' rev-parse --short=12 HEAD 2>/dev/null").c_str(),
+          "r")) {
+    char line[64] = {};
+    if (std::fgets(line, sizeof line, git)) head = line;
+    pclose(git);
+  }
+  head.erase(head.find_last_not_of("\n") + 1);
+  if (!head.empty()) EXPECT_EQ(info["git_commit"].get<std::string>().rfind(head, 0), 0u) << head;
   EXPECT_TRUE(info["cuda_available"].is_boolean());
 }
 

@@ -5,6 +5,7 @@
 
 #include "core/checkpoint.h"
 #include "core/error.h"
+#include "infer/generator.h"
 #include "test_util.h"
 #include "train/wm_test_fixtures.h"
 
@@ -142,6 +143,28 @@ TEST(WorldModel, LoadKeepsTheTrainedShiftAndActionRanges) {
   data.config["sampler"] = {{"shift", -1}};
   save_checkpoint(tmp / "bad", data);
   EXPECT_THROW(WorldModel::load(tmp / "bad", tmp / "tok"), Error);
+}
+
+// The teacher as a step-by-step generator (policy evaluation, the server): a chunk per step from
+// the last frame, with the trained sampler or fewer steps when asked.
+TEST(WorldModel, TeacherGeneratorSamplesWithTheStepsAsked) {
+  test::OneThread one;
+  auto model = random_model();
+  const auto first = torch::randint(0, 255, {16, 16, 3}, torch::kByte);
+  const auto actions = torch::rand({12, 384}) * 2 - 1;
+  SamplerOptions two = model.trained_sampler();
+  two.steps = 2;
+  const auto direct = model.predict_chunk(model.reconstruct_frames(first.unsqueeze(0)), actions.unsqueeze(0),
+                                          /*seed=*/5, two);  // [1, 13, H, W, 3]
+  auto fast = make_teacher_generator(model, nullptr, /*sampler_steps=*/2);
+  EXPECT_EQ(fast->actions_per_step(), 12);
+  fast->reset(first, 5);
+  const auto frames = fast->step(actions);  // [12, H, W, 3]
+  EXPECT_TRUE(frames.equal(direct[0].narrow(0, 1, 12)));
+  auto trained = make_teacher_generator(model);  // 35 steps
+  trained->reset(first, 5);
+  EXPECT_FALSE(trained->step(actions).equal(frames));
+  EXPECT_THROW(make_teacher_generator(model, nullptr, -1), Error);
 }
 
 }  // namespace dojo::infer
