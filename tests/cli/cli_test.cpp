@@ -35,7 +35,9 @@ TEST(Cli, VersionJson) {
     pclose(git);
   }
   head.erase(head.find_last_not_of("\n") + 1);
-  if (!head.empty()) EXPECT_EQ(info["git_commit"].get<std::string>().rfind(head, 0), 0u) << head;
+  if (!head.empty()) {
+    EXPECT_EQ(info["git_commit"].get<std::string>().rfind(head, 0), 0u) << head;
+  }
   EXPECT_TRUE(info["cuda_available"].is_boolean());
 }
 
