@@ -26,6 +26,7 @@ struct ServeArgs {
   std::string demo = "dojo_demo", student, teacher, tokenizer, fast_decoder, data, split = "val";
   std::string device = "cpu", precision = "fp32";
   bool no_teacher = false, no_cuda_graphs = false;
+  int teacher_steps = 0;
 };
 
 // The models: given ones, else those `dojo demo` wrote into --demo.
@@ -60,6 +61,7 @@ serve::ModelHost::Options host_options(const ServeArgs& a) {
     t.streaming = false;
     t.checkpoint = teacher;
     t.tokenizer = tokenizer;
+    t.teacher_steps = a.teacher_steps;
     o.models.push_back(t);
   }
   o.data = pick(a.data, demo / "robot");
@@ -155,6 +157,9 @@ void register_serve(CLI::App& app) {
   cmd->add_option("--student", a->student, "Student checkpoint (streams 4 frames per step)");
   cmd->add_option("--teacher", a->teacher, "Teacher checkpoint (12 frames per chunk, slower)");
   cmd->add_flag("--no-teacher", a->no_teacher, "Host the student only");
+  cmd->add_option("--teacher-steps", a->teacher_steps,
+                  "The teacher's sampler steps a chunk (default: the trained sampler's, 35; fewer: faster)")
+      ->check(CLI::NonNegativeNumber);
   cmd->add_option("--tokenizer", a->tokenizer, "Tokenizer checkpoint");
   cmd->add_option("--fast-decoder", a->fast_decoder, "Fast streaming decoder for the student");
   cmd->add_option("--data", a->data, "Dataset whose episodes sessions start from");

@@ -84,7 +84,7 @@ std::unique_ptr<Generator> ModelHost::make_generator(const std::string& model) c
     infer::StreamingEngine engine(h.prototype->net(), h.prototype->tokenizer(), h.prototype->options());
     return infer::make_student_generator(std::move(engine), &h.turn);
   }
-  return infer::make_teacher_generator(*h.teacher, &h.turn);
+  return infer::make_teacher_generator(*h.teacher, &h.turn, h.spec.teacher_steps);
 }
 
 std::optional<data::ActionChunker> ModelHost::chunker(const std::string& model) const {

@@ -33,6 +33,7 @@ struct ModelSpec {
   bool streaming = true;  // the real-time student (4 frames per step) or the teacher
   std::filesystem::path checkpoint, tokenizer;
   std::filesystem::path fast_decoder;  // student only; empty: the Wan decoder
+  int teacher_steps = 0;               // teacher only: sampler steps a chunk (0: the trained sampler's)
 };
 
 // A session's view of a model: frames in, actions in, frames out (infer/generator.h).

@@ -18,6 +18,8 @@
 #include <nlohmann/json.hpp>
 
 #include "core/error.h"
+#include "infer/generator.h"
+#include "infer/world_model.h"
 #include "io/jpeg.h"
 #include "serve/model_host.h"
 #include "serve/rollout_api.h"
@@ -180,6 +182,31 @@ TEST(ServeCodecs, Base64AndJpegRoundTrip) {
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("upload"), std::string::npos);
   }
+}
+
+// A hosted teacher samples its chunks with the steps it was given (`serve --teacher-steps`).
+TEST_F(ServeTest, HostedTeacherSamplesWithItsSteps) {
+  test::OneThread one;
+  const auto reference = std::filesystem::path(DOJO_SOURCE_DIR) / "models" / "reference";
+  ModelHost::Options o;
+  ModelSpec teacher;
+  teacher.name = "teacher";
+  teacher.streaming = false;
+  teacher.checkpoint = reference / "wm_posttrain";
+  teacher.tokenizer = reference / "tokenizer";
+  teacher.teacher_steps = 2;
+  o.models = {teacher};
+  o.data = *tmp_ / "robot";
+  ModelHost hosted(o);
+  hosted.load();
+  auto model = infer::WorldModel::load(teacher.checkpoint, teacher.tokenizer);
+  const auto first = torch::randint(0, 255, {64, 64, 3}, torch::kByte);
+  const auto actions = torch::rand({12, 384}) * 2 - 1;
+  auto served = hosted.make_generator("teacher");
+  auto direct = infer::make_teacher_generator(model, nullptr, 2);
+  served->reset(first, 3);
+  direct->reset(first, 3);
+  EXPECT_TRUE(served->step(actions).equal(direct->step(actions)));
 }
 
 TEST_F(ServeTest, HttpRoutesTokensAndMalformedRequests) {
