@@ -34,9 +34,8 @@ class Generator {
 // given, is held for every reset and step: generators sharing one network's weights take turns.
 std::unique_ptr<Generator> make_student_generator(StreamingEngine engine, std::mutex* turn = nullptr);
 // The teacher streams chunk by chunk: 12 actions -> 12 frames, each chunk conditioned on the last
-// frame of the one before (35 sampler steps a chunk: slow, but the quality path). `model` must
-// outlive the generator.
-// `sampler_steps` > 0 overrides the steps of the model's trained sampler (fewer: faster chunks).
+// frame of the one before, sampled with the model's trained sampler (35 steps as released: slow,
+// but the quality path) or with `sampler_steps` when > 0. `model` must outlive the generator.
 std::unique_ptr<Generator> make_teacher_generator(WorldModel& model, std::mutex* turn = nullptr,
                                                   int sampler_steps = 0);
 

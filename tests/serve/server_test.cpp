@@ -127,7 +127,9 @@ class ServeTest : public ::testing::Test {
     delete tmp_;
     tmp_ = nullptr;
   }
-  static std::shared_ptr<ModelHost> host(bool load = true) {
+  // The reference set's post-trained model as both "student" and "teacher" (the teacher sampling
+  // with `teacher_steps` a chunk, 0: its trained sampler's).
+  static std::shared_ptr<ModelHost> host(bool load = true, int teacher_steps = 0) {
     const auto reference = std::filesystem::path(DOJO_SOURCE_DIR) / "models" / "reference";
     ModelHost::Options o;
     ModelSpec student;
@@ -137,6 +139,7 @@ class ServeTest : public ::testing::Test {
     ModelSpec teacher = student;
     teacher.name = "teacher";
     teacher.streaming = false;
+    teacher.teacher_steps = teacher_steps;
     o.models = {student, teacher};
     o.data = *tmp_ / "robot";
     auto h = std::make_shared<ModelHost>(o);
@@ -188,21 +191,11 @@ TEST(ServeCodecs, Base64AndJpegRoundTrip) {
 TEST_F(ServeTest, HostedTeacherSamplesWithItsSteps) {
   test::OneThread one;
   const auto reference = std::filesystem::path(DOJO_SOURCE_DIR) / "models" / "reference";
-  ModelHost::Options o;
-  ModelSpec teacher;
-  teacher.name = "teacher";
-  teacher.streaming = false;
-  teacher.checkpoint = reference / "wm_posttrain";
-  teacher.tokenizer = reference / "tokenizer";
-  teacher.teacher_steps = 2;
-  o.models = {teacher};
-  o.data = *tmp_ / "robot";
-  ModelHost hosted(o);
-  hosted.load();
-  auto model = infer::WorldModel::load(teacher.checkpoint, teacher.tokenizer);
+  auto model = infer::WorldModel::load(reference / "wm_posttrain", reference / "tokenizer");
   const auto first = torch::randint(0, 255, {64, 64, 3}, torch::kByte);
   const auto actions = torch::rand({12, 384}) * 2 - 1;
-  auto served = hosted.make_generator("teacher");
+  const auto hosted = host(/*load=*/true, /*teacher_steps=*/2);  // outlives its generators
+  auto served = hosted->make_generator("teacher");
   auto direct = infer::make_teacher_generator(model, nullptr, 2);
   served->reset(first, 3);
   direct->reset(first, 3);

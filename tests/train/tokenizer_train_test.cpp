@@ -236,6 +236,18 @@ TEST(TokenizerTrainer, ImagePhaseComesFirst) {
   EXPECT_EQ(calls, std::vector<std::string>{"clips0"});
 }
 
+// The loss terms under which one term's share can be checked exactly: L1 of the posterior mean
+// (deterministic), no KL, no extra terms.
+TokenizerTrainOptions deterministic_l1_terms() {
+  TokenizerTrainOptions terms;
+  terms.kl_weight = 0;
+  terms.sample_posterior = false;
+  terms.l1 = true;
+  terms.edge_weight = 0;
+  terms.hard_pixel_weight = 0;
+  return terms;
+}
+
 TEST(TokenizerTrainer, EdgeLossSeesEdgesNotOffsets) {
   const auto video = moving_squares(2, 5, 24, 3);  // [2, 3, 5, 24, 24]
   EXPECT_NEAR(edge_l1(video, video + 0.3).item<double>(), 0.0, 1e-6) << "a colour offset has no edges";
@@ -247,10 +259,7 @@ TEST(TokenizerTrainer, EdgeLossSeesEdgesNotOffsets) {
   // The trainer adds it with its weight.
   torch::manual_seed(0);
   models::WanVae vae(models::WanVaeConfig::tiny());
-  TokenizerTrainOptions terms;  // L1 of the posterior mean (deterministic), no KL
-  terms.kl_weight = 0;
-  terms.sample_posterior = false;
-  terms.l1 = true;
+  auto terms = deterministic_l1_terms();
   const auto plain = tokenizer_loss(vae, video, terms);
   terms.edge_weight = 2.0;
   const auto with_edges = tokenizer_loss(vae, video, terms);
@@ -282,10 +291,7 @@ TEST(TokenizerTrainer, HardPixelLossSeesASmallObjectThatVanished) {
   const auto video = moving_squares(2, 5, 24, 3);
   torch::manual_seed(0);
   models::WanVae vae(models::WanVaeConfig::tiny());
-  TokenizerTrainOptions terms;  // L1 of the posterior mean (deterministic), no KL, no edge term
-  terms.kl_weight = 0;
-  terms.sample_posterior = false;
-  terms.l1 = true;
+  auto terms = deterministic_l1_terms();  // no edge term either
   const auto plain = tokenizer_loss(vae, video, terms);
   terms.hard_pixel_weight = 3.0;
   terms.hard_pixel_fraction = 0.05;
