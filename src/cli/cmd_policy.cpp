@@ -65,7 +65,9 @@ struct EvalArgs {
   std::vector<std::string> external;
   int64_t scenes = 30, frames = 64, settle_frames = 12, detector_steps = 800, bc_steps = 3000, videos = 1;
   uint64_t seed = 7000;
-  std::string detector_frames = "dojosim";  // what the detector trained here learns from
+  // What the detector trained here learns from. The world model's own replays by default: a
+  // detector trained on DojoSim's frames reads generated video near chance (docs/policy_eval.md).
+  std::string detector_frames = "world-model";
   bool sim_as_world_model = false, no_bc = false;
   double external_timeout = 120;
 };
@@ -579,7 +581,9 @@ void register_policy(CLI::App& app) {
                              "MMRV, Spearman, success gap; JSON + HTML (resumable)");
   ev->add_option("--out", e->out, "Output directory")->capture_default_str();
   add_world_model_options(ev, e->wm);
-  ev->add_option("--detector", e->detector, "Success detector (default: OUT/detector, trained when missing)");
+  ev->add_option(
+      "--detector", e->detector,
+      "Success detector (default: OUT/detector-world-model or OUT/detector, trained when missing)");
   ev->add_option("--detector-steps", e->detector_steps, "Training steps when the detector is trained here")
       ->capture_default_str();
   ev->add_option("--detector-frames", e->detector_frames,
