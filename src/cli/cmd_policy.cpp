@@ -334,23 +334,33 @@ nlohmann::json train_detector(const DetectorArgs& a) {
                           {"windows", s.windows},
                           {"success_windows", s.positives}};
   };
-  const nlohmann::json result = {{"steps", r.steps},
-                                 {"loss", r.loss},
-                                 {"train", accuracy(r.train)},
-                                 {"heldout", accuracy(r.heldout)},
-                                 {"heldout_episodes",
-                                  {{"accuracy", r.heldout_episodes.accuracy},
-                                   {"balanced_accuracy", r.heldout_episodes.balanced_accuracy},
-                                   {"episodes", r.heldout_episodes.windows},
-                                   {"successes", r.heldout_episodes.positives}}},
-                                 {"window", model.window},
-                                 {"stride", model.stride},
-                                 {"seconds", r.seconds}};
-  write_file_atomic(out / "result.json", result.dump(2) + "\n");
+  const auto by_vote = [](const train::SuccessAccuracy& s) {
+    return nlohmann::json{{"accuracy", s.accuracy},
+                          {"balanced_accuracy", s.balanced_accuracy},
+                          {"episodes", s.windows},
+                          {"successes", s.positives}};
+  };
+  nlohmann::json result = {{"steps", r.steps},
+                           {"loss", r.loss},
+                           {"train", accuracy(r.train)},
+                           {"heldout", accuracy(r.heldout)},
+                           {"heldout_episodes", by_vote(r.heldout_episodes)},
+                           {"window", model.window},
+                           {"stride", model.stride},
+                           {"seconds", r.seconds}};
   LOG_INFO("policy detector: held-out frames: accuracy ", r.heldout.accuracy, ", balanced ",
            r.heldout.balanced_accuracy, " (", r.heldout.windows,
            " windows); held-out episodes by vote: accuracy ", r.heldout_episodes.accuracy, ", balanced ",
            r.heldout_episodes.balanced_accuracy, " (", r.heldout_episodes.windows, " episodes)");
+  if (r.heldout_simulator) {
+    // Trained on a world model's replays: the same held-out episodes as DojoSim rendered them.
+    result["heldout_simulator_frames"] = {{"heldout", accuracy(*r.heldout_simulator)},
+                                          {"heldout_episodes", by_vote(*r.heldout_simulator_episodes)}};
+    LOG_INFO("policy detector: the same held-out episodes in DojoSim's frames: balanced ",
+             r.heldout_simulator->balanced_accuracy, " (windows), ",
+             r.heldout_simulator_episodes->balanced_accuracy, " (episodes by vote)");
+  }
+  write_file_atomic(out / "result.json", result.dump(2) + "\n");
   return result;
 }
 
@@ -358,6 +368,30 @@ nlohmann::json train_detector(const DetectorArgs& a) {
 bool finished(const fs::path& dir, int64_t steps) {
   return fs::exists(dir / "result.json") &&
          read_json_file(dir / "result.json").value("steps", int64_t{-1}) == steps;
+}
+
+// One line on what the detector's result.json says of it: balanced accuracy on the held-out
+// windows and on the held-out episodes by vote, in the frames it learnt from, and in DojoSim's
+// when it learnt from a world model's.
+std::string detector_summary(const nlohmann::json& result, bool world_model_frames) {
+  const auto balanced = [](const nlohmann::json& part) {
+    if (!part.is_object() || !part.contains("balanced_accuracy") || !part["balanced_accuracy"].is_number())
+      return std::string("—");  // a result.json of another version: the report still gets written
+    char buf[16];
+    std::snprintf(buf, sizeof buf, "%.3f", part["balanced_accuracy"].get<double>());
+    return std::string(buf);
+  };
+  const auto part = [](const nlohmann::json& j, const char* key) { return j.value(key, nlohmann::json()); };
+  std::string line = "Success detector, balanced accuracy on held-out " +
+                     std::string(world_model_frames ? "generated" : "DojoSim") + " frames: windows " +
+                     balanced(part(result, "heldout")) + ", episodes by vote " +
+                     balanced(part(result, "heldout_episodes"));
+  if (result.contains("heldout_simulator_frames")) {
+    const auto simulated = result["heldout_simulator_frames"];
+    line += "; the same episodes in DojoSim's frames: windows " + balanced(part(simulated, "heldout")) +
+            ", episodes by vote " + balanced(part(simulated, "heldout_episodes"));
+  }
+  return line;
 }
 
 // The detector `policy eval` uses: --detector, or its own, trained into OUT on first use.
@@ -468,13 +502,19 @@ int run_eval(const EvalArgs& a) {
   json["world_model"] = world_model_name;
   json["fingerprint"] = fingerprint;
   const auto detector_dir = detector_directory(a);
+  std::string detector_line;
   if (!a.sim_as_world_model && fs::exists(detector_dir / "result.json")) {
     json["detector"] = read_json_file(detector_dir / "result.json");
     if (fs::exists(detector_dir / "data.json"))
       json["detector"]["data"] = read_json_file(detector_dir / "data.json");
+    const auto frames = json["detector"].contains("data")
+                            ? json["detector"]["data"].value("frames", nlohmann::json("dojosim"))
+                            : nlohmann::json("dojosim");
+    detector_line = detector_summary(json["detector"], frames != "dojosim");
   }
   write_file_atomic(out / "report.json", json.dump(2) + "\n");
-  eval::write_policy_eval_html(report, out / "report.html", "DojoSim", world_model_name, options.video_dir);
+  eval::write_policy_eval_html(report, out / "report.html", "DojoSim", world_model_name, options.video_dir,
+                               detector_line);
 
   std::printf("%-14s %8s %12s\n", "policy", "DojoSim", world_model_name.substr(0, 12).c_str());
   for (size_t i = 0; i < report.rates.names.size(); ++i)
@@ -485,6 +525,7 @@ int run_eval(const EvalArgs& a) {
   std::printf("episodes agreeing %.3f (open-loop replays %.3f); seconds per episode: DojoSim %.2f, %s %.2f\n",
               report.episode_agreement, report.open_loop_agreement, report.real_seconds_per_episode,
               world_model_name.c_str(), report.world_model_seconds_per_episode);
+  if (!detector_line.empty()) std::printf("%s\n", detector_line.c_str());
   LOG_INFO("policy eval: ", (out / "report.json").string(), ", ", (out / "report.html").string());
   return 0;
 }

@@ -325,7 +325,7 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
 
 void write_policy_eval_html(const PolicyEvalReport& report, const fs::path& path,
                             const std::string& real_name, const std::string& world_model_name,
-                            const fs::path& video_dir) {
+                            const fs::path& video_dir, const std::string& detector_note) {
   const auto f = [](double v, int digits = 3) {
     if (!std::isfinite(v)) return std::string("—");
     char buf[32];
@@ -340,6 +340,7 @@ void write_policy_eval_html(const PolicyEvalReport& report, const fs::path& path
         f(report.agreement.mean_abs_gap), f(report.episode_agreement), f(report.open_loop_agreement)}});
   html.paragraph("Seconds per episode: " + f(report.real_seconds_per_episode, 2) + " in " + real_name + ", " +
                  f(report.world_model_seconds_per_episode, 2) + " in " + world_model_name + ".");
+  if (!detector_note.empty()) html.paragraph(detector_note + ".");
   html.unit_scatter("Success rate per policy", report.rates.names, report.rates.real,
                     report.rates.world_model, "success in " + real_name, "success in " + world_model_name);
   std::vector<std::vector<std::string>> rows;

@@ -161,9 +161,11 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
 PolicyEvalReport summarize_policy_episodes(const std::vector<EpisodeResult>& episodes);
 
 // The report as a self-contained HTML page: the agreement numbers, a scatter of per-policy
-// success (real vs world model), the per-policy table and the episode videos in `video_dir`.
+// success (real vs world model), the per-policy table, `detector_note` (what the success detector
+// reads, when given) and the episode videos in `video_dir`.
 void write_policy_eval_html(const PolicyEvalReport& report, const std::filesystem::path& path,
                             const std::string& real_name, const std::string& world_model_name,
-                            const std::filesystem::path& video_dir = {});
+                            const std::filesystem::path& video_dir = {},
+                            const std::string& detector_note = {});
 
 }  // namespace dojo::eval

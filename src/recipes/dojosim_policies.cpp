@@ -237,7 +237,7 @@ void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDat
   const auto heldout_from =
       static_cast<int64_t>(std::lround(static_cast<double>(options.scenes) * (1 - options.heldout_fraction)));
   DojoSimEnvironment env;
-  std::vector<torch::Tensor> videos, labels;
+  std::vector<torch::Tensor> videos, simulator_videos, labels;
   std::vector<uint8_t> heldout;
   for (const auto& spec : policies) {
     if (!spec.scripted()) continue;  // labelled episodes come from the scripted policies
@@ -261,6 +261,7 @@ void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDat
         if (frames_from) shown.push_back(frames_from->step(commands));  // [n, H, W, 3]
       }
       videos.push_back(torch::cat(frames_from ? shown : frames));  // [T, H, W, 3]
+      if (frames_from) simulator_videos.push_back(torch::cat(frames));
       DOJO_CHECK(videos.back().size(0) == static_cast<int64_t>(label.size()),
                  "success data: " + (frames_from ? frames_from->name() : env.name()) + " returned " +
                      std::to_string(videos.back().size(0)) + " frames for " + std::to_string(label.size()) +
@@ -271,8 +272,9 @@ void make_success_data(const std::vector<PolicySpec>& policies, const SuccessDat
     LOG_INFO("success data: ", spec.name, " done");
   }
   train::SuccessData data;
-  data.frames = torch::stack(videos);  // [E, T, H, W, 3]
-  data.labels = torch::stack(labels);  // [E, T]
+  data.frames = torch::stack(videos);                                       // [E, T, H, W, 3]
+  data.labels = torch::stack(labels);                                       // [E, T]
+  if (frames_from) data.simulator_frames = torch::stack(simulator_videos);  // [E, T, H, W, 3]
   data.heldout = torch::tensor(std::vector<int64_t>(heldout.begin(), heldout.end())).to(torch::kBool);
   data.save(path);
 }

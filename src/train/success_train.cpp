@@ -26,11 +26,19 @@ SuccessData SuccessData::load(const fs::path& path) {
       d.labels.dim() == 2 && d.labels.size(0) == d.frames.size(0) && d.labels.size(1) == d.frames.size(1),
       where + "'labels' must be [E, T], one per frame");
   DOJO_CHECK(d.heldout.dim() == 1 && d.heldout.size(0) == d.frames.size(0), where + "'heldout' must be [E]");
+  if (file.contains("simulator_frames")) {
+    d.simulator_frames = file.tensor("simulator_frames", true);
+    DOJO_CHECK(
+        d.simulator_frames.sizes() == d.frames.sizes() && d.simulator_frames.scalar_type() == torch::kUInt8,
+        where + "'simulator_frames' must be uint8 of the shape of 'frames'");
+  }
   return d;
 }
 
 void SuccessData::save(const fs::path& path) const {
-  save_safetensors(path, {{"frames", frames}, {"labels", labels}, {"heldout", heldout.to(torch::kUInt8)}});
+  NamedTensors tensors{{"frames", frames}, {"labels", labels}, {"heldout", heldout.to(torch::kUInt8)}};
+  if (simulator_frames.defined()) tensors.emplace_back("simulator_frames", simulator_frames);
+  save_safetensors(path, tensors);
 }
 
 namespace {
@@ -176,6 +184,11 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
   r.train = success_accuracy(detector, data, data.heldout.logical_not());
   r.heldout = success_accuracy(detector, data, data.heldout);
   r.heldout_episodes = episode_accuracy(detector, data, data.heldout, job.votes);
+  if (data.simulator_frames.defined()) {
+    SuccessData simulated{data.simulator_frames, data.labels, data.heldout, {}};
+    r.heldout_simulator = success_accuracy(detector, simulated, simulated.heldout);
+    r.heldout_simulator_episodes = episode_accuracy(detector, simulated, simulated.heldout, job.votes);
+  }
   return r;
 }
 

@@ -8,15 +8,20 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <optional>
 
 #include "models/success_detector.h"
 
 namespace dojo::train {
 
 // Labelled episodes, one file: "frames" [E, T, H, W, 3] uint8, "labels" [E, T] float (0 / 1),
-// "heldout" [E] uint8 (1: never trained on; the accuracy reported is theirs).
+// "heldout" [E] uint8 (1: never trained on; the accuracy reported is theirs); optionally
+// "simulator_frames", as "frames".
 struct SuccessData {
   torch::Tensor frames, labels, heldout;
+  // DojoSim's frames of the same episodes when `frames` are a world model's replays (else
+  // undefined): the detector trained on the replays is also scored on real frames.
+  torch::Tensor simulator_frames;  // [E, T, H, W, 3] uint8
   static SuccessData load(
       const std::filesystem::path& path);              // throws dojo::Error naming the file and tensor
   void save(const std::filesystem::path& path) const;  // atomically
@@ -48,6 +53,8 @@ struct SuccessTrainResult {
   double loss = 0;  // mean of the last 20 steps
   SuccessAccuracy train, heldout;
   SuccessAccuracy heldout_episodes;  // per held-out episode: the vote over its last windows vs its outcome
+  // The same two on the simulator's frames of the held-out episodes, when the data has them.
+  std::optional<SuccessAccuracy> heldout_simulator, heldout_simulator_episodes;
   double seconds = 0;
 };
 

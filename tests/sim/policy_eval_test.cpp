@@ -196,6 +196,26 @@ TEST(PolicyEval, SuccessDetectorLearnsFromLabelledFrames) {
   EXPECT_DOUBLE_EQ(r.heldout_episodes.balanced_accuracy, by_hand);
   // At most one of the 6 episodes misread (the exact count depends on the BLAS's rounding).
   EXPECT_GE(true_positives + true_negatives, 5);
+  EXPECT_FALSE(r.heldout_simulator.has_value());  // DojoSim's frames only
+
+  // Data with the simulator's frames beside the shown ones (here the same frames): the finished
+  // detector, resumed at its last step, is scored on them as on the shown ones.
+  auto both = data;
+  both.simulator_frames = data.frames.clone();
+  both.save(tmp / "both.safetensors");
+  job.data = tmp / "both.safetensors";
+  const auto scored = train::run_success_training(job);
+  ASSERT_TRUE(scored.heldout_simulator.has_value());
+  EXPECT_DOUBLE_EQ(scored.heldout_simulator->balanced_accuracy, r.heldout.balanced_accuracy);
+  EXPECT_EQ(scored.heldout_simulator->windows, r.heldout.windows);
+  EXPECT_DOUBLE_EQ(scored.heldout_simulator_episodes->balanced_accuracy,
+                   r.heldout_episodes.balanced_accuracy);
+  both.simulator_frames = data.frames.narrow(1, 0, 5).clone();
+  both.save(tmp / "short.safetensors");
+  EXPECT_NE(test::error_message([&] {
+              train::SuccessData::load(tmp / "short.safetensors");
+            }).find("short.safetensors: 'simulator_frames' must be uint8 of the shape of 'frames'"),
+            std::string::npos);
 }
 
 TEST(PolicyEval, DetectorWindowSpansItsStride) {
@@ -288,6 +308,8 @@ TEST(PolicyEval, WorldModelRunsAPolicyClosedLoop) {
   EXPECT_TRUE(torch::equal(replayed.frames[0], first));
   EXPECT_FALSE(torch::equal(replayed.frames, simulated.frames));
   EXPECT_TRUE(torch::equal(replayed.labels, simulated.labels));
+  EXPECT_TRUE(torch::equal(replayed.simulator_frames, simulated.frames));  // both worlds kept
+  EXPECT_FALSE(simulated.simulator_frames.defined());
   EXPECT_THROW(frames_only.success(), Error);
 }
 

@@ -272,7 +272,9 @@ TEST(PolicyCli, DetectorLearnsFromWorldModelReplaysAndTheEvaluationUsesIt) {
   const auto data = train::SuccessData::load(detector / "data.safetensors");
   EXPECT_EQ(data.frames.size(1), 1 + 64 + 12);
   EXPECT_GT(data.labels.sum().item<double>(), 0);  // the expert's endings: both classes to learn
-  EXPECT_TRUE(fs::exists(detector / "result.json"));
+  EXPECT_EQ(data.simulator_frames.sizes(), data.frames.sizes());
+  const auto result = nlohmann::json::parse(test::read_file(detector / "result.json"));
+  EXPECT_TRUE(result.at("heldout_simulator_frames").contains("heldout_episodes")) << result.dump();
 
   const auto out = tmp / "eval";
   r = test::run_dojo("--threads 1 policy eval --no-bc --scenes 1 --videos 0 --detector " + detector.string() +
@@ -281,6 +283,11 @@ TEST(PolicyCli, DetectorLearnsFromWorldModelReplaysAndTheEvaluationUsesIt) {
   const auto report = nlohmann::json::parse(test::read_file(out / "report.json"));
   EXPECT_EQ(report.at("policies").size(), 2u);
   EXPECT_EQ(report.at("detector").at("data").at("frames"), made.at("frames"));
+  EXPECT_NE(r.output.find("Success detector, balanced accuracy on held-out generated frames: windows "),
+            std::string::npos)
+      << r.output;
+  EXPECT_NE(r.output.find("; the same episodes in DojoSim's frames: windows "), std::string::npos)
+      << r.output;
 
   // One-line errors: frames of another source in the same directory (to train on or to reuse in
   // an evaluation), no world model.
