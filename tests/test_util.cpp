@@ -68,10 +68,9 @@ int run_in_child_killed_at(int kill_at, const std::function<void()>& work) {
   return status;
 }
 
-CommandResult run_dojo(const std::string& args) {
-  const std::string command = std::string(DOJO_EXE) + " " + args + " 2>&1";
+CommandResult run_command(const std::string& command) {
   CommandResult result{-1, ""};
-  FILE* pipe = popen(command.c_str(), "r");
+  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
   if (!pipe) return result;
   std::array<char, 4096> buffer;
   size_t n;
@@ -80,5 +79,7 @@ CommandResult run_dojo(const std::string& args) {
   result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   return result;
 }
+
+CommandResult run_dojo(const std::string& args) { return run_command(std::string(DOJO_EXE) + " " + args); }
 
 }  // namespace dojo::test

@@ -44,6 +44,9 @@ struct CommandResult {
 // throws. Returns the child's wait status.
 int run_in_child_killed_at(int kill_at, const std::function<void()>& work);
 
+// Runs a shell command line and waits for it; the output is its stdout and stderr together.
+CommandResult run_command(const std::string& command);
+
 // Runs the built `dojo` executable with the given argument string.
 CommandResult run_dojo(const std::string& args);
 

@@ -40,15 +40,7 @@ constexpr ClipFacts kTree{"tree.avi", 68, 320, 240, 1000000.0 / 66667.0, "cinepa
 bool has_ffmpeg_cli() { return std::system("ffmpeg -version > /dev/null 2>&1") == 0; }
 
 bool has_encoder(const std::string& name) {
-  static std::string encoders;
-  if (encoders.empty()) {
-    FILE* pipe = popen("ffmpeg -hide_banner -encoders 2>/dev/null", "r");
-    if (!pipe) return false;
-    char buffer[4096];
-    size_t n;
-    while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) encoders.append(buffer, n);
-    pclose(pipe);
-  }
+  static const std::string encoders = test::run_command("ffmpeg -hide_banner -encoders").output;
   return encoders.find(" " + name + " ") != std::string::npos;
 }
 

@@ -354,16 +354,12 @@ TEST_F(ServeTest, PythonStepClientDrivesTheModel) {
   const auto port = server.start();
   const auto client = std::filesystem::path(DOJO_SOURCE_DIR) / "examples" / "step_client.py";
   const auto out = *tmp_ / "python_frames";
-  const auto run = [&](const std::string& args, std::string& output) {
-    const auto command = "python3 " + client.string() + " --url ws://127.0.0.1:" + std::to_string(port) +
-                         "/ws " + args + " 2>&1";
-    FILE* pipe = popen(command.c_str(), "r");
-    char buffer[4096];
-    while (pipe && fgets(buffer, sizeof buffer, pipe)) output += buffer;
-    return pipe ? WEXITSTATUS(pclose(pipe)) : -1;
+  const auto run = [&](const std::string& args) {
+    return test::run_command("python3 " + client.string() + " --url ws://127.0.0.1:" + std::to_string(port) +
+                             "/ws " + args);
   };
-  std::string output;
-  ASSERT_EQ(run("--model student --steps 2 --out " + out.string(), output), 0) << output;
+  const auto [status, output] = run("--model student --steps 2 --out " + out.string());
+  ASSERT_EQ(status, 0) << output;
   const auto summary = nlohmann::json::parse(output.substr(output.rfind('{')));
   EXPECT_EQ(summary["steps"], 2);
   EXPECT_EQ(summary["frames"], 9);  // the start frame and 4 per step
@@ -375,9 +371,9 @@ TEST_F(ServeTest, PythonStepClientDrivesTheModel) {
     ASSERT_FALSE(jpeg.empty()) << name;
     EXPECT_EQ(io::decode_jpeg(jpeg, name).size(0), 64);
   }
-  std::string refused;
-  EXPECT_NE(run("--model nonesuch --steps 1", refused), 0);
-  EXPECT_NE(refused.find("unknown model 'nonesuch'"), std::string::npos) << refused;
+  const auto refused = run("--model nonesuch --steps 1");
+  EXPECT_NE(refused.exit_code, 0);
+  EXPECT_NE(refused.output.find("unknown model 'nonesuch'"), std::string::npos) << refused.output;
   server.stop();
 }
 
