@@ -254,13 +254,18 @@ LoadedWorldModel load_world_model(const WorldModelSource& s, models::SuccessDete
   return loaded;
 }
 
-// Refuses a detector directory whose data holds other frames than `frames` (data.json's "frames";
-// an older directory without it holds DojoSim's): "SUBJECT <verb> frames of X, not of Y: HINT".
+// The frames a detector directory's data holds: data.json's "frames"; an older directory without
+// data.json holds DojoSim's.
+nlohmann::json detector_frames_in(const fs::path& dir) {
+  return fs::exists(dir / "data.json") ? read_json_file(dir / "data.json").value("frames", nlohmann::json())
+                                       : nlohmann::json("dojosim");
+}
+
+// Refuses a detector directory whose data holds other frames than `frames`:
+// "SUBJECT <verb> frames of X, not of Y: HINT".
 void require_detector_frames(const fs::path& dir, const nlohmann::json& frames, const std::string& subject,
                              const std::string& hint) {
-  const auto held = fs::exists(dir / "data.json")
-                        ? read_json_file(dir / "data.json").value("frames", nlohmann::json())
-                        : nlohmann::json("dojosim");
+  const auto held = detector_frames_in(dir);
   DOJO_CHECK(held == frames,
              subject + " frames of " + held.dump() + ", not of " + frames.dump() + ": " + hint);
 }
@@ -352,13 +357,13 @@ nlohmann::json train_detector(const DetectorArgs& a) {
            r.heldout.balanced_accuracy, " (", r.heldout.windows,
            " windows); held-out episodes by vote: accuracy ", r.heldout_episodes.accuracy, ", balanced ",
            r.heldout_episodes.balanced_accuracy, " (", r.heldout_episodes.windows, " episodes)");
-  if (r.heldout_simulator) {
+  if (r.simulator) {
     // Trained on a world model's replays: the same held-out episodes as DojoSim rendered them.
-    result["heldout_simulator_frames"] = {{"heldout", accuracy(*r.heldout_simulator)},
-                                          {"heldout_episodes", by_vote(*r.heldout_simulator_episodes)}};
+    result["heldout_simulator_frames"] = {{"heldout", accuracy(r.simulator->heldout)},
+                                          {"heldout_episodes", by_vote(r.simulator->heldout_episodes)}};
     LOG_INFO("policy detector: the same held-out episodes in DojoSim's frames: balanced ",
-             r.heldout_simulator->balanced_accuracy, " (windows), ",
-             r.heldout_simulator_episodes->balanced_accuracy, " (episodes by vote)");
+             r.simulator->heldout.balanced_accuracy, " (windows), ",
+             r.simulator->heldout_episodes.balanced_accuracy, " (episodes by vote)");
   }
   write_file_atomic(out / "result.json", result.dump(2) + "\n");
   return result;
@@ -387,7 +392,7 @@ std::string detector_summary(const nlohmann::json& result, bool world_model_fram
                      balanced(part(result, "heldout")) + ", episodes by vote " +
                      balanced(part(result, "heldout_episodes"));
   if (result.contains("heldout_simulator_frames")) {
-    const auto simulated = result["heldout_simulator_frames"];
+    const auto& simulated = result["heldout_simulator_frames"];
     line += "; the same episodes in DojoSim's frames: windows " + balanced(part(simulated, "heldout")) +
             ", episodes by vote " + balanced(part(simulated, "heldout_episodes"));
   }
@@ -507,10 +512,7 @@ int run_eval(const EvalArgs& a) {
     json["detector"] = read_json_file(detector_dir / "result.json");
     if (fs::exists(detector_dir / "data.json"))
       json["detector"]["data"] = read_json_file(detector_dir / "data.json");
-    const auto frames = json["detector"].contains("data")
-                            ? json["detector"]["data"].value("frames", nlohmann::json("dojosim"))
-                            : nlohmann::json("dojosim");
-    detector_line = detector_summary(json["detector"], frames != "dojosim");
+    detector_line = detector_summary(json["detector"], detector_frames_in(detector_dir) != "dojosim");
   }
   write_file_atomic(out / "report.json", json.dump(2) + "\n");
   eval::write_policy_eval_html(report, out / "report.html", "DojoSim", world_model_name, options.video_dir,

@@ -186,8 +186,8 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
   r.heldout_episodes = episode_accuracy(detector, data, data.heldout, job.votes);
   if (data.simulator_frames.defined()) {
     SuccessData simulated{data.simulator_frames, data.labels, data.heldout, {}};
-    r.heldout_simulator = success_accuracy(detector, simulated, simulated.heldout);
-    r.heldout_simulator_episodes = episode_accuracy(detector, simulated, simulated.heldout, job.votes);
+    r.simulator = {success_accuracy(detector, simulated, simulated.heldout),
+                   episode_accuracy(detector, simulated, simulated.heldout, job.votes)};
   }
   return r;
 }

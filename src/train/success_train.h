@@ -54,7 +54,10 @@ struct SuccessTrainResult {
   SuccessAccuracy train, heldout;
   SuccessAccuracy heldout_episodes;  // per held-out episode: the vote over its last windows vs its outcome
   // The same two on the simulator's frames of the held-out episodes, when the data has them.
-  std::optional<SuccessAccuracy> heldout_simulator, heldout_simulator_episodes;
+  struct Simulated {
+    SuccessAccuracy heldout, heldout_episodes;
+  };
+  std::optional<Simulated> simulator;
   double seconds = 0;
 };
 

@@ -196,7 +196,7 @@ TEST(PolicyEval, SuccessDetectorLearnsFromLabelledFrames) {
   EXPECT_DOUBLE_EQ(r.heldout_episodes.balanced_accuracy, by_hand);
   // At most one of the 6 episodes misread (the exact count depends on the BLAS's rounding).
   EXPECT_GE(true_positives + true_negatives, 5);
-  EXPECT_FALSE(r.heldout_simulator.has_value());  // DojoSim's frames only
+  EXPECT_FALSE(r.simulator.has_value());  // DojoSim's frames only
 
   // Data with the simulator's frames beside the shown ones (here the same frames): the finished
   // detector, resumed at its last step, is scored on them as on the shown ones.
@@ -205,10 +205,10 @@ TEST(PolicyEval, SuccessDetectorLearnsFromLabelledFrames) {
   both.save(tmp / "both.safetensors");
   job.data = tmp / "both.safetensors";
   const auto scored = train::run_success_training(job);
-  ASSERT_TRUE(scored.heldout_simulator.has_value());
-  EXPECT_DOUBLE_EQ(scored.heldout_simulator->balanced_accuracy, r.heldout.balanced_accuracy);
-  EXPECT_EQ(scored.heldout_simulator->windows, r.heldout.windows);
-  EXPECT_DOUBLE_EQ(scored.heldout_simulator_episodes->balanced_accuracy,
+  ASSERT_TRUE(scored.simulator.has_value());
+  EXPECT_DOUBLE_EQ(scored.simulator->heldout.balanced_accuracy, r.heldout.balanced_accuracy);
+  EXPECT_EQ(scored.simulator->heldout.windows, r.heldout.windows);
+  EXPECT_DOUBLE_EQ(scored.simulator->heldout_episodes.balanced_accuracy,
                    r.heldout_episodes.balanced_accuracy);
   both.simulator_frames = data.frames.narrow(1, 0, 5).clone();
   both.save(tmp / "short.safetensors");
