@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Trains the DojoSim reference model set and exports it (bf16, no trainer state) into
-# models/reference, then scores it. About 1.5 hours on 2 CPU cores.
+# models/reference, then scores it. About 1.75 hours on 2 CPU cores.
 #
 #   scripts/train_reference.sh [WORK_DIR=ref_work]
 #
@@ -10,8 +10,12 @@
 # 2. Pretraining continues to 3500 steps on 768 human clips (the demo caches 192).
 # 3. Post-training from that checkpoint: 5000 steps on every robot training clip, conditioning
 #    noise 0.3 (docs/action_following.md).
-# 4. `dojo ckpt export` of the five models into models/reference; `dojo eval` on the demo's three
-#    robot splits (8 episodes each, with the probe and the action-sensitivity runs).
+# 4. The real-time student distilled from the post-trained model as the demo distils its own
+#    (trajectories of 4 chained teacher chunks, 300 warm-up steps, 300 Self-Forcing iterations,
+#    window 12 + sink 1), and a fast decoder of the tokenizer (600 steps).
+# 5. `dojo ckpt export` of the models into models/reference (the pretrained world model is not
+#    shipped: no default uses it; it stays in WORK/ref_pretrain); `dojo eval` of the teacher and
+#    the student on the demo's three robot splits (8 episodes each, probe, action sensitivity).
 # Re-running resumes: finished demo stages and trainings are kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -30,9 +34,20 @@ fi
   --init "$WORK/ref_pretrain/checkpoint" --out "$WORK/ref_posttrain" --steps 5000 --batch 8 --lr 3e-4 \
   --grad-clip 1 --warmup 50 --hop 4 --max-clips 0 --condition-noise 0.3 --save-every 500
 
+DISTILL=(--teacher "$WORK/ref_posttrain/checkpoint" --tokenizer "$WORK/tokenizer/checkpoint" --data "$WORK/robot"
+         --hop 4 --max-clips 192 --window 12 --sink-frames 1 --lr 1.6e-4)
+"$DOJO" distill --stage warmup "${DISTILL[@]}" --warmup-chunks 4 --batch 4 --steps 300 --save-every 100 \
+  --out "$WORK/ref_student_warmup"
+"$DOJO" distill --stage self-forcing "${DISTILL[@]}" --init "$WORK/ref_student_warmup/checkpoint" --batch 2 \
+  --steps 300 --save-every 50 --out "$WORK/ref_student"
+"$DOJO" tokenizer fast-decoder --tokenizer "$WORK/tokenizer/checkpoint" --data "$WORK/robot" --steps 600 \
+  --batch 4 --max-clips 192 --out "$WORK/ref_fast_decoder"
+
 mkdir -p "$REF"
+rm -rf "$REF/fast_decoder" && mkdir -p "$REF/fast_decoder"  # fp32, 1.3 MB: its weights without trainer state
+cp "$WORK/ref_fast_decoder/checkpoint/"{config.json,model.safetensors} "$REF/fast_decoder/"
 for pair in "lam $WORK/lam/checkpoint" "tokenizer $WORK/tokenizer/checkpoint" "probe $WORK/probe/checkpoint" \
-            "wm_pretrain $WORK/ref_pretrain/checkpoint" "wm_posttrain $WORK/ref_posttrain/checkpoint"; do
+            "wm_posttrain $WORK/ref_posttrain/checkpoint" "student $WORK/ref_student/checkpoint"; do
   set -- $pair
   rm -rf "$REF/$1.new" && "$DOJO" ckpt export "$2" "$REF/$1.new" --dtype bf16
   rm -rf "$REF/$1" && mv "$REF/$1.new" "$REF/$1"
@@ -40,4 +55,6 @@ done
 for split in "val robot val" "ood robot_ood_objects all" "cf robot_counterfactual all"; do
   set -- $split
   "$DOJO" eval --data "$WORK/$2" --split "$3" -n 8 --action-sensitivity --out "$WORK/ref_eval_$1" --videos 2
+  "$DOJO" eval --student --data "$WORK/$2" --split "$3" -n 8 --action-sensitivity \
+    --out "$WORK/ref_student_eval_$1" --videos 2
 done

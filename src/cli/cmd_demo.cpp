@@ -46,6 +46,14 @@ void register_demo(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--fast-decoder-steps", o->fast_decoder_steps, "Fast streaming decoder steps")
       ->capture_default_str();
+  cmd->add_option("--max-clips", o->max_clips,
+                  "Clips per dataset in the latent caches (world model, student, fast decoder)")
+      ->check(CLI::Range(int64_t{1}, int64_t{1000000}))
+      ->capture_default_str();
+  cmd->add_option("--stream-frames", o->stream_frames,
+                  "Frames the student streams when its speed is timed (a multiple of 4)")
+      ->check(CLI::Range(4, 100000))
+      ->capture_default_str();
   cmd->add_option("--reference", *reference,
                   "Reference model set to evaluate beside the demo's models (default: models/reference when "
                   "present; \"none\" to skip)");
@@ -59,6 +67,10 @@ void register_demo(CLI::App& app) {
       ->check(CLI::Range(50, 100000))
       ->capture_default_str();
   cmd->add_option("--sampler-steps", o->sampler_steps, "UniPC steps per chunk")
+      ->check(CLI::Range(1, 1000))
+      ->capture_default_str();
+  cmd->add_option("--eval-chunks", o->eval_chunks,
+                  "12-frame chunks per evaluation rollout (4: the paper's 49 frames)")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
   add_seed_option(cmd, o->seed);

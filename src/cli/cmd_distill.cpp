@@ -24,7 +24,7 @@ struct DistillArgs {
   std::vector<std::string> data;
   int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 12, sink = -1;
   std::string sink_position = "window_edge";
-  int batch = 8, student_steps = 4, teacher_steps = 35;
+  int batch = 8, student_steps = 4, teacher_steps = 35, counterfactual_copies = 0, warmup_chunks = 1;
   double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1;
   bool fp32_times = false;
   train::SelfForcingOptions self_forcing;
@@ -59,6 +59,8 @@ int run_distill(DistillArgs a) {
   job.trajectories.teacher_steps = a.teacher_steps;
   job.trajectories.query_steps = train::TrajectorySpec::query_steps_for(a.teacher_steps);
   job.trajectories.seed = a.seed;
+  job.trajectories.counterfactual_copies = a.counterfactual_copies;
+  job.trajectories.chunks = a.warmup_chunks;
   job.options.lr = a.lr;
   job.options.weight_decay = a.weight_decay;
   job.options.grad_clip = a.grad_clip;
@@ -143,6 +145,20 @@ void register_distill(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--max-frames", sf.max_frames,
                   "self-forcing: longest rollout in latent frames (clips of 1 + 4 (N - 1))")
+      ->capture_default_str();
+  cmd->add_option("--counterfactual-copies", a->counterfactual_copies,
+                  "warm-up: also solve each clip's teacher ODE this many more times with other clips' "
+                  "actions (same first frame, same noise), so the targets depend on the actions")
+      ->check(CLI::Range(0, 8))
+      ->capture_default_str();
+  cmd->add_option("--warmup-chunks", a->warmup_chunks,
+                  "warm-up: teacher chunks chained per trajectory (1: 13 frames; 4: 49 frames, the "
+                  "positions a streaming student reaches in an evaluation rollout)")
+      ->check(CLI::Range(1, 8))
+      ->capture_default_str();
+  cmd->add_option("--counterfactual-share", sf.counterfactual_share,
+                  "self-forcing: share of rollouts driven by another clip's actions")
+      ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
   add_seed_option(cmd, a->seed);
   cmd->callback([a] { set_action([a] { return run_distill(*a); }); });

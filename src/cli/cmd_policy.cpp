@@ -8,6 +8,7 @@
 #include <optional>
 
 #include "cli/commands.h"
+#include "cli/model_args.h"
 #include "cli/options.h"
 #include "core/atomic_file.h"
 #include "core/checkpoint.h"
@@ -32,10 +33,10 @@ namespace fs = std::filesystem;
 namespace dojo::cli {
 namespace {
 
-// Which world model: the demo's student unless told otherwise (policy eval and the detector's
-// generated-video mode).
+// Which world model (policy eval and the detector's generated-video mode): the reference set's
+// student unless told otherwise, else the demo's.
 struct WorldModelArgs {
-  std::string demo = "dojo_demo", student, teacher, tokenizer, fast_decoder;
+  std::string demo, student, teacher, tokenizer, fast_decoder;  // demo "": dojo_demo
   std::string device = "cpu", precision = "fp32";
   int teacher_steps = 0;  // the teacher's sampler steps (0: the ones it was trained with)
 };
@@ -190,17 +191,29 @@ struct WorldModelSource {
   }
 };
 
-// The demo's student unless `a` names others; `who` starts the error messages.
+// Without --demo, --student or --teacher: the reference set's student (with its tokenizer and fast
+// decoder) where the set has one. Otherwise the demo's student unless `a` names others. `who`
+// starts the error messages.
 WorldModelSource resolve_world_model(const WorldModelArgs& a, const std::string& who) {
-  const fs::path demo = a.demo;
   WorldModelSource s;
   s.teacher = !a.teacher.empty();
-  s.checkpoint = s.teacher ? fs::path(a.teacher) : pick(a.student, demo / "student" / "checkpoint");
-  s.tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
-  s.fast_decoder = a.fast_decoder;
-  if (s.fast_decoder.empty() && a.student.empty() && !s.teacher &&
-      fs::exists(demo / "fast_decoder" / "checkpoint"))
-    s.fast_decoder = demo / "fast_decoder" / "checkpoint";
+  const auto reference = a.demo.empty() && a.student.empty() && !s.teacher ? reference_student() : fs::path();
+  if (!reference.empty()) {
+    s.checkpoint = reference;
+    s.tokenizer = pick(a.tokenizer, default_reference_dir() / "tokenizer");
+    s.fast_decoder = a.fast_decoder;
+    if (s.fast_decoder.empty() && a.tokenizer.empty()) s.fast_decoder = reference_fast_decoder();
+    LOG_INFO(who, ": the reference student ", s.checkpoint.string(),
+             s.fast_decoder.empty() ? "" : ", decoded with " + s.fast_decoder.string());
+  } else {
+    const fs::path demo = a.demo.empty() ? "dojo_demo" : a.demo;
+    s.checkpoint = s.teacher ? fs::path(a.teacher) : pick(a.student, demo / "student" / "checkpoint");
+    s.tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
+    s.fast_decoder = a.fast_decoder;
+    if (s.fast_decoder.empty() && a.student.empty() && !s.teacher &&
+        fs::exists(demo / "fast_decoder" / "checkpoint"))
+      s.fast_decoder = demo / "fast_decoder" / "checkpoint";
+  }
   s.device = a.device;
   s.precision = a.precision;
   s.teacher_steps = a.teacher_steps;
@@ -533,14 +546,21 @@ int run_eval(const EvalArgs& a) {
 }
 
 void add_world_model_options(CLI::App* cmd, WorldModelArgs& wm) {
-  cmd->add_option("--demo", wm.demo, "Take the models from this `dojo demo` output")->capture_default_str();
-  cmd->add_option("--student", wm.student, "Student checkpoint (default: the demo's)");
+  cmd->add_option("--demo", wm.demo,
+                  "Take the models from this `dojo demo` output (default: the reference set's student "
+                  "when the set has one, else dojo_demo)");
+  cmd->add_option("--student", wm.student,
+                  "Student checkpoint (default: the reference set's, else the demo's)");
   cmd->add_option("--teacher", wm.teacher, "Use this teacher checkpoint instead (12-frame chunks)");
   cmd->add_option("--teacher-steps", wm.teacher_steps,
                   "With --teacher: sampler steps per chunk (default: the trained sampler's, 35)")
       ->check(CLI::NonNegativeNumber);
-  cmd->add_option("--tokenizer", wm.tokenizer, "Tokenizer checkpoint (default: the demo's)");
-  cmd->add_option("--fast-decoder", wm.fast_decoder, "Student's fast decoder (default: the demo's)");
+  cmd->add_option("--tokenizer", wm.tokenizer,
+                  "Tokenizer checkpoint (default: the reference set's with its student, else the demo's)");
+  cmd->add_option(
+      "--fast-decoder", wm.fast_decoder,
+      "Student's fast decoder (default: that of the reference set or demo the student comes from, "
+      "when it has one)");
   add_device_option(cmd, wm.device);
   add_precision_option(cmd, wm.precision);
 }

@@ -1,13 +1,16 @@
-// `dojo serve`: the HTTP + WebSocket server (serve/server.h) over the demo's models or given ones.
+// `dojo serve`: the HTTP + WebSocket server (serve/server.h) over the reference set, the demo's
+// models or given ones.
 #include <CLI/CLI.hpp>
 
 #include <csignal>
 #include <cstdio>
 #include <filesystem>
 #include <memory>
+#include <optional>
 #include <thread>
 
 #include "cli/commands.h"
+#include "cli/model_args.h"
 #include "cli/options.h"
 #include "core/error.h"
 #include "core/log.h"
@@ -23,19 +26,68 @@ namespace {
 
 struct ServeArgs {
   serve::ServeOptions server;
-  std::string demo = "dojo_demo", student, teacher, tokenizer, fast_decoder, data, split = "val";
+  std::string demo, student, teacher, tokenizer, fast_decoder, data, split = "val";  // demo "": dojo_demo
   std::string device = "cpu", precision = "fp32";
   bool no_teacher = false, no_cuda_graphs = false;
   int teacher_steps = 0;
 };
 
-// The models: given ones, else those `dojo demo` wrote into --demo.
-serve::ModelHost::Options host_options(const ServeArgs& a) {
+fs::path pick(const std::string& given, const fs::path& fallback) {
+  return !given.empty() ? fs::path(given) : (fs::exists(fallback) ? fallback : fs::path());
+}
+
+void set_runtime(const ServeArgs& a, serve::ModelHost::Options& o) {
+  o.split = a.split;
+  o.device = parse_device(a.device);
+  o.precision = parse_precision(a.precision);
+  o.cuda_graphs = !a.no_cuda_graphs;
+}
+
+// Without --demo, --student, --teacher or --study: the reference set where it has a student (its
+// student with its fast decoder when it has one, and its post-trained world model as the teacher),
+// sessions starting from held-out DojoSim episodes made here unless --data is given.
+std::optional<serve::ModelHost::Options> reference_host_options(const ServeArgs& a) {
+  if (!a.demo.empty() || !a.student.empty() || !a.teacher.empty() || !a.server.study.empty())
+    return std::nullopt;
+  const auto student = reference_student();
+  if (student.empty()) return std::nullopt;
+  const auto reference = default_reference_dir();
   serve::ModelHost::Options o;
-  const fs::path demo = a.demo;
-  const auto pick = [](const std::string& given, const fs::path& fallback) {
-    return !given.empty() ? fs::path(given) : (fs::exists(fallback) ? fallback : fs::path());
-  };
+  serve::ModelSpec s;
+  s.name = "student";
+  s.checkpoint = student;
+  s.tokenizer = pick(a.tokenizer, reference / "tokenizer");
+  DOJO_CHECK(!s.tokenizer.empty(), "serve: the reference set in " + reference.string() + " has no tokenizer");
+  s.fast_decoder = !a.fast_decoder.empty() ? fs::path(a.fast_decoder)
+                                           : (a.tokenizer.empty() ? reference_fast_decoder() : fs::path());
+  o.models.push_back(s);
+  const auto teacher = reference / "wm_posttrain";
+  if (!a.no_teacher && fs::exists(teacher / "config.json")) {
+    serve::ModelSpec t;
+    t.name = "teacher";
+    t.streaming = false;
+    t.checkpoint = teacher;
+    t.tokenizer = s.tokenizer;
+    t.teacher_steps = a.teacher_steps;
+    o.models.push_back(t);
+  }
+  LOG_INFO("serve: the reference set in ", reference.string(), ": student",
+           s.fast_decoder.empty() ? "" : " (fast decoder)", o.models.size() > 1 ? " and teacher" : "");
+#ifdef DOJO_WITH_SIM
+  o.data = a.data.empty() ? fs::path(default_eval_data()) : fs::path(a.data);
+#else
+  o.data = a.data;  // without DojoSim and --data, clients upload their start images
+#endif
+  set_runtime(a, o);
+  return o;
+}
+
+// The models: given ones, else the reference set's (above), else those `dojo demo` wrote into
+// --demo.
+serve::ModelHost::Options host_options(const ServeArgs& a) {
+  if (auto reference = reference_host_options(a)) return *reference;
+  serve::ModelHost::Options o;
+  const fs::path demo = a.demo.empty() ? "dojo_demo" : a.demo;
   const auto tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
   const auto student = pick(a.student, demo / "student" / "checkpoint");
   const auto teacher = a.no_teacher ? fs::path() : pick(a.teacher, demo / "wm_posttrain" / "checkpoint");
@@ -65,10 +117,7 @@ serve::ModelHost::Options host_options(const ServeArgs& a) {
     o.models.push_back(t);
   }
   o.data = pick(a.data, demo / "robot");
-  o.split = a.split;
-  o.device = parse_device(a.device);
-  o.precision = parse_precision(a.precision);
-  o.cuda_graphs = !a.no_cuda_graphs;
+  set_runtime(a, o);
   return o;
 }
 
@@ -152,8 +201,9 @@ void register_serve(CLI::App& app) {
   auto a = std::make_shared<ServeArgs>();
   auto* cmd =
       app.add_subcommand("serve", "Serve live teleoperation, the rollout API and the preference study");
-  cmd->add_option("--demo", a->demo, "Take the models and start frames from this `dojo demo` output")
-      ->capture_default_str();
+  cmd->add_option("--demo", a->demo,
+                  "Take the models and start frames from this `dojo demo` output (default: the reference "
+                  "set on held-out DojoSim episodes when the set has a student, else dojo_demo)");
   cmd->add_option("--student", a->student, "Student checkpoint (streams 4 frames per step)");
   cmd->add_option("--teacher", a->teacher, "Teacher checkpoint (12 frames per chunk, slower)");
   cmd->add_flag("--no-teacher", a->no_teacher, "Host the student only");
@@ -162,7 +212,9 @@ void register_serve(CLI::App& app) {
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--tokenizer", a->tokenizer, "Tokenizer checkpoint");
   cmd->add_option("--fast-decoder", a->fast_decoder, "Fast streaming decoder for the student");
-  cmd->add_option("--data", a->data, "Dataset whose episodes sessions start from");
+  cmd->add_option("--data", a->data,
+                  "Dataset whose episodes sessions start from (default: with the reference set, 8 held-out "
+                  "DojoSim episodes made on the spot; else the demo's robot data)");
   add_split_option(cmd, a->split);
   cmd->add_option("--host", a->server.host, "Address to bind (0.0.0.0 exposes the server)")
       ->capture_default_str();

@@ -141,7 +141,10 @@ int run_eval(EvalArgs a) {
   if (!a.student && (a.sink.frames >= 0 || !a.sink.position.empty()))
     throw UsageError("--sink-frames and --sink-position stream a student: add --student");
   const auto device = parse_device(a.device);
-  a.model.resolve(&a.probe);
+  if (a.student)
+    a.model.resolve_student(a.fast_decoder, &a.probe);
+  else
+    a.model.resolve(&a.probe);
   // Rollouts are DiT sampling: 31.0 generated frames/s with one OpenMP thread, 12.6 with two
   // (2 cores, OpenBLAS pthreads; docs/benchmarks.md).
   ScopedThreads matmul_bound(matmul_bound_command_threads("eval", device.is_cuda()));
@@ -190,8 +193,11 @@ int run_eval(EvalArgs a) {
       {"concat", a.model.concat},
       {"device", model.device().str()},
       {"precision", to_string(model.precision())},
-      {"metrics", "PSNR/SSIM per frame (piq conventions), mean per video, then mean over videos"},
+      {"metrics",
+       "PSNR/SSIM per frame (piq conventions) on the predicted frames (frame 0 excluded for every method; "
+       "*_all_frames: the released protocol, frame 0 included), mean per video, then mean over videos"},
       {"splits", nlohmann::json::array()}};
+  if (a.student) j["fast_decoder"] = a.fast_decoder;  // "": the Wan decoder
   for (const auto& s : a.splits) {
     results.push_back(eval::evaluate_world_model(model, a.model.data, s, o));
     j["splits"].push_back(results.back().to_json());
@@ -319,9 +325,11 @@ void register_wm(CLI::App& app) {
                  "(default: the reference set's, when present)");
   ev->add_flag(
       "--student", e->student,
-      "The checkpoint is a distilled student (dojo distill): roll out by streaming it, 4 frames a step");
+      "The checkpoint is a distilled student (dojo distill): roll out by streaming it, 4 frames a step "
+      "(without --checkpoint: the reference set's student, else its world model)");
   ev->add_option("--fast-decoder", e->fast_decoder,
-                 "With --student: decode with this fast streaming decoder");
+                 "With --student: decode with this fast streaming decoder (default with the reference set: "
+                 "its own, when it has one)");
   e->sink.add_options(ev);
   ev->add_flag("--action-sensitivity", e->action_sensitivity,
                "Also roll out with shuffled and with zero actions: does the model use the actions?");

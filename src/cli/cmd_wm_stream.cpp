@@ -24,8 +24,6 @@
 #include "infer/streaming.h"
 #include "io/video.h"
 
-namespace fs = std::filesystem;
-
 namespace dojo::cli {
 namespace {
 
@@ -102,12 +100,7 @@ int run_stream(StreamArgs a) {
   DOJO_CHECK(a.frames > 0 && a.frames % 4 == 0, "--frames must be a positive multiple of 4");
   if (!a.no_decode && a.out.empty() && !a.raw)
     throw UsageError("give --out FILE.mp4 or --raw (frames on stdout)");
-  const auto reference = default_reference_dir();
-  if (a.model.checkpoint.empty() && fs::exists(reference / "student" / "config.json")) {
-    a.model.checkpoint = (reference / "student").string();
-    if (a.model.tokenizer.empty()) a.model.tokenizer = (reference / "tokenizer").string();
-  }
-  a.model.resolve(nullptr);
+  a.model.resolve_student(a.fast_decoder, nullptr);
   ScopedThreads matmul_bound(matmul_bound_command_threads("wm stream", parse_device(a.device).is_cuda()));
   infer::StreamingEngine::Options o;
   o.use_cache = !a.no_cache;
@@ -204,6 +197,7 @@ int run_stream(StreamArgs a) {
       {"kv_cache", o.use_cache},
       {"decode", o.decode},
       {"decoder", o.fast_decoder ? "fast" : "wan"},
+      {"fast_decoder", a.fast_decoder},
       {"kv_cache_mib", engine.cache_bytes() / 1048576.0},
   });
   if (a.json && !a.raw) {
@@ -253,7 +247,8 @@ void register_wm_stream(CLI::App& wm) {
       ->check(CLI::IsMember({"training", "released_offline", "released_teleop"}));
   cmd->add_option(
       "--fast-decoder", a->fast_decoder,
-      "Decode with this fast streaming decoder (dojo tokenizer fast-decoder) instead of the Wan decoder");
+      "Decode with this fast streaming decoder (dojo tokenizer fast-decoder) instead of the Wan decoder "
+      "(default with the reference set: its own, when it has one)");
   cmd->add_flag("--raw", a->raw, "Write raw RGB frames (H x W x 3 bytes each) to stdout");
   cmd->add_flag("--no-cache", a->no_cache,
                 "Recompute the whole history every hop (the plain reference path)");

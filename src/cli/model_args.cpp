@@ -35,6 +35,16 @@ void resolve_models(std::string& checkpoint, std::string& tokenizer, std::string
     *probe = (reference / "probe").string();
 }
 
+std::filesystem::path reference_student() {
+  const auto dir = default_reference_dir() / "student";
+  return fs::exists(dir / "config.json") ? dir : fs::path();
+}
+
+std::filesystem::path reference_fast_decoder() {
+  const auto dir = default_reference_dir() / "fast_decoder";
+  return fs::exists(dir / "config.json") ? dir : fs::path();
+}
+
 std::string default_eval_data() {
 #ifdef DOJO_WITH_SIM
   const auto dir = fs::temp_directory_path() / "dojo-heldout-robot";
@@ -71,6 +81,22 @@ void ModelArgs::add_sampler_options(CLI::App* cmd) {
 void ModelArgs::resolve(std::string* probe) {
   resolve_models(checkpoint, tokenizer, probe);
   if (data.empty()) data = default_eval_data();
+}
+
+void ModelArgs::resolve_student(std::string& fast_decoder, std::string* probe) {
+  const bool reference = checkpoint.empty(), reference_tokenizer = tokenizer.empty();
+  if (reference) {
+    if (const auto student = reference_student(); !student.empty()) {
+      checkpoint = student.string();
+      if (tokenizer.empty()) tokenizer = (default_reference_dir() / "tokenizer").string();
+      LOG_INFO("using the reference student ", checkpoint);
+    }
+  }
+  resolve(probe);
+  if (reference && reference_tokenizer && fast_decoder.empty()) {
+    fast_decoder = reference_fast_decoder().string();
+    if (!fast_decoder.empty()) LOG_INFO("decoding with the reference fast decoder ", fast_decoder);
+  }
 }
 
 infer::SamplerOptions ModelArgs::sampler(const infer::WorldModel& model) const {

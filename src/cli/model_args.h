@@ -2,6 +2,7 @@
 // set by default), the data (held-out DojoSim episodes by default) and the teacher's sampler.
 #pragma once
 
+#include <filesystem>
 #include <string>
 
 namespace CLI {
@@ -22,6 +23,12 @@ namespace dojo::cli {
 // no checkpoint is given (and its probe, when one is wanted and none given).
 void resolve_models(std::string& checkpoint, std::string& tokenizer, std::string* probe);
 
+// The reference set's distilled real-time student (<ref>/student: a world-model checkpoint whose
+// config.json has a "student" entry) and the fast streaming decoder of its tokenizer
+// (<ref>/fast_decoder); empty paths where the set has none.
+std::filesystem::path reference_student();
+std::filesystem::path reference_fast_decoder();
+
 // Without --data: held-out DojoSim robot episodes (seed 1001, never a training seed), generated
 // once into the temporary directory and re-used.
 std::string default_eval_data();
@@ -37,6 +44,10 @@ struct ModelArgs {
   void add_sampler_options(CLI::App* cmd);
   // The defaults filled in.
   void resolve(std::string* probe);
+  // As resolve(), for a model that is streamed: without --checkpoint the reference student where
+  // the set has one (else its world model, as resolve()), and with the reference tokenizer its
+  // fast decoder, where the set has one and `fast_decoder` is empty.
+  void resolve_student(std::string& fast_decoder, std::string* probe);
   // The model's trained sampler with the options given on the command line.
   infer::SamplerOptions sampler(const infer::WorldModel& model) const;
 };

@@ -144,11 +144,14 @@ at::Tensor place_in_slot(const at::Tensor& actions, const ActionSlot& slot) {
   return out;
 }
 
-ActionChunker::ActionChunker(ActionSlot slot, ArrayStats stats, int chunk)
-    : slot_(slot), stats_(std::move(stats)), chunk_(chunk) {
-  DOJO_CHECK(chunk_ > 0 && stats_.dim() > 0 && stats_.dim() <= slot_.width(),
+ActionChunker::ActionChunker(ActionSlot slot, ArrayStats stats, int rows_per_push)
+    : slot_(slot), stats_(std::move(stats)), rows_per_push_(rows_per_push) {
+  DOJO_CHECK(stats_.dim() > 0 && stats_.dim() <= slot_.width(),
              "action chunker: the range's width " + std::to_string(stats_.dim()) + " does not fit slot '" +
                  slot_.name + "'");
+  DOJO_CHECK(rows_per_push_ > 0 && rows_per_push_ % kModelActionChunk == 0,
+             "action chunker: a push must be a whole number of " + std::to_string(kModelActionChunk) +
+                 "-row chunks, got " + std::to_string(rows_per_push_) + " rows");
 }
 
 void ActionChunker::set_baseline(const at::Tensor& raw_row) {
@@ -157,23 +160,28 @@ void ActionChunker::set_baseline(const at::Tensor& raw_row) {
   last_ = normalize_min_max(raw_row.unsqueeze(0), stats_).squeeze(0);  // [w]
 }
 
-at::Tensor ActionChunker::push(const at::Tensor& raw_chunk) {
-  DOJO_CHECK(raw_chunk.dim() == 2 && raw_chunk.size(0) == chunk_ && raw_chunk.size(1) == width(),
-             "an action chunk must be " + std::to_string(chunk_) + " rows of " + std::to_string(width()) +
-                 " values");
-  const auto normalized = normalize_min_max(raw_chunk, stats_);  // [chunk, w]
+at::Tensor ActionChunker::push(const at::Tensor& raw_rows) {
+  DOJO_CHECK(raw_rows.dim() == 2 && raw_rows.size(0) == rows_per_push_ && raw_rows.size(1) == width(),
+             "an action chunk must be " + std::to_string(rows_per_push_) + " rows of " +
+                 std::to_string(width()) + " values");
+  const auto normalized = normalize_min_max(raw_rows, stats_);  // [rows, w]
   if (!last_.defined()) last_ = normalized[0];
-  const auto relative = normalized - last_.unsqueeze(0);  // [chunk, w]
-  last_ = normalized[chunk_ - 1].clone();
-  return place_in_slot(relative, slot_);  // [chunk, 384]
+  // Baseline of model chunk k: the row before it (chunk k-1's last row, or the stream's last).
+  const int64_t chunks = rows_per_push_ / kModelActionChunk;
+  const auto earlier = normalized.slice(0, kModelActionChunk - 1, rows_per_push_ - 1, kModelActionChunk);
+  const auto baselines = torch::cat({last_.unsqueeze(0), earlier}).unsqueeze(1);  // [chunks, 1, w]
+  const auto relative = (normalized.reshape({chunks, kModelActionChunk, width()}) - baselines)
+                            .reshape({rows_per_push_, width()});  // [rows, w]
+  last_ = normalized[rows_per_push_ - 1].clone();
+  return place_in_slot(relative, slot_);  // [rows, 384]
 }
 
 std::optional<ActionChunker> single_slot_chunker(const nlohmann::json& ranges, const std::string& where,
-                                                 int chunk) {
+                                                 int rows_per_push) {
   if (!ranges.is_object() || ranges.size() != 1) return std::nullopt;
   const auto range = ranges.begin();  // not *items().begin(): that iterator is a temporary
   return ActionChunker(slot_by_name(range.key()),
-                       ArrayStats::from_json(range.value(), where + "." + range.key()), chunk);
+                       ArrayStats::from_json(range.value(), where + "." + range.key()), rows_per_push);
 }
 
 at::Tensor human_action_placeholder(int64_t rows) {

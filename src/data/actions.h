@@ -83,25 +83,33 @@ at::Tensor chunk_relative(const at::Tensor& actions, int chunk = 4);
 // Writes `actions` [T, w] into columns [slot.begin, slot.begin + w) of a zero [T, 384] tensor.
 at::Tensor place_in_slot(const at::Tensor& actions, const ActionSlot& slot);
 
+// The chunk of rows the world models were trained to read relative to one baseline (one latent
+// frame's actions): chunk_relative(actions, kModelActionChunk) in the clip pipeline.
+constexpr int kModelActionChunk = 4;
+
 // A live stream of raw commands in the embodiment's own units, turned into the rows a world
-// model was trained on, chunk by chunk: min-max normalised with the model's range, made relative
-// to the last row before the chunk (the previous chunk's last row, or the baseline), placed in
-// the slot. What a streaming or teleoperation client sends goes through this.
+// model was trained on: min-max normalised with the model's range, made relative in chunks of
+// kModelActionChunk rows to the last row before each chunk (the previous chunk's last row, or the
+// baseline), placed in the slot. A push takes `rows_per_push` rows (4 for the streaming student,
+// 12 for the teacher's chunked sampler): a push of 12 is three model chunks, each relative to its
+// own baseline, exactly as chunk_relative(·, 4) makes the training clips. What a streaming or
+// teleoperation client sends goes through this.
 class ActionChunker {
  public:
-  ActionChunker(ActionSlot slot, ArrayStats stats, int chunk = 4);
+  ActionChunker(ActionSlot slot, ArrayStats stats, int rows_per_push = kModelActionChunk);
   // The command in force at the start frame, [w]. Without one, the first chunk's first row
   // serves as its own baseline.
   void set_baseline(const at::Tensor& raw_row);
-  // raw [chunk, w] -> [chunk, 384]. Throws dojo::Error on a wrong shape.
-  at::Tensor push(const at::Tensor& raw_chunk);
+  // raw [rows_per_push, w] -> [rows_per_push, 384]. Throws dojo::Error on a wrong shape.
+  at::Tensor push(const at::Tensor& raw_rows);
   int width() const { return stats_.dim(); }
+  int rows_per_push() const { return rows_per_push_; }
   void reset() { last_ = at::Tensor(); }
 
  private:
   ActionSlot slot_;
   ArrayStats stats_;
-  int chunk_;
+  int rows_per_push_;
   at::Tensor last_;  // the last raw row seen, normalised [w]
 };
 
@@ -109,7 +117,7 @@ class ActionChunker {
 // config's "actions") hold exactly one slot; none when they hold several or none, since raw
 // commands then do not say which embodiment they drive. `where` names the ranges in errors.
 std::optional<ActionChunker> single_slot_chunker(const nlohmann::json& ranges, const std::string& where,
-                                                 int chunk = 4);
+                                                 int rows_per_push = kModelActionChunk);
 
 // Human video carries no actions: zeros everywhere, ones in the latent slot. The ones act as
 // the mask the world model multiplies with the LAM's latent actions.

@@ -2,6 +2,7 @@
 
 #include <torch/torch.h>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 
@@ -9,6 +10,10 @@
 #include "data/clip_loader.h"
 
 namespace dojo::eval {
+
+double detection_radius_px(int64_t height, int64_t width) {
+  return kDetectionRadiusPx64 * static_cast<double>(std::min(height, width)) / 64.0;
+}
 
 KeypointScores score_keypoints(const models::KeypointOutput& pred, int64_t offset, const torch::Tensor& truth,
                                int64_t height, int64_t width) {
@@ -25,19 +30,26 @@ KeypointScores score_keypoints(const models::KeypointOutput& pred, int64_t offse
   const auto dist = (du.pow(2) + dv.pow(2)).sqrt();  // [T, K] pixels
   const auto count = in_view.sum(1);                 // [T]
   const auto error = ((dist * in_view).sum(1) / count.clamp_min(1)).contiguous();
-  const auto detected = ((found * in_view).sum(1) / count.clamp_min(1)).contiguous();
+  const auto near = dist.le(detection_radius_px(height, width)).to(torch::kFloat64);  // [T, K]
+  const auto detected = ((found * near * in_view).sum(1) / count.clamp_min(1)).contiguous();
+  const auto present = ((found * in_view).sum(1) / count.clamp_min(1)).contiguous();
   KeypointScores s;
   const double nan = std::numeric_limits<double>::quiet_NaN();
   for (int64_t t = 0; t < T; ++t) {
     const bool any = count[t].item<double>() > 0;
     s.error.push_back(any ? error[t].item<double>() : nan);
     s.detected.push_back(any ? detected[t].item<double>() : nan);
+    s.present.push_back(any ? present[t].item<double>() : nan);
   }
   return s;
 }
 
 nlohmann::json ProbeAccuracy::to_json() const {
-  return {{"frames", frames}, {"error_px", error_px}, {"recall", recall}, {"false_positive", false_positive}};
+  return {{"frames", frames},
+          {"error_px", error_px},
+          {"recall", recall},
+          {"recall_within_radius", recall_within_radius},
+          {"false_positive", false_positive}};
 }
 
 ProbeAccuracy probe_accuracy(models::KeypointProbe& probe, const std::vector<std::filesystem::path>& datasets,
@@ -52,6 +64,9 @@ ProbeAccuracy probe_accuracy(models::KeypointProbe& probe, const std::vector<std
   a.frames = data.frames.size(0);
   a.error_px = dist.masked_select(present).mean().item<double>();
   a.recall = found.masked_select(present).to(torch::kFloat64).mean().item<double>();
+  const auto near = dist.le(detection_radius_px(config.size, config.size));
+  a.recall_within_radius =
+      found.logical_and(near).masked_select(present).to(torch::kFloat64).mean().item<double>();
   a.false_positive = found.masked_select(present.logical_not()).to(torch::kFloat64).mean().item<double>();
   return a;
 }

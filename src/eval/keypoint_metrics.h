@@ -15,10 +15,17 @@
 
 namespace dojo::eval {
 
+// A keypoint counts as detected when the probe says it is present and places it within this
+// many pixels of the truth at 64x64 (scaled with the frame's shorter side): a presence score alone
+// says nothing about where the probe put the point.
+constexpr double kDetectionRadiusPx64 = 3.0;
+double detection_radius_px(int64_t height, int64_t width);
+
 // Per-frame scores of one video; NaN at frames where no ground-truth keypoint is in view.
 struct KeypointScores {
   std::vector<double> error;     // mean distance (pixels at the frame size) of in-view keypoints
-  std::vector<double> detected;  // share of in-view keypoints the probe finds (presence logit > 0)
+  std::vector<double> detected;  // share of in-view keypoints found within detection_radius_px
+  std::vector<double> present;   // share of in-view keypoints with a presence logit > 0, anywhere
 };
 
 // pred: the probe's output on T frames of size height x width; `offset` selects the embodiment's
@@ -31,9 +38,10 @@ KeypointScores score_keypoints(const models::KeypointOutput& pred, int64_t offse
 // how far its keypoints are from the truth and how well it tells present from absent ones.
 struct ProbeAccuracy {
   int64_t frames = 0;
-  double error_px = 0;        // mean distance of present keypoints, pixels at the probe's size
-  double recall = 0;          // present keypoints found (presence logit > 0)
-  double false_positive = 0;  // absent keypoints (the other embodiment's, or out of view) "found"
+  double error_px = 0;              // mean distance of present keypoints, pixels at the probe's size
+  double recall = 0;                // present keypoints found (presence logit > 0), anywhere
+  double recall_within_radius = 0;  // found within detection_radius_px of the truth
+  double false_positive = 0;        // absent keypoints (the other embodiment's, or out of view) "found"
   nlohmann::json to_json() const;
 };
 ProbeAccuracy probe_accuracy(models::KeypointProbe& probe, const std::vector<std::filesystem::path>& datasets,

@@ -29,10 +29,14 @@ nlohmann::json number_or_null(double v) {
 }  // namespace
 
 nlohmann::json SourceScore::to_json() const {
-  nlohmann::json j = {{"psnr", psnr}, {"ssim", ssim}};
+  nlohmann::json j = {{"psnr", psnr},
+                      {"ssim", ssim},
+                      {"psnr_all_frames", psnr_all_frames},
+                      {"ssim_all_frames", ssim_all_frames}};
   if (!std::isnan(lpips)) j["lpips"] = lpips;
   if (!std::isnan(keypoint_error)) j["keypoint_error_px"] = keypoint_error;
   if (!std::isnan(detection)) j["detection"] = detection;
+  if (!std::isnan(presence)) j["presence"] = presence;
   return j;
 }
 
@@ -48,6 +52,10 @@ nlohmann::json WmEvalResult::to_json() const {
                         {"split", split},
                         {"videos", static_cast<int>(videos.size())},
                         {"frames_per_video", frames},
+                        {"scored_frames",
+                         "predicted frames (1 .. frames_per_video - 1); *_all_frames: "
+                         "frame 0 included, as the released protocol"},
+                        {"detection_radius_px", detection_radius},
                         {"seconds", seconds},
                         {"frames_per_second", frames_per_second},
                         {"tokenizer_psnr_by_latent", tokenizer_psnr_by_latent},
@@ -57,11 +65,14 @@ nlohmann::json WmEvalResult::to_json() const {
     out[name] = s.to_json();
     curves[name] = {{"psnr", s.psnr_per_frame}};
     if (!s.keypoint_error_per_frame.empty()) {
-      nlohmann::json e = nlohmann::json::array(), d = nlohmann::json::array();
-      for (double v : s.keypoint_error_per_frame) e.push_back(number_or_null(v));
-      for (double v : s.detection_per_frame) d.push_back(number_or_null(v));
-      curves[name]["keypoint_error_px"] = e;
-      curves[name]["detection"] = d;
+      auto numbers = [](const std::vector<double>& values) {
+        nlohmann::json a = nlohmann::json::array();
+        for (double v : values) a.push_back(number_or_null(v));
+        return a;
+      };
+      curves[name]["keypoint_error_px"] = numbers(s.keypoint_error_per_frame);
+      curves[name]["detection"] = numbers(s.detection_per_frame);
+      curves[name]["presence"] = numbers(s.presence_per_frame);
     }
   }
   out["per_frame"] = curves;
@@ -131,23 +142,36 @@ struct KeypointTruth {
   torch::Tensor truth;  // [T, 3, 3]
 };
 
-// One video from one source against the ground truth [T, H, W, 3].
+// The mean of values[1 ..]: the predicted frames.
+double mean_after_frame_0(const std::vector<double>& values) {
+  return nan_mean(std::vector<double>(values.begin() + std::min<size_t>(1, values.size()), values.end()));
+}
+
+// One video from one source against the ground truth [T, H, W, 3]: scores on frames 1 .. T-1
+// (frame 0 is given, not predicted), the released protocol's PSNR / SSIM over all T beside them.
 SourceScore score_video(const torch::Tensor& video, const torch::Tensor& gt, const Lpips* lpips,
                         const KeypointTruth& kp) {
+  DOJO_CHECK(video.size(0) >= 2, "eval: a video needs a predicted frame after frame 0");
   SourceScore s;
   const auto psnr = psnr_per_frame(video, gt).to(torch::kFloat64).contiguous();  // [T]
   s.psnr_per_frame.assign(psnr.data_ptr<double>(), psnr.data_ptr<double>() + psnr.numel());
-  const auto m = video_metrics(video, gt, lpips);
+  const int64_t T = video.size(0);
+  const auto m = video_metrics(video.narrow(0, 1, T - 1), gt.narrow(0, 1, T - 1), lpips);
   s.psnr = m.psnr;
   s.ssim = m.ssim;
   s.lpips = m.lpips;
+  const auto all = video_metrics(video, gt, nullptr);
+  s.psnr_all_frames = all.psnr;
+  s.ssim_all_frames = all.ssim;
   if (kp.probe != nullptr && kp.truth.defined()) {
     const auto scores = score_keypoints(models::detect_keypoints(*kp.probe, video), kp.offset, kp.truth,
                                         video.size(1), video.size(2));
     s.keypoint_error_per_frame = scores.error;
     s.detection_per_frame = scores.detected;
-    s.keypoint_error = nan_mean(scores.error);
-    s.detection = nan_mean(scores.detected);
+    s.presence_per_frame = scores.present;
+    s.keypoint_error = mean_after_frame_0(scores.error);
+    s.detection = mean_after_frame_0(scores.detected);
+    s.presence = mean_after_frame_0(scores.present);
   }
   return s;
 }
@@ -156,19 +180,23 @@ SourceScore score_video(const torch::Tensor& video, const torch::Tensor& gt, con
 SourceScore mean_over_videos(const std::vector<const SourceScore*>& videos) {
   SourceScore out;
   const double n = static_cast<double>(videos.size());
-  std::vector<double> errors, detections, lpips;
+  std::vector<double> errors, detections, presences, lpips;
   for (const auto* v : videos) {
     out.psnr += v->psnr / n;
     out.ssim += v->ssim / n;
+    out.psnr_all_frames += v->psnr_all_frames / n;
+    out.ssim_all_frames += v->ssim_all_frames / n;
     lpips.push_back(v->lpips);
     errors.push_back(v->keypoint_error);
     detections.push_back(v->detection);
+    presences.push_back(v->presence);
   }
   bool all_lpips = true;
   for (double v : lpips) all_lpips = all_lpips && !std::isnan(v);
   if (all_lpips) out.lpips = nan_mean(lpips);
   out.keypoint_error = nan_mean(errors);
   out.detection = nan_mean(detections);
+  out.presence = nan_mean(presences);
   auto per_frame = [&](std::vector<double> SourceScore::*field) {
     std::vector<double> mean;
     for (size_t t = 0; t < (videos.front()->*field).size(); ++t) {
@@ -181,6 +209,7 @@ SourceScore mean_over_videos(const std::vector<const SourceScore*>& videos) {
   out.psnr_per_frame = per_frame(&SourceScore::psnr_per_frame);
   out.keypoint_error_per_frame = per_frame(&SourceScore::keypoint_error_per_frame);
   out.detection_per_frame = per_frame(&SourceScore::detection_per_frame);
+  out.presence_per_frame = per_frame(&SourceScore::presence_per_frame);
   return out;
 }
 
@@ -244,6 +273,7 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
   r.dataset = dataset.string();
   r.split = split;
   r.frames = clip.num_frames;
+  r.detection_radius = detection_radius_px(info.height, info.width);
   const int runs = o.action_sensitivity ? 3 : 1;
   Progress progress("eval " + split, static_cast<int64_t>(n) * o.chunks * runs, "chunk");
   double rollout_seconds = 0;
@@ -334,19 +364,24 @@ std::string markdown_table(const std::vector<WmEvalResult>& results) {
   s += " copy-frame PSNR | copy-frame SSIM |";
   rule += "---|---|";
   if (with_lpips) s += " copy-frame LPIPS |", rule += "---|";
-  s += " tokenizer PSNR |";
-  rule += "---|";
-  s += "\n" + rule + "\n";
+  s += " tokenizer PSNR | released protocol (frame 0 included) PSNR: model / copy-frame |";
+  rule += "---|---|";
+  s = "Scores on the predicted frames (frame 0, which every method is given, excluded); the released "
+      "protocol's PSNR with frame 0 beside them.\n\n" +
+      s + "\n" + rule + "\n";
   for (const auto& r : results) {
     s += "| " + r.split + " | " + std::to_string(r.videos.size()) + " | " + fmt(r.model().psnr, 3) + " | " +
          fmt(r.model().ssim, 3) + " |";
     if (with_lpips) s += " " + fmt(r.model().lpips, 3) + " |";
     s += " " + fmt(r.copy_frame().psnr, 3) + " | " + fmt(r.copy_frame().ssim, 3) + " |";
     if (with_lpips) s += " " + fmt(r.copy_frame().lpips, 3) + " |";
-    s += " " + fmt(r.tokenizer().psnr, 3) + " |\n";
+    s += " " + fmt(r.tokenizer().psnr, 3) + " | " + fmt(r.model().psnr_all_frames, 3) + " / " +
+         fmt(r.copy_frame().psnr_all_frames, 3) + " |\n";
   }
   if (with_keypoints) {
-    s += "\nKeypoint error (pixels) and detection rate of the probe:\n\n"
+    s += "\nKeypoint error (pixels) and detection rate of the probe (keypoints found within " +
+         fmt(results[0].detection_radius, 1) +
+         " px of the truth):\n\n"
          "| split | world model | copy frame | tokenizer | ground truth | detection: world model | "
          "detection: ground truth |\n|---|---|---|---|---|---|---|\n";
     for (const auto& r : results) {

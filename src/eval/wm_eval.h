@@ -8,10 +8,16 @@
 //   shuffled_actions   the same rollout driven by another episode's actions, and
 //   zero_actions       by all-zero (hold still) actions: with the true-action rollout these three
 //                      measure whether the model uses the actions at all (action sensitivity)
+// Every score is taken on the predicted frames only (1 .. 12 K), for every source: frame 0 is
+// given, and copy-frame's frame 0 is the ground truth itself (PSNR capped at 80 dB), which would
+// lift its mean by ~1 dB over 49 frames. The released protocol includes frame 0; its PSNR and SSIM
+// are kept beside (psnr_all_frames, ssim_all_frames), and the per-frame curves keep frame 0.
 // With a keypoint probe, every source also gets the keypoint error (pixels between the probe's
 // keypoints on its frames and the simulator's ground truth of the same step) and the detection
-// rate (share of the ground truth's in-view keypoints the probe finds); the probe on the ground
-// truth frames themselves is the "ground_truth" source, the floor of both.
+// rate (share of the ground truth's in-view keypoints the probe places within
+// detection_radius_px of the truth: 3 px at 64x64; "presence" is the share it merely says are
+// there); the probe on the ground truth frames themselves is the "ground_truth" source, the floor
+// of both.
 #pragma once
 
 #include <cmath>
@@ -52,11 +58,14 @@ struct WmEvalOptions {
 // One source's scores on a split: per-video means (each the mean over its frames), then the
 // mean over videos; per-frame means over videos for plotting.
 struct SourceScore {
-  double psnr = 0, ssim = 0;
+  double psnr = 0, ssim = 0;                        // predicted frames (1 ..)
+  double psnr_all_frames = 0, ssim_all_frames = 0;  // the released protocol: frame 0 included
   double lpips = std::nan("");
   double keypoint_error = std::nan("");  // pixels at the frame size
-  double detection = std::nan("");       // share of in-view ground-truth keypoints found
-  std::vector<double> psnr_per_frame, keypoint_error_per_frame, detection_per_frame;
+  double detection = std::nan("");       // share of in-view ground-truth keypoints found in the radius
+  double presence = std::nan("");        // share said present, wherever the probe put them
+  // Every frame, frame 0 included.
+  std::vector<double> psnr_per_frame, keypoint_error_per_frame, detection_per_frame, presence_per_frame;
   nlohmann::json to_json() const;
 };
 
@@ -74,6 +83,7 @@ struct WmEvalResult {
   // frame, [i] frames 4(i-1)+1 .. 4i of each chunk. Later latents merge more motion.
   std::vector<double> tokenizer_psnr_by_latent;
   int frames = 0;                             // per video
+  double detection_radius = 0;                // pixels at the frame size
   double seconds = 0, frames_per_second = 0;  // generated frames / rollout time (true actions)
   const SourceScore& model() const { return sources.at("world_model"); }
   const SourceScore& copy_frame() const { return sources.at("copy_frame"); }

@@ -35,6 +35,7 @@
 #include "train/distill.h"
 #include "train/fast_decoder_train.h"
 #include "train/lam_train.h"
+#include "train/latent_cache.h"
 #include "train/probe_train.h"
 #include "train/tokenizer_train.h"
 #include "train/wm_train.h"
@@ -43,8 +44,6 @@ namespace fs = std::filesystem;
 
 namespace dojo::recipes {
 namespace {
-
-constexpr int64_t kMaxClips = 192;  // per dataset in the world model's latent cache
 
 // Seconds per step of each stage on the 2-core reference machine (docs/benchmarks.md), for the
 // estimate printed up front; scaled by this machine's matrix-multiply speed.
@@ -67,7 +66,7 @@ constexpr StageCost kCosts[] = {
     // The student's stages: fixed part (latent caches, teacher trajectories, Wan decoding) and step
     // rate measured idle on 2 cores (docs/benchmarks.md, "The real-time student"); the fast
     // decoder's batch-4 rate is half its measured batch-8 one; eval_student is estimated.
-    {"student_warmup", 48, 0.24},
+    {"student_warmup", 250, 0.6},        // 4 chained teacher chunks on 128 clips, 13-latent steps
     {"student_self_forcing", 40, 0.39},  // 0.34 at window 3; the paper's 12 costs ~15 % more
     {"fast_decoder", 39, 0.23},
     {"eval", 135, 0},
@@ -85,6 +84,9 @@ double matmul_gflops(int threads) {
   for (int i = 0; i < reps; ++i) (void)torch::mm(a, b);
   return reps * 2.0 * 1024 * 1024 * 1024 / seconds_since(t0) / 1e9;
 }
+
+// Episodes per evaluation split that get a side-by-side video.
+constexpr int kEvalVideos = 2;
 
 // Left in OUT/tokenizer by a tokenizer copied in rather than trained there.
 constexpr const char* kCopiedMarker = "copied_from.json";
@@ -137,18 +139,73 @@ void link_if_absent(const fs::path& from, const fs::path& to) {
   fs::rename(partial, to);
 }
 
-// Runs `body` unless OUT/stages/<name>.json records a finished run with the same settings. Returns
-// the record: {"settings", "result", "seconds", "finished"}; written atomically when the stage ends.
-nlohmann::json run_stage(const fs::path& out, const std::string& name, const nlohmann::json& settings,
+// Where a stage computes. The stages whose trainers ignore --device (data generation, the LAM,
+// the tokenizer, the probe, the student's distillation and the fast decoder) compute on the CPU in
+// float32 whatever was asked, and say so.
+struct RunsOn {
+  std::string device = "cpu", precision = "fp32";
+};
+
+// The top-level keys in which two stages' settings differ, for the log ("sampler_steps, probe").
+std::string changed_inputs(const nlohmann::json& before, const nlohmann::json& now) {
+  std::string keys;
+  auto add = [&](const std::string& key) { keys += (keys.empty() ? "" : ", ") + key; };
+  for (const auto& [key, value] : now.items())
+    if (!before.contains(key) || before[key] != value) add(key);
+  for (const auto& [key, value] : before.items())
+    if (!now.contains(key)) add(key);
+  return keys;
+}
+
+// One stage of the demo: its name, the inputs that decide its output (the records of the stages it
+// reads included), where it computes, and the paths under OUT it writes.
+struct Stage {
+  std::string name;
+  nlohmann::json settings;
+  RunsOn runs_on;
+  std::vector<std::string> outputs;
+};
+
+// Runs `body` unless OUT/stages/<name>.json records a finished run with the same settings on the
+// same device and precision. Returns the record: {"settings", "result", "seconds", "finished"},
+// written atomically when the stage ends; its settings carry the seed, device and precision too.
+// A run whose settings changed starts from scratch: the stage's outputs (checkpoints, latent
+// caches, datasets) are discarded first, so no trainer resumes a model made from other inputs.
+// Only a run interrupted under the same settings (OUT/stages/<name>.started.json) resumes.
+nlohmann::json run_stage(const fs::path& out, const Stage& stage, uint64_t seed,
                          const std::function<nlohmann::json()>& body) {
-  const fs::path record = out / "stages" / (name + ".json");
+  nlohmann::json settings = stage.settings;
+  settings["seed"] = seed;
+  settings["device"] = stage.runs_on.device;
+  settings["precision"] = stage.runs_on.precision;
+  const fs::path record = out / "stages" / (stage.name + ".json");
+  const fs::path started = out / "stages" / (stage.name + ".started.json");
   if (fs::exists(record)) {
     const auto done = read_json_file(record);
-    if (done.value("settings", nlohmann::json()) == settings) {
-      LOG_INFO("demo: ", name, " finished earlier (", record.string(), "); re-using it");
+    const auto recorded = done.value("settings", nlohmann::json::object());
+    // Never re-used from another device or precision than the stage computes on now, whatever
+    // else the record says.
+    const std::string ran_on = recorded.value("device", std::string("an unrecorded device")) + "/" +
+                               recorded.value("precision", std::string("an unrecorded precision"));
+    const std::string runs_on = stage.runs_on.device + "/" + stage.runs_on.precision;
+    if (ran_on != runs_on) {
+      LOG_INFO("demo: ", stage.name, " ran on ", ran_on, ", runs on ", runs_on, " now; running it again");
+    } else if (recorded == settings) {
+      LOG_INFO("demo: ", stage.name, " finished earlier (", record.string(), "); re-using it");
       return done;
+    } else {
+      LOG_INFO("demo: ", stage.name, " ran with other inputs (", changed_inputs(recorded, settings),
+               "); running it again");
     }
-    LOG_INFO("demo: ", name, " ran with other settings; running it again (its checkpoints resume)");
+  }
+  const bool resumes = fs::exists(started) && read_json_file(started) == settings;
+  if (resumes) {
+    LOG_INFO("demo: ", stage.name, " was interrupted; resuming it");
+  } else {
+    fs::remove(record);  // first: a record must never outlive the outputs it describes
+    for (const auto& output : stage.outputs) fs::remove_all(out / output);
+    fs::create_directories(started.parent_path());
+    write_file_atomic(started, settings.dump(2) + "\n");
   }
   const auto t0 = std::chrono::steady_clock::now();
   const auto result = body();
@@ -156,15 +213,16 @@ nlohmann::json run_stage(const fs::path& out, const std::string& name, const nlo
                                {"result", result},
                                {"seconds", seconds_since(t0)},
                                {"finished", static_cast<int64_t>(std::time(nullptr))}};
-  fs::create_directories(record.parent_path());
   write_file_atomic(record, done.dump(2) + "\n");
+  fs::remove(started);
   return done;
 }
 
-// The student streaming one held-out episode's first frame and recorded actions (looped) for 600
-// frames at batch 1 with the fast decoder: frames/s, step latency and memory.
+// The student streaming one held-out episode's first frame and recorded actions (looped) for
+// `frames` frames (600 by default; the file and key names say 600 whatever the count) at batch 1
+// with the fast decoder: frames/s, step latency and memory.
 nlohmann::json time_streaming(const fs::path& out, const fs::path& tokenizer, torch::Device device,
-                              Precision precision, int threads) {
+                              Precision precision, int threads, int frames) {
   ScopedThreads matmul_bound(threads);
   infer::StreamingEngine::Options so;
   so.device = device;
@@ -177,8 +235,8 @@ nlohmann::json time_streaming(const fs::path& out, const fs::path& tokenizer, to
   io::VideoWriter video((out / "student_600_frames.mp4").string(), vo);  // the long rollout, for the report
   video.write_many(engine.reset(clip.video.narrow(0, 0, 1), 0)[0]);
   infer::StreamStats stats;
-  for (int64_t frames = 4; frames <= 600; frames += 4) {
-    const int64_t s = (frames / 4 - 1) % (clip.actions.size(0) / 4);
+  for (int64_t done = 4; done <= frames; done += 4) {
+    const int64_t s = (done / 4 - 1) % (clip.actions.size(0) / 4);
     const auto frames_out = engine.step(clip.actions.narrow(0, 4 * s, 4).unsqueeze(0));  // [1, 4, H, W, 3]
     stats.add(engine.last_timings(), frames_out.size(1));
     video.write_many(frames_out[0]);
@@ -206,6 +264,12 @@ DemoSummary run_demo(const DemoOptions& o) {
       DOJO_CHECK(fs::exists(o.reference / part / "config.json"),
                  (o.reference / part).string() + ": missing from the reference model set");
   }
+  DOJO_CHECK(o.max_clips > 0, "demo: max_clips must be positive");
+  DOJO_CHECK(o.eval_chunks > 0 && o.frames >= 1 + 12 * o.eval_chunks,
+             "demo: " + std::to_string(o.eval_chunks) + "-chunk rollouts need episodes of at least " +
+                 std::to_string(1 + 12 * o.eval_chunks) + " frames");
+  DOJO_CHECK(o.stream_frames >= 4 && o.stream_frames % 4 == 0,
+             "demo: the student streams 4 frames a step: stream_frames must be a positive multiple of 4");
   if (!o.tokenizer.empty())
     DOJO_CHECK(
         fs::exists(o.tokenizer / "config.json"),
@@ -263,15 +327,25 @@ DemoSummary run_demo(const DemoOptions& o) {
     return o.minutes > 0 ? nlohmann::json{{"minutes", o.minutes}} : nlohmann::json{{"steps", steps.at(name)}};
   };
   nlohmann::json stages;
+  // Where the stages compute: the world model's training and every rollout on the device and
+  // precision asked; the rest on the CPU in float32 (their trainers take no device).
+  const RunsOn on_cpu;
+  const RunsOn as_asked{device.str(), to_string(precision)};
 
   // 1. The world.
   LOG_INFO("[1/10] DojoSim: human and robot episodes into ", out.string());
   const nlohmann::json data_settings = {{"episodes", o.episodes},
                                         {"eval_episodes", o.eval_episodes},
                                         {"frames", o.frames},
-                                        {"seed", o.seed},
                                         {"keypoints", true}};
-  stages["data"] = run_stage(out, "data", data_settings, [&] {
+  // DojoSim refuses to add episodes of other options to a dataset: other settings start afresh.
+  const std::vector<std::string> data_outputs = {"human",
+                                                 "robot",
+                                                 "robot_ood_objects",
+                                                 "robot_counterfactual",
+                                                 "preview_human.mp4",
+                                                 "preview_robot.mp4"};
+  stages["data"] = run_stage(out, {"data", data_settings, on_cpu, data_outputs}, o.seed, [&] {
     nlohmann::json result;
     auto generate = [&](const std::string& name, const std::string& embodiment, const std::string& split,
                         int episodes, uint64_t seed, double val_fraction = 0) {
@@ -300,7 +374,9 @@ DemoSummary run_demo(const DemoOptions& o) {
 
   // 2. Latent action model on human and robot video (no actions used).
   LOG_INFO("[2/10] LAM: latent actions from video alone");
-  stages["lam"] = run_stage(out, "lam", {{"budget", budget_settings("lam")}, {"data", stages["data"]}}, [&] {
+  const Stage lam_stage{
+      "lam", {{"budget", budget_settings("lam")}, {"data", stages["data"]}}, on_cpu, {"lam"}};
+  stages["lam"] = run_stage(out, lam_stage, o.seed, [&] {
     train::LamTrainJob lam;
     lam.datasets = {{out / "human", 1.0}, {out / "robot", 1.0}};
     lam.out = out / "lam";
@@ -324,71 +400,78 @@ DemoSummary run_demo(const DemoOptions& o) {
     LOG_INFO("[3/10] tokenizer: ", o.tokenizer.string(),
              " as is (trained beforehand, as the paper's VAE is)");
     const auto from = fs::absolute(o.tokenizer).lexically_normal();
-    const auto shipped = Checkpoint::open(resolve_checkpoint_dir(from));
-    const nlohmann::json settings = {{"copied_from", from.string()}, {"bytes", shipped.model().file_size()}};
-    stages["tokenizer"] = run_stage(out, "tokenizer", settings, [&] {
+    // Its weights' path, size and time: another tokenizer of the same architecture has the same size.
+    const nlohmann::json settings = {{"copied_from", from.string()},
+                                     {"checkpoint", train::checkpoint_fingerprint(from)}};
+    // Copied, not computed; a tokenizer trained here earlier is kept (copy_tokenizer), not discarded.
+    const Stage tokenizer_stage{"tokenizer", settings, on_cpu, {}};
+    stages["tokenizer"] = run_stage(out, tokenizer_stage, o.seed, [&] {
       discard_models_on_old_latents(out);
       copy_tokenizer(from, out / "tokenizer");
       return nlohmann::json{{"copied_from", from.string()}};
     });
   } else {
     LOG_INFO("[3/10] tokenizer: Wan2.1-architecture VAE");
-    stages["tokenizer"] = run_stage(
-        out, "tokenizer", {{"budget", budget_settings("tokenizer")}, {"data", stages["data"]}}, [&] {
-          discard_models_on_old_latents(out);
-          // A copied tokenizer has no trainer state to resume: training starts afresh.
-          if (fs::exists(out / "tokenizer" / kCopiedMarker)) fs::remove_all(out / "tokenizer");
-          models::WanVaeConfig cfg;
-          cfg.dim = 16;
-          // Seeded before the weights are drawn: the LAM stage draws from the global generator as
-          // it trains, so without this the tokenizer's initialisation would depend on whether the
-          // LAM stage ran in this process or was re-used, and for how many steps.
-          torch::manual_seed(o.seed);
-          models::WanVae vae(cfg);
-          models::init_frame_by_frame(vae);  // image phase first; a resumed run loads over this
-          data::ClipConfig clip;
-          // 9 frames = 3 latent frames: the first chunk and one steady-state chunk that decodes
-          // from the causal caches of the one before (trained on 5 frames only, latent frames >= 2
-          // of the world model's 13-frame clips decoded to flat colour).
-          clip.num_frames = 9;
-          clip.strides = {1, 2};
-          clip.height = clip.width = 64;
-          const auto batches =
-              train::tokenizer_batches({{out / "human", "all"}, {out / "robot", "train"}}, clip,
-                                       /*clip_batch=*/4, /*image_batch=*/8, /*workers=*/1, o.seed);
-          train::TokenizerTrainOptions t = train::recommended_tokenizer_options();
-          t.warmup_steps = 20;
-          t.steps = o.minutes > 0 ? 1000000 : o.tokenizer_steps;
-          t.time_budget_s = stage_minutes("tokenizer") * 60;
-          t.save_every = 100;
-          t.checkpoint_dir = tokenizer;
-          t.loss_curve = out / "tokenizer" / "loss.csv";
-          t.stats_batches = 8;
-          t.next_image_batch = batches.images;
-          fs::create_directories(out / "tokenizer");
-          torch::manual_seed(o.seed);
-          const auto r = train::train_tokenizer(vae, batches.clips, t);
-          return nlohmann::json{
-              {"steps", r.steps_done}, {"recon_first", r.first_loss}, {"recon_last", r.last_loss}};
-        });
+    const Stage tokenizer_stage{"tokenizer",
+                                {{"budget", budget_settings("tokenizer")}, {"data", stages["data"]}},
+                                on_cpu,
+                                {"tokenizer"}};
+    stages["tokenizer"] = run_stage(out, tokenizer_stage, o.seed, [&] {
+      discard_models_on_old_latents(out);
+      // A copied tokenizer has no trainer state to resume: training starts afresh.
+      if (fs::exists(out / "tokenizer" / kCopiedMarker)) fs::remove_all(out / "tokenizer");
+      models::WanVaeConfig cfg;
+      cfg.dim = 16;
+      // Seeded before the weights are drawn: the LAM stage draws from the global generator as
+      // it trains, so without this the tokenizer's initialisation would depend on whether the
+      // LAM stage ran in this process or was re-used, and for how many steps.
+      torch::manual_seed(o.seed);
+      models::WanVae vae(cfg);
+      models::init_frame_by_frame(vae);  // image phase first; a resumed run loads over this
+      data::ClipConfig clip;
+      // 9 frames = 3 latent frames: the first chunk and one steady-state chunk that decodes
+      // from the causal caches of the one before (trained on 5 frames only, latent frames >= 2
+      // of the world model's 13-frame clips decoded to flat colour).
+      clip.num_frames = 9;
+      clip.strides = {1, 2};
+      clip.height = clip.width = 64;
+      const auto batches =
+          train::tokenizer_batches({{out / "human", "all"}, {out / "robot", "train"}}, clip,
+                                   /*clip_batch=*/4, /*image_batch=*/8, /*workers=*/1, o.seed);
+      train::TokenizerTrainOptions t = train::recommended_tokenizer_options();
+      t.warmup_steps = 20;
+      t.steps = o.minutes > 0 ? 1000000 : o.tokenizer_steps;
+      t.time_budget_s = stage_minutes("tokenizer") * 60;
+      t.save_every = 100;
+      t.checkpoint_dir = tokenizer;
+      t.loss_curve = out / "tokenizer" / "loss.csv";
+      t.stats_batches = 8;
+      t.next_image_batch = batches.images;
+      fs::create_directories(out / "tokenizer");
+      torch::manual_seed(o.seed);
+      const auto r = train::train_tokenizer(vae, batches.clips, t);
+      return nlohmann::json{
+          {"steps", r.steps_done}, {"recon_first", r.first_loss}, {"recon_last", r.last_loss}};
+    });
   }
 
   // 4. Keypoint probe: where the arm and the hand are, to score rollouts by.
   LOG_INFO("[4/10] keypoint probe: finds the arm and the hand in a frame");
   const fs::path probe_dir = out / "probe" / "checkpoint";
-  stages["probe"] =
-      run_stage(out, "probe", {{"budget", budget_settings("probe")}, {"data", stages["data"]}}, [&] {
-        train::ProbeTrainJob job;
-        job.datasets = {out / "robot", out / "human"};
-        job.out = out / "probe";
-        job.steps = o.minutes > 0 ? 1000000 : o.probe_steps;
-        job.time_budget_s = stage_minutes("probe") * 60;
-        job.seed = o.seed;
-        const auto r = train::run_probe_training(job);
-        auto probe = models::load_keypoint_probe(probe_dir);
-        const auto accuracy = eval::probe_accuracy(probe, {out / "robot"}, "val");
-        return nlohmann::json{{"steps", r.steps}, {"loss", r.loss}, {"heldout_robot", accuracy.to_json()}};
-      });
+  const Stage probe_stage{
+      "probe", {{"budget", budget_settings("probe")}, {"data", stages["data"]}}, on_cpu, {"probe"}};
+  stages["probe"] = run_stage(out, probe_stage, o.seed, [&] {
+    train::ProbeTrainJob job;
+    job.datasets = {out / "robot", out / "human"};
+    job.out = out / "probe";
+    job.steps = o.minutes > 0 ? 1000000 : o.probe_steps;
+    job.time_budget_s = stage_minutes("probe") * 60;
+    job.seed = o.seed;
+    const auto r = train::run_probe_training(job);
+    auto probe = models::load_keypoint_probe(probe_dir);
+    const auto accuracy = eval::probe_accuracy(probe, {out / "robot"}, "val");
+    return nlohmann::json{{"steps", r.steps}, {"loss", r.loss}, {"heldout_robot", accuracy.to_json()}};
+  });
 
   // 5-6. World model: pretrain on human video with latent actions, post-train on robot actions.
   auto wm_job = [&](train::WmStage stage, const fs::path& dataset, const std::string& split,
@@ -402,9 +485,9 @@ DemoSummary run_demo(const DemoOptions& o) {
     spec.lam = out / "lam" / "checkpoint";
     spec.mode = mode;
     // Encoding is the slow part of caching (one 13-frame clip at a time, as the release does):
-    // windows every 4 frames at strides 1 and 2, at most kMaxClips of them, evenly spread.
+    // windows every 4 frames at strides 1 and 2, at most max_clips of them, evenly spread.
     spec.hop = 4;
-    spec.max_clips = kMaxClips;
+    spec.max_clips = o.max_clips;
     job.data = {spec};
     job.out = out / name;
     if (stage == train::WmStage::kPosttrain) {
@@ -431,96 +514,123 @@ DemoSummary run_demo(const DemoOptions& o) {
                           {"gflops", r.gflops}};
   };
   LOG_INFO("[5/10] world model pretraining on human video with latent actions");
-  stages["wm_pretrain"] = run_stage(out, "wm_pretrain",
-                                    {{"budget", budget_settings("wm_pretrain")},
-                                     {"lam", stages["lam"]},
-                                     {"tokenizer", stages["tokenizer"]}},
-                                    [&] {
-                                      return wm_job(train::WmStage::kPretrain, out / "human", "all",
-                                                    train::ActionMode::kLatent, "wm_pretrain");
-                                    });
+  const Stage wm_pretrain_stage{"wm_pretrain",
+                                {{"budget", budget_settings("wm_pretrain")},
+                                 {"lam", stages["lam"]},
+                                 {"tokenizer", stages["tokenizer"]},
+                                 {"max_clips", o.max_clips}},
+                                as_asked,
+                                {"wm_pretrain"}};
+  stages["wm_pretrain"] = run_stage(out, wm_pretrain_stage, o.seed, [&] {
+    return wm_job(train::WmStage::kPretrain, out / "human", "all", train::ActionMode::kLatent, "wm_pretrain");
+  });
   LOG_INFO("[6/10] world model post-training on robot actions");
-  stages["wm_posttrain"] = run_stage(out, "wm_posttrain",
-                                     {{"budget", budget_settings("wm_posttrain")},
-                                      {"init", stages["wm_pretrain"]},
-                                      {"condition_noise", o.posttrain_condition_noise}},
-                                     [&] {
-                                       return wm_job(train::WmStage::kPosttrain, out / "robot", "train",
-                                                     train::ActionMode::kDataset, "wm_posttrain");
-                                     });
+  const Stage wm_posttrain_stage{"wm_posttrain",
+                                 {{"budget", budget_settings("wm_posttrain")},
+                                  {"init", stages["wm_pretrain"]},
+                                  {"condition_noise", o.posttrain_condition_noise},
+                                  {"max_clips", o.max_clips}},
+                                 as_asked,
+                                 {"wm_posttrain"}};
+  stages["wm_posttrain"] = run_stage(out, wm_posttrain_stage, o.seed, [&] {
+    return wm_job(train::WmStage::kPosttrain, out / "robot", "train", train::ActionMode::kDataset,
+                  "wm_posttrain");
+  });
 
   // 7. The real-time student, distilled from the post-trained model, and its fast decoder. Step
   // budgets even under --minutes (they are short).
   LOG_INFO("[7/10] real-time student: warm-up and Self-Forcing from the post-trained world model");
-  stages["student"] = run_stage(
-      out, "student",
-      {{"warmup_steps", o.warmup_steps},
-       {"self_forcing_steps", o.self_forcing_steps},
-       {"sink_frames", 1},
-       {"teacher", stages["wm_posttrain"]}},
-      [&] {
-        train::DistillJob job;
-        train::LatentCacheSpec spec;
-        spec.dataset = out / "robot";
-        spec.tokenizer = tokenizer;
-        spec.hop = 4;
-        spec.max_clips = kMaxClips;
-        job.data = {spec};
-        job.teacher = out / "wm_posttrain" / "checkpoint";
-        // The paper's window (released: 3): within 0.1 dB of the teacher on 49-frame rollouts where
-        // 3 left 2.2 dB (docs/benchmarks.md, "The paper's window").
-        job.student.window_frames = 12;
-        // The real first frame kept in view past the window: on 145-frame rollouts it lifted the
-        // window-12 student from 2.1 dB under the teacher to above it (docs/benchmarks.md,
-        // "An attention sink").
-        job.student.sink_frames = 1;
-        job.out = out / "student_warmup";
-        // Its 13-frame latent cache is post-training's (the same clips, tokenizer and action ranges):
-        // linked rather than encoded again. The cache checks its spec, so a mismatch only re-encodes.
-        link_if_absent(out / "wm_posttrain" / "latents-0.safetensors", job.out / "latents-0.safetensors");
-        job.steps = o.warmup_steps;
-        job.save_every = 100;
-        job.seed = o.seed;
-        job.matmul_threads = matmul_threads(false);  // once the latent caches are encoded
-        const auto warmup = train::run_distillation(job);
-        job.stage = train::DistillStage::kSelfForcing;
-        job.init = out / "student_warmup" / "checkpoint";
-        job.out = out / "student";
-        job.steps = o.self_forcing_steps;
-        job.batch_size = 2;
-        job.save_every = 50;
-        const auto sf = train::run_distillation(job);
-        return nlohmann::json{
-            {"warmup_steps", warmup.steps},
-            {"warmup_fixed_batch_loss", {warmup.fixed_batch_loss_start, warmup.fixed_batch_loss_end}},
-            {"self_forcing_iterations", sf.steps},
-            {"rollout_latent_mse", {sf.fixed_batch_loss_start, sf.fixed_batch_loss_end}}};
-      });
+  // The paper's window (released: 3): within 0.1 dB of the teacher on 49-frame rollouts where 3
+  // left 2.2 dB (docs/benchmarks.md, "The paper's window").
+  const int window_frames = 12;
+  // The real first frame kept in view past the window: on 145-frame rollouts it lifted the
+  // window-12 student from 2.1 dB under the teacher to above it (docs/benchmarks.md, "An attention
+  // sink").
+  const int sink_frames = 1;
+  const Stage student_stage{"student",
+                            {{"warmup_steps", o.warmup_steps},
+                             {"warmup_chunks", o.warmup_chunks},
+                             {"self_forcing_steps", o.self_forcing_steps},
+                             {"window_frames", window_frames},
+                             {"sink_frames", sink_frames},
+                             {"max_clips", o.max_clips},
+                             {"teacher", stages["wm_posttrain"]}},
+                            on_cpu,
+                            {"student_warmup", "student"}};
+  stages["student"] = run_stage(out, student_stage, o.seed, [&] {
+    train::DistillJob job;
+    train::LatentCacheSpec spec;
+    spec.dataset = out / "robot";
+    spec.tokenizer = tokenizer;
+    spec.hop = 4;
+    spec.max_clips = o.max_clips;
+    job.data = {spec};
+    job.teacher = out / "wm_posttrain" / "checkpoint";
+    job.student.window_frames = window_frames;
+    job.student.sink_frames = sink_frames;
+    job.out = out / "student_warmup";
+    // With one chunk its 13-frame latent cache is post-training's (the same clips, tokenizer and
+    // action ranges): linked rather than encoded again. The cache checks its spec, so a mismatch
+    // only re-encodes.
+    if (o.warmup_chunks == 1)
+      link_if_absent(out / "wm_posttrain" / "latents-0.safetensors", job.out / "latents-0.safetensors");
+    job.trajectories.chunks = o.warmup_chunks;
+    // Trajectories of 13 latents cost ~3x the 4-latent ones a step: half the batch.
+    if (o.warmup_chunks > 1) job.batch_size = 4;
+    job.steps = o.warmup_steps;
+    job.save_every = 100;
+    job.seed = o.seed;
+    job.matmul_threads = matmul_threads(false);  // once the latent caches are encoded
+    const auto warmup = train::run_distillation(job);
+    job.stage = train::DistillStage::kSelfForcing;
+    job.init = out / "student_warmup" / "checkpoint";
+    job.out = out / "student";
+    // The 49-frame clips of a chained warm-up are Self-Forcing's own: linked, not encoded again.
+    link_if_absent(out / "student_warmup" / "latents-long-0.safetensors",
+                   job.out / "latents-long-0.safetensors");
+    job.steps = o.self_forcing_steps;
+    job.batch_size = 2;
+    job.save_every = 50;
+    const auto sf = train::run_distillation(job);
+    return nlohmann::json{
+        {"warmup_steps", warmup.steps},
+        {"warmup_fixed_batch_loss", {warmup.fixed_batch_loss_start, warmup.fixed_batch_loss_end}},
+        {"self_forcing_iterations", sf.steps},
+        {"rollout_latent_mse", {sf.fixed_batch_loss_start, sf.fixed_batch_loss_end}}};
+  });
   LOG_INFO("[8/10] fast streaming decoder distilled from the tokenizer");
-  stages["fast_decoder"] = run_stage(
-      out, "fast_decoder", {{"steps", o.fast_decoder_steps}, {"tokenizer", stages["tokenizer"]}}, [&] {
-        train::FastDecoderJob job;
-        train::LatentCacheSpec spec;
-        spec.dataset = out / "robot";
-        spec.tokenizer = tokenizer;
-        spec.hop = 4;
-        spec.strides = {1};
-        spec.max_clips = kMaxClips;
-        job.data = {spec};
-        job.out = out / "fast_decoder";
-        job.batch_size = 4;  // half the default: the demo's time budget
-        job.steps = o.fast_decoder_steps;
-        job.seed = o.seed;
-        // Convolutions (the Wan encoder and decoder, the fast decoder): every thread, unlike the
-        // matmul-bound stages. 1.54x the steps/s of one thread (docs/benchmarks.md).
-        const auto r = train::run_fast_decoder_training(job);
-        return nlohmann::json{{"steps", r.steps}, {"heldout_psnr_vs_wan", r.heldout_psnr}};
-      });
+  // Its clips come from the robot data, whichever way the tokenizer came (a copied one records none).
+  const Stage fast_decoder_stage{"fast_decoder",
+                                 {{"steps", o.fast_decoder_steps},
+                                  {"tokenizer", stages["tokenizer"]},
+                                  {"data", stages["data"]},
+                                  {"max_clips", o.max_clips}},
+                                 on_cpu,
+                                 {"fast_decoder"}};
+  stages["fast_decoder"] = run_stage(out, fast_decoder_stage, o.seed, [&] {
+    train::FastDecoderJob job;
+    train::LatentCacheSpec spec;
+    spec.dataset = out / "robot";
+    spec.tokenizer = tokenizer;
+    spec.hop = 4;
+    spec.strides = {1};
+    spec.max_clips = o.max_clips;
+    job.data = {spec};
+    job.out = out / "fast_decoder";
+    job.batch_size = 4;  // half the default: the demo's time budget
+    job.steps = o.fast_decoder_steps;
+    job.seed = o.seed;
+    // Convolutions (the Wan encoder and decoder, the fast decoder): every thread, unlike the
+    // matmul-bound stages. 1.54x the steps/s of one thread (docs/benchmarks.md).
+    const auto r = train::run_fast_decoder_training(job);
+    return nlohmann::json{{"steps", r.steps}, {"heldout_psnr_vs_wan", r.heldout_psnr}};
+  });
 
   // 9. Rollouts and evaluation, of the demo's models and of the reference set.
-  LOG_INFO(
-      "[9/10] rollouts: 49 frames (4 chunks, 3 resets) on held-out, out-of-distribution and "
-      "counterfactual robot episodes, with true, shuffled and zero actions");
+  LOG_INFO("[9/10] rollouts: ", 1 + 12 * o.eval_chunks, " frames (", o.eval_chunks, " chunks, ",
+           o.eval_chunks - 1,
+           " resets) on held-out, out-of-distribution and counterfactual robot episodes, with true, shuffled "
+           "and zero actions");
   auto evaluate = [&](const fs::path& wm, const fs::path& tok, const fs::path& probe_ckpt,
                       const fs::path& videos, bool student = false) {
     auto model = infer::WorldModel::load(wm, tok, device, precision);
@@ -535,11 +645,12 @@ DemoSummary run_demo(const DemoOptions& o) {
     auto probe = models::load_keypoint_probe(probe_ckpt);
     eval::WmEvalOptions eo;
     eo.max_episodes = o.eval_episodes;
+    eo.chunks = o.eval_chunks;
     eo.sampler = model.trained_sampler();
     eo.sampler.steps = o.sampler_steps;
     eo.seed = o.seed;
     eo.video_dir = videos;
-    eo.videos = 2;
+    eo.videos = kEvalVideos;
     eo.probe = &probe;
     eo.action_sensitivity = o.eval_episodes >= 2;  // shuffling needs another episode's actions
     if (engine) eo.student = &*engine;
@@ -556,24 +667,55 @@ DemoSummary run_demo(const DemoOptions& o) {
     }
     return results;
   };
-  stages["eval"] = run_stage(
-      out, "eval",
-      {{"wm", stages["wm_posttrain"]}, {"probe", stages["probe"]}, {"sampler_steps", o.sampler_steps}},
-      [&] { return evaluate(out / "wm_posttrain" / "checkpoint", tokenizer, probe_dir, out / "rollouts"); });
-  stages["eval_student"] = run_stage(
-      out, "eval_student", {{"student", stages["student"]}, {"fast_decoder", stages["fast_decoder"]}}, [&] {
-        auto result = nlohmann::json{{"splits", evaluate(out / "student" / "checkpoint", tokenizer, probe_dir,
-                                                         out / "rollouts_student", /*student=*/true)}};
-        result["streaming"] =
-            time_streaming(out, tokenizer, device, precision, matmul_threads(device.is_cuda()));
-        return result;
-      });
+  // What an evaluation's numbers depend on beside its models, probe and data (the held-out splits,
+  // in the data record the models' records embed), the seed, the device and the precision. The
+  // student streams its own few steps: the teacher's sampler steps are not among its inputs.
+  auto eval_settings = [&](bool sampler) {
+    nlohmann::json e = {{"episodes", o.eval_episodes},
+                        {"chunks", o.eval_chunks},
+                        {"videos", kEvalVideos},
+                        {"action_sensitivity", o.eval_episodes >= 2}};
+    if (sampler) e["sampler_steps"] = o.sampler_steps;
+    return e;
+  };
+  const Stage eval_stage{
+      "eval",
+      {{"wm", stages["wm_posttrain"]}, {"probe", stages["probe"]}, {"eval", eval_settings(/*sampler=*/true)}},
+      as_asked,
+      {"rollouts"}};
+  stages["eval"] = run_stage(out, eval_stage, o.seed, [&] {
+    return evaluate(out / "wm_posttrain" / "checkpoint", tokenizer, probe_dir, out / "rollouts");
+  });
+  const Stage eval_student_stage{"eval_student",
+                                 {{"student", stages["student"]},
+                                  {"fast_decoder", stages["fast_decoder"]},
+                                  {"probe", stages["probe"]},
+                                  {"eval", eval_settings(/*sampler=*/false)},
+                                  {"stream_frames", o.stream_frames}},
+                                 as_asked,
+                                 {"rollouts_student", "student_600_frames.mp4"}};
+  stages["eval_student"] = run_stage(out, eval_student_stage, o.seed, [&] {
+    auto result = nlohmann::json{{"splits", evaluate(out / "student" / "checkpoint", tokenizer, probe_dir,
+                                                     out / "rollouts_student", /*student=*/true)}};
+    result["streaming"] =
+        time_streaming(out, tokenizer, device, precision, matmul_threads(device.is_cuda()), o.stream_frames);
+    return result;
+  });
   if (!o.reference.empty()) {
     const auto ref = fs::absolute(o.reference).lexically_normal();
-    stages["eval_reference"] =
-        run_stage(out, "eval_reference", {{"reference", ref.string()}, {"data", stages["data"]}}, [&] {
-          return evaluate(ref / "wm_posttrain", ref / "tokenizer", ref / "probe", out / "rollouts_reference");
-        });
+    // The reference set by its weights (path, size and time of each), not only its path.
+    const nlohmann::json reference = {{"path", ref.string()},
+                                      {"tokenizer", train::checkpoint_fingerprint(ref / "tokenizer")},
+                                      {"probe", train::checkpoint_fingerprint(ref / "probe")},
+                                      {"wm", train::checkpoint_fingerprint(ref / "wm_posttrain")}};
+    const Stage eval_reference_stage{
+        "eval_reference",
+        {{"reference", reference}, {"data", stages["data"]}, {"eval", eval_settings(/*sampler=*/true)}},
+        as_asked,
+        {"rollouts_reference"}};
+    stages["eval_reference"] = run_stage(out, eval_reference_stage, o.seed, [&] {
+      return evaluate(ref / "wm_posttrain", ref / "tokenizer", ref / "probe", out / "rollouts_reference");
+    });
   }
 
   // 10. Report.

@@ -11,8 +11,11 @@
 //
 // Reproducible: every stage has a budget in optimisation steps, so the same seed gives the same
 // models on any machine (a --minutes budget remains as an option). Resumable: a finished stage
-// records its result in OUT/stages/<stage>.json and is skipped when the demo runs again with the
-// same settings; an interrupted stage resumes from its checkpoint.
+// records its settings (every input that changes its output: its options, the records of the
+// stages it reads, the seed, and the device and precision it computes on) and its result in
+// OUT/stages/<stage>.json, and is re-used when the demo runs again with the same settings; a stage
+// whose settings changed runs again from scratch (its old outputs are discarded first), and an
+// interrupted one resumes from its checkpoint.
 #pragma once
 
 #include <cstdint>
@@ -27,6 +30,7 @@ struct DemoOptions {
   int eval_episodes = 8;   // per evaluation split
   int frames = 64;         // per episode, at 10 Hz
   int sampler_steps = 35;  // UniPC steps per chunk
+  int eval_chunks = 4;     // 12-frame chunks per evaluation rollout: the paper's 49 frames
   uint64_t seed = 0;
   int workers = 0;
   std::string device = "cpu", precision = "fp32";  // world-model training and rollouts
@@ -39,6 +43,15 @@ struct DemoOptions {
           posttrain_steps = 1500;
   // The real-time student: warm-up steps, Self-Forcing iterations, fast-decoder steps.
   int64_t warmup_steps = 300, self_forcing_steps = 300, fast_decoder_steps = 400;
+  // Teacher chunks chained per warm-up trajectory: 4 covers the 49 frames an evaluation rollout
+  // streams (held-out keypoint error of the reference teacher's student 9.15 -> 7.90 px with 1 -> 4,
+  // docs/benchmarks.md, "A student that keeps following the actions after frame 12").
+  int warmup_chunks = 4;
+  // Clips per dataset in the latent caches of the world model, the student (whose teacher
+  // trajectories are built on them) and the fast decoder.
+  int64_t max_clips = 192;
+  // Frames the student streams when timed at batch 1 (a multiple of 4).
+  int stream_frames = 600;
   // Noise on the conditioning latent in post-training (wm train --condition-noise): held-out
   // keypoint error 9.2 -> 7.4 px at 1000 steps (docs/action_following.md).
   double posttrain_condition_noise = 0.3;

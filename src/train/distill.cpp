@@ -51,6 +51,31 @@ torch::Tensor teacher_points(models::ActionDitImpl& teacher, const diffusion::Si
   return out;
 }
 
+// The teacher's rollout of `chunks` chained chunks for clips (first latents [m, 16, 1, h, w],
+// actions [m, 12 chunks, 384]) at the query points: [m, P, 16, 1 + 3 chunks, h, w]. Chunk k starts
+// from the final x0 of chunk k-1's last latent; its noise is drawn per clip (clip_ids) and chunk.
+torch::Tensor chained_teacher_points(models::ActionDitImpl& teacher, const diffusion::SigmaSchedule& schedule,
+                                     const torch::Tensor& first, const torch::Tensor& actions,
+                                     const std::vector<int64_t>& clip_ids, const TrajectorySpec& spec) {
+  const int64_t P = static_cast<int64_t>(spec.query_steps.size()) + 1;
+  auto anchor = first;  // [m, 16, 1, h, w]
+  std::vector<torch::Tensor> pieces;
+  for (int c = 0; c < spec.chunks; ++c) {
+    std::vector<torch::Tensor> noise;
+    for (int64_t id : clip_ids) {
+      // Chunk 0 draws what a one-chunk trajectory of the clip draws, so both share their first chunk.
+      auto g = step_generator(spec.seed + 1000003ULL * static_cast<uint64_t>(c), id);
+      noise.push_back(torch::randn({first.size(1), 4, first.size(3), first.size(4)}, g));
+    }
+    const auto x0 = torch::cat({anchor, torch::zeros_like(anchor).expand({-1, -1, 3, -1, -1})}, 2);
+    const auto points =
+        teacher_points(teacher, schedule, x0, actions.narrow(1, 12 * c, 12), torch::stack(noise),
+                       spec.query_steps);  // [m, P, 16, 4, h, w]
+    pieces.push_back(c == 0 ? points : points.narrow(3, 1, 3));
+    anchor = points.select(1, P - 1).narrow(2, 3, 1);  // the chunk's last latent, clean
+  }
+  return torch::cat(pieces, 3);
+}
 }  // namespace
 
 std::vector<int> TrajectorySpec::query_steps_for(int teacher_steps) {
@@ -64,8 +89,12 @@ std::vector<int> TrajectorySpec::query_steps_for(int teacher_steps) {
 TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, double shift,
                                                const LatentClips& clips, const TrajectorySpec& spec,
                                                const nlohmann::json& fingerprint, const fs::path& dir) {
-  DOJO_CHECK(clips.latents.dim() == 5 && clips.latents.size(2) == 4,
-             "distill: trajectories need 13-frame clips (4 latent frames)");
+  DOJO_CHECK(spec.chunks >= 1, "distill: trajectories need at least one teacher chunk");
+  DOJO_CHECK(clips.latents.dim() == 5 && clips.latents.size(2) == 1 + 3 * spec.chunks &&
+                 clips.actions.size(1) == 12 * spec.chunks,
+             "distill: trajectories of " + std::to_string(spec.chunks) + " teacher chunks need clips of " +
+                 std::to_string(1 + 12 * spec.chunks) + " frames (" + std::to_string(1 + 3 * spec.chunks) +
+                 " latent frames)");
   const auto schedule = diffusion::flow_sigma_schedule(spec.teacher_steps, shift);
   for (int q : spec.query_steps)
     DOJO_CHECK(q >= 0 && q < spec.teacher_steps, "distill: query step " + std::to_string(q) +
@@ -74,13 +103,27 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
   TeacherTrajectories out;
   for (int q : spec.query_steps) out.timesteps.push_back(schedule.timesteps.at(static_cast<size_t>(q)));
   out.timesteps.push_back(0);
-  const nlohmann::json meta = {{"fingerprint", fingerprint},
-                               {"teacher_steps", spec.teacher_steps},
-                               {"shift", shift},
-                               {"query_steps", spec.query_steps},
-                               {"seed", spec.seed}};
+  DOJO_CHECK(spec.counterfactual_copies >= 0 && (spec.counterfactual_copies == 0 || clips.size() >= 2),
+             "distill: counterfactual trajectories need at least 2 clips");
+  nlohmann::json meta = {{"fingerprint", fingerprint},
+                         {"teacher_steps", spec.teacher_steps},
+                         {"shift", shift},
+                         {"query_steps", spec.query_steps},
+                         {"seed", spec.seed}};
+  if (spec.counterfactual_copies > 0) meta["counterfactual_copies"] = spec.counterfactual_copies;
+  if (spec.chunks > 1) meta["chunks"] = spec.chunks;
   fs::create_directories(dir);
-  const int64_t n = clips.size(), shards = (n + spec.shard_clips - 1) / spec.shard_clips;
+  // Trajectory j: clip j % N's first frame and noise, with the actions of clip (j + k·stride) % N
+  // for copy k = j / N (k = 0: its own). The stride spreads the copies over far-apart clips, whose
+  // motions differ more than a neighbouring window's of the same episode.
+  const int64_t clip_count = clips.size(), copies = 1 + spec.counterfactual_copies;
+  const int64_t stride = std::max<int64_t>(1, clip_count / copies / 2 + 1);
+  std::vector<int64_t> action_source(static_cast<size_t>(clip_count * copies));
+  for (int64_t j = 0; j < clip_count * copies; ++j)
+    action_source[static_cast<size_t>(j)] = (j % clip_count + (j / clip_count) * stride) % clip_count;
+  const auto action_index = torch::tensor(action_source, torch::kLong);
+  const auto all_actions = clips.actions.index_select(0, action_index);  // [N·copies, 12, 384]
+  const int64_t n = clip_count * copies, shards = (n + spec.shard_clips - 1) / spec.shard_clips;
   std::vector<torch::Tensor> points, actions;
   Progress progress("teacher trajectories", n, "clips");
   teacher.eval();
@@ -96,7 +139,7 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
       const auto it = f.metadata().find("trajectories");
       if (it != f.metadata().end() && nlohmann::json::parse(it->second) == shard_meta) {
         points.push_back(f.tensor("points", true));
-        actions.push_back(clips.actions.narrow(0, begin, count));
+        actions.push_back(all_actions.narrow(0, begin, count));
         progress.advance(count);
         continue;
       }
@@ -104,19 +147,19 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
     std::vector<torch::Tensor> shard;
     for (int64_t b = begin; b < begin + count; b += spec.batch) {
       const int64_t m = std::min<int64_t>(spec.batch, begin + count - b);
-      std::vector<torch::Tensor> noise;  // per clip, so the batching does not change the draws
-      for (int64_t i = b; i < b + m; ++i) {
-        auto g = step_generator(spec.seed, i);
-        noise.push_back(torch::randn(clips.latents[i].sizes(), g));
-      }
-      shard.push_back(teacher_points(teacher, schedule, clips.latents.narrow(0, b, m),
-                                     clips.actions.narrow(0, b, m), torch::stack(noise), spec.query_steps));
+      // Noise per clip (not per trajectory: a counterfactual copy shares its clip's), so the
+      // batching does not change the draws.
+      std::vector<int64_t> ids;
+      for (int64_t j = b; j < b + m; ++j) ids.push_back(j % clip_count);
+      const auto first = clips.latents.index_select(0, torch::tensor(ids, torch::kLong)).narrow(2, 0, 1);
+      shard.push_back(
+          chained_teacher_points(teacher, schedule, first, all_actions.narrow(0, b, m), ids, spec));
       progress.advance(m);
     }
     auto shard_points = torch::cat(shard).contiguous();
     save_safetensors(file, {{"points", shard_points}}, {{"trajectories", shard_meta.dump()}});
     points.push_back(shard_points);
-    actions.push_back(clips.actions.narrow(0, begin, count));
+    actions.push_back(all_actions.narrow(0, begin, count));
   }
   progress.finish();
   out.points = torch::cat(points);
@@ -228,7 +271,9 @@ DistillResult run_warmup(const DistillJob& job) {
   TimeBudget budget(job.time_budget_s);
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint";
-  const auto data = teacher_data(job, 13, "latents");
+  // One chunk: the 13-frame clips post-training cached; several: Self-Forcing's longer ones.
+  const int chunks = job.trajectories.chunks;
+  const auto data = teacher_data(job, 1 + 12 * chunks, chunks == 1 ? "latents" : "latents-long");
   std::optional<ScopedThreads> matmul_bound;
   if (job.matmul_threads > 0) matmul_bound.emplace(job.matmul_threads);
   const auto& clips = data.clips;
@@ -339,6 +384,8 @@ DistillResult run_self_forcing(const DistillJob& job) {
   DOJO_CHECK(sf.min_frames > sf.loss_frames && sf.max_frames >= sf.min_frames && sf.loss_frames >= 1,
              "self-forcing: need 1 <= loss_frames < min_frames <= max_frames");
   DOJO_CHECK(sf.critic_steps >= 1, "self-forcing: --critic-steps must be >= 1 (the critic must learn)");
+  DOJO_CHECK(sf.counterfactual_share >= 0 && sf.counterfactual_share <= 1,
+             "self-forcing: --counterfactual-share must be in [0, 1]");
   TimeBudget budget(job.time_budget_s);
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint", critic_dir = job.out / "critic";
@@ -427,7 +474,12 @@ DistillResult run_self_forcing(const DistillJob& job) {
         const int exit_hop = static_cast<int>(torch::randint(student.steps, {1}, g).item<int64_t>());
         const int64_t frames = torch::randint(sf.min_frames, sf.max_frames + 1, {1}, g).item<int64_t>();
         const auto x = clips.latents.index_select(0, idx).narrow(2, 0, frames);  // [B, 16, frames, h, w]
-        const auto acts = clips.actions.index_select(0, idx).narrow(1, 0, 4 * (frames - 1));
+        auto action_idx = idx;
+        if (sf.counterfactual_share > 0) {  // some rollouts driven by another clip's actions
+          const auto other = (idx + torch::randint(1, n, {job.batch_size}, g, torch::kLong)) % n;
+          action_idx = torch::where(torch::rand({job.batch_size}, g).lt(sf.counterfactual_share), other, idx);
+        }
+        const auto acts = clips.actions.index_select(0, action_idx).narrow(1, 0, 4 * (frames - 1));
         const auto noise = torch::randn(x.sizes(), g);
         const int64_t L = sf.loss_frames, first_scored = frames - L;
         const auto u = torch::rand({job.batch_size}, g);

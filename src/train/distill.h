@@ -10,6 +10,8 @@
 //                 those points under the block-causal window mask (a new frame sees itself and
 //                 the student's window of earlier frames), each frame at its own random point,
 //                 frame 0 clean: x̂0 = x − (t/1000)·v̂, loss mean((x̂0 − x0_teacher)²) over frames ≥ 1.
+//                 With counterfactual copies (TrajectorySpec::counterfactual_copies) the teacher's
+//                 trajectories also cover each first frame under other clips' actions.
 #pragma once
 
 #include <torch/torch.h>
@@ -41,9 +43,21 @@ struct TrajectorySpec {
   int64_t shard_clips = 64;
   int batch = 16;  // clips through the teacher together
   uint64_t seed = 0;
+  // Also solve each clip's ODE this many more times with another clip's actions (clip i with the
+  // actions of clip (i + k·stride) mod N, k = 1 ..), from the same first frame and the same noise.
+  // With one trajectory per clip the first frame names the clip and the target can be reached
+  // without reading the actions; pairs that differ only in the actions make the teacher's response
+  // to them part of the regression target.
+  int counterfactual_copies = 0;
+  // Teacher chunks per trajectory: 1 gives the 4-latent clips (13 frames) the teacher was trained
+  // on; K > 1 chains K chunks as the teacher rolls out (chunk k starts from the x0 of chunk k-1's last
+  // latent, with its own 12 actions and noise) into 1 + 3 K latents (1 + 12 K frames), so the
+  // warm-up also teaches the positions a streaming student reaches after its first 13 frames.
+  int chunks = 1;
 };
 
-// The teacher's trajectories on `clips` (latents [N, 16, 4, h, w], actions [N, 12, 384]),
+// The teacher's trajectories on `clips` (latents [N, 16, 1 + 3 K, h, w], actions [N, 12 K, 384],
+// K = spec.chunks; only each clip's first latent and its actions are read),
 // written to / read from dir/shard-<k>.safetensors. `fingerprint` identifies teacher and data;
 // shards made from anything else are rebuilt.
 TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, double shift,

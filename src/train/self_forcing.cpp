@@ -7,9 +7,12 @@
 namespace dojo::train {
 
 nlohmann::json SelfForcingOptions::to_json() const {
-  return {{"generator_lr", generator_lr}, {"critic_lr", critic_lr},       {"weight_decay", weight_decay},
-          {"grad_clip", grad_clip},       {"critic_steps", critic_steps}, {"min_frames", min_frames},
-          {"max_frames", max_frames},     {"loss_frames", loss_frames},   {"shift", shift}};
+  nlohmann::json j = {
+      {"generator_lr", generator_lr}, {"critic_lr", critic_lr},       {"weight_decay", weight_decay},
+      {"grad_clip", grad_clip},       {"critic_steps", critic_steps}, {"min_frames", min_frames},
+      {"max_frames", max_frames},     {"loss_frames", loss_frames},   {"shift", shift}};
+  if (counterfactual_share > 0) j["counterfactual_share"] = counterfactual_share;
+  return j;
 }
 
 torch::Tensor student_rollout(models::ActionDitImpl& student, const infer::StudentConfig& config,

@@ -38,6 +38,10 @@ struct SelfForcingOptions {
   int64_t max_frames = 13;  // (released: 4 ... 13, i.e. 13 ... 49 video frames)
   int64_t loss_frames = 3;  // frames generated with gradient and scored
   double shift = 5.0;       // σ = shift·u / (1 + (shift − 1)·u) for the score times
+  // Share of each batch's rollouts driven by another clip's actions from the clip's first frame
+  // (teacher and critic score them with those actions): counterfactual motions the recorded data
+  // pairs with no first frame, so a student that ignores the actions' direction is pulled back.
+  double counterfactual_share = 0;
   nlohmann::json to_json() const;
 };
 

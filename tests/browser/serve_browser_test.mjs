@@ -45,11 +45,15 @@ const dojo = (...a) => execFileSync(exe, a, { stdio: ["ignore", "pipe", "pipe"],
 step("generating data and a study");
 dojo("sim", "generate", "-o", join(tmp, "robot"), "--episodes", "3", "--frames", "32", "--seed", "3", "-j", "1");
 if (!benchSeconds)
-  dojo("study", "create", join(tmp, "study"), "--model", `pretrain=${join(reference, "wm_pretrain")}`,
-       "--student", `posttrain=${join(reference, "wm_posttrain")}`, "--tokenizer", join(reference, "tokenizer"),
+  dojo("study", "create", join(tmp, "study"), "--model", `teacher=${join(reference, "wm_posttrain")}`,
+       "--student", `student=${join(reference, "student")}`, "--tokenizer", join(reference, "tokenizer"),
        "--data", join(tmp, "robot"), "--split", "all", "--episodes", "2", "--chunks", "1");
 
 // The server, on a free port.
+// The page's mechanics are checked on the post-trained teacher's weights streamed as a student, as
+// they always were: the shipped student answers a held key more weakly (frame 44 differs from the
+// idle run's by 0.83 of 255 on average, under the 1.0 this test asks; docs/benchmarks.md, the
+// eleventh session's section).
 const serverArgs = ["serve", "--student", join(reference, "wm_posttrain"), "--no-teacher", "--tokenizer",
   join(reference, "tokenizer"), "--data", join(tmp, "robot"), "--split", "all", "--port", "0",
   "--recordings", join(tmp, "recordings"), "--max-sessions", String(Math.max(4, benchSessions))];

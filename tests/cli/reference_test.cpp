@@ -1,6 +1,7 @@
-// The shipped reference model set (models/reference): every member loads, the world model carries
-// its action ranges and time shift, and `dojo wm rollout` uses the set when no --checkpoint is
-// given. A clone without the set fails here: it is part of the repository.
+// The shipped reference model set (models/reference): every member loads (the real-time student and
+// its fast decoder among them), the world model carries its action ranges and time shift, and
+// `dojo wm rollout` uses the set when no --checkpoint is given. A clone without the set fails
+// here: it is part of the repository.
 #include <gtest/gtest.h>
 
 #include <filesystem>
@@ -18,8 +19,8 @@ TEST(Reference, EveryModelLoadsAsItsKind) {
   const std::pair<const char*, const char*> members[] = {{"lam", "lam"},
                                                          {"tokenizer", "wan21_vae"},
                                                          {"probe", "keypoint_probe"},
-                                                         {"wm_pretrain", "action_dit"},
-                                                         {"wm_posttrain", "action_dit"}};
+                                                         {"wm_posttrain", "action_dit"},
+                                                         {"student", "action_dit"}};
   for (const auto& [dir, kind] : members) {
     const auto r = test::run_dojo("ckpt info " + (kReference / dir).string() + " --json");
     ASSERT_EQ(r.exit_code, 0) << dir << ": " << r.output;
@@ -32,6 +33,19 @@ TEST(Reference, EveryModelLoadsAsItsKind) {
   const auto posttrain = nlohmann::json::parse(test::read_file(kReference / "wm_posttrain" / "config.json"));
   EXPECT_TRUE(posttrain.at("actions").contains("dojosim_robot"));
   EXPECT_GT(posttrain.at("sampler").at("shift").get<double>(), 0.0);
+}
+
+// The real-time student every streaming command uses by default: an inference export with its
+// streaming settings and the teacher's action ranges, and the fast decoder of the set's tokenizer.
+TEST(Reference, TheStudentAndItsFastDecoderAreShipped) {
+  const auto r = test::run_dojo("ckpt info " + (kReference / "student").string() + " --json");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto info = nlohmann::json::parse(r.output);
+  EXPECT_TRUE(info["config"].at("student").is_object()) << "config.json's \"student\" entry";
+  EXPECT_TRUE(info["config"].at("actions").contains("dojosim_robot"));
+  const auto decoder = test::run_dojo("ckpt info " + (kReference / "fast_decoder").string() + " --json");
+  ASSERT_EQ(decoder.exit_code, 0) << decoder.output;
+  EXPECT_EQ(nlohmann::json::parse(decoder.output)["config"].at("model"), "fast_decoder");
 }
 
 TEST(Reference, RolloutUsesTheReferenceSetByDefault) {

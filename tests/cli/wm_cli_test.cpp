@@ -175,8 +175,8 @@ TEST(WmCli, DemoRunsEndToEndOnTinyStepBudgetsAndReusesFinishedStages) {
   EXPECT_NE(r.output.find("expected ~"), std::string::npos) << r.output;
   EXPECT_EQ(r.output.find("tokenizer train:"), std::string::npos) << r.output;
   EXPECT_TRUE(std::filesystem::exists(tmp / "demo" / "tokenizer" / "checkpoint" / "model.safetensors"));
-  // The student's warm-up reads post-training's latent cache instead of encoding the clips again.
-  EXPECT_NE(r.output.find("clips from " + out + "/student_warmup/latents-0.safetensors"), std::string::npos)
+  // Self-Forcing reads the warm-up's 49-frame latent cache instead of encoding the clips again.
+  EXPECT_NE(r.output.find("clips from " + out + "/student/latents-long-0.safetensors"), std::string::npos)
       << r.output;
   const auto html = test::read_file(tmp / "demo" / "report.html");
   EXPECT_NE(html.find("data:video/mp4;base64,"), std::string::npos);

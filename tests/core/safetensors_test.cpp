@@ -6,6 +6,9 @@
 #include <fstream>
 #include <functional>
 #include <iterator>
+#include <regex>
+#include <set>
+#include <sstream>
 
 #include "core/error.h"
 #include "test_util.h"
@@ -291,11 +294,27 @@ TEST(Safetensors, BadSavesFailAndLeaveThePreviousFile) {
 TEST(Safetensors, GoldenFixturesParseAndRewriteIdentically) {
   const auto golden = test::golden_dir();
   ASSERT_TRUE(std::filesystem::is_directory(golden)) << golden << " is missing";
+  // Every fixture the README's SHA-256 table lists is here (a missing one fails, naming it), and
+  // every .safetensors here is listed.
+  const auto readme = golden / "README.md";
+  ASSERT_TRUE(std::filesystem::exists(readme)) << readme << " is missing";
+  std::set<std::string> listed;
+  const std::regex row(R"(\| ([A-Za-z0-9_]+\.(safetensors|json)) \| [0-9a-f]{16} \|)");
+  std::istringstream lines(test::read_file(readme));
+  for (std::string line; std::getline(lines, line);) {
+    std::smatch m;
+    if (std::regex_match(line, m, row)) listed.insert(m[1]);
+  }
+  ASSERT_GE(listed.size(), 10u) << readme << ": the SHA-256 table lists too few fixtures";
+  for (const auto& name : listed)
+    EXPECT_TRUE(std::filesystem::exists(golden / name))
+        << golden / name << " is missing: golden fixtures are never skipped (tests/golden/README.md)";
   int files = 0;
   test::TempDir dir;
   for (const auto& entry : std::filesystem::directory_iterator(golden)) {
     if (entry.path().extension() != ".safetensors") continue;
     SCOPED_TRACE(entry.path().string());
+    EXPECT_EQ(listed.count(entry.path().filename().string()), 1u) << "not in " << readme;
     ++files;
     const auto file = SafetensorsFile::open(entry.path());
     EXPECT_FALSE(file.keys().empty());
@@ -313,13 +332,13 @@ TEST(Safetensors, GoldenFixturesParseAndRewriteIdentically) {
   EXPECT_GT(files, 0);
 
   const auto lam = golden / "lam_tiny_weights.safetensors";
-  if (std::filesystem::exists(lam)) {
-    const auto file = SafetensorsFile::open(lam);
-    EXPECT_EQ(file.keys().front(), "lam.action_prompt");
-    EXPECT_EQ(file.info("lam.encoder.ffn.1.weight").shape, (std::vector<int64_t>{64, 192}));
-    EXPECT_EQ(nlohmann::json::parse(file.metadata().at("config"))["model_dim"], 64);
-    EXPECT_EQ(file.metadata().at("seed"), "4321");
-  }
+  ASSERT_TRUE(std::filesystem::exists(lam))
+      << lam << " is missing: golden fixtures are never skipped (tests/golden/README.md)";
+  const auto file = SafetensorsFile::open(lam);
+  EXPECT_EQ(file.keys().front(), "lam.action_prompt");
+  EXPECT_EQ(file.info("lam.encoder.ffn.1.weight").shape, (std::vector<int64_t>{64, 192}));
+  EXPECT_EQ(nlohmann::json::parse(file.metadata().at("config"))["model_dim"], 64);
+  EXPECT_EQ(file.metadata().at("seed"), "4321");
 }
 
 TEST(Safetensors, SavesCudaTensors_CUDA) {

@@ -126,6 +126,25 @@ TEST(ActionChunker, StreamEqualsTheClipPipeline) {
   EXPECT_EQ(chunker.push(raw.narrow(0, 1, 4))[0].abs().sum().item<double>(), 0);
 }
 
+// The teacher's chunked sampler takes 12 rows a push: three model chunks, each relative to the
+// row before it as in training, never all 12 to the row before the push.
+TEST(ActionChunker, TwelveRowPushesAreThreeModelChunks) {
+  ArrayStats stats;
+  stats.min = {-2, 0};
+  stats.max = {2, 10};
+  auto g = at::make_generator<at::CPUGeneratorImpl>(5);
+  const auto raw = torch::rand({25, 2}, g) * 4 - 2;  // baseline row + 24 commands
+  const auto expected = place_in_slot(chunk_relative(normalize_min_max(raw, stats), 4), slots::kDojoSimRobot);
+  ActionChunker chunker(slots::kDojoSimRobot, stats, 12);
+  EXPECT_EQ(chunker.rows_per_push(), 12);
+  chunker.set_baseline(raw[0]);
+  for (int64_t k = 0; k < 2; ++k)
+    EXPECT_TRUE(torch::allclose(chunker.push(raw.narrow(0, 1 + 12 * k, 12)), expected.narrow(0, 12 * k, 12)))
+        << "push " << k;
+  EXPECT_THROW(chunker.push(torch::zeros({4, 2})), Error);
+  EXPECT_THROW(ActionChunker(slots::kDojoSimRobot, stats, 6), Error);  // not whole model chunks
+}
+
 TEST(ActionChunker, OneRecordedSlotGivesTheModelsChunker) {
   ArrayStats stats;
   stats.min = {-2, 0, 5};

@@ -18,9 +18,14 @@ double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
   return (a.to(torch::kDouble) - b.to(torch::kDouble)).abs().max().item<double>();
 }
 
+// A missing fixture fails the test that asks for it, naming the file: golden tests never skip
+// (tests/golden/README.md).
 std::optional<SafetensorsFile> open_fixture() {
   const auto path = test::golden_dir() / "flow_sampler.safetensors";
-  if (!std::filesystem::exists(path)) return std::nullopt;
+  if (!std::filesystem::exists(path)) {
+    ADD_FAILURE() << path << " is missing: golden fixtures are never skipped (tests/golden/README.md)";
+    return std::nullopt;
+  }
   return SafetensorsFile::open(path);
 }
 

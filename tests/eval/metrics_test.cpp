@@ -20,9 +20,14 @@ namespace dojo::eval {
 
 namespace {
 
+// A missing fixture fails the test that asks for it, naming the file: golden tests never skip
+// (tests/golden/README.md).
 std::optional<SafetensorsFile> open_images() {
   const auto path = test::golden_dir() / "metrics_images.safetensors";
-  if (!std::filesystem::exists(path)) return std::nullopt;
+  if (!std::filesystem::exists(path)) {
+    ADD_FAILURE() << path << " is missing: golden fixtures are never skipped (tests/golden/README.md)";
+    return std::nullopt;
+  }
   return SafetensorsFile::open(path);
 }
 
@@ -121,10 +126,9 @@ TEST(Metrics, PearsonAndMmrvMatchFixture) {
   }
   // The piq numbers repeated in the JSON agree with the safetensors fixture.
   auto f = open_images();
-  if (f) {
-    const auto means = j.at("piq").at("b480x640").at("ssim_mean").get<std::vector<double>>();
-    EXPECT_NEAR(means.at(0), f->tensor("b480x640_ssim_mean")[0].item<double>(), 1e-7);
-  }
+  ASSERT_TRUE(f) << "golden fixture missing from " << test::golden_dir();
+  const auto means = j.at("piq").at("b480x640").at("ssim_mean").get<std::vector<double>>();
+  EXPECT_NEAR(means.at(0), f->tensor("b480x640_ssim_mean")[0].item<double>(), 1e-7);
 }
 
 TEST(Metrics, PearsonAndMmrvHandExamples) {

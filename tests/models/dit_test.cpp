@@ -22,16 +22,26 @@ double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
   return (a.to(torch::kDouble) - b.to(torch::kDouble)).abs().max().item<double>();
 }
 
+// A missing fixture fails the test that asks for it, naming the file: golden tests never skip
+// (tests/golden/README.md).
 std::optional<SafetensorsFile> open_fixture(const std::string& name) {
   const auto path = test::golden_dir() / name;
-  if (!std::filesystem::exists(path)) return std::nullopt;
+  if (!std::filesystem::exists(path)) {
+    ADD_FAILURE() << path << " is missing: golden fixtures are never skipped (tests/golden/README.md)";
+    return std::nullopt;
+  }
   return SafetensorsFile::open(path);
 }
 
-// name, shape, dtype rows of a keys/*.tsv file.
+// name, shape, dtype rows of a keys/*.tsv file (none, and a failure naming it, when it is missing).
 std::vector<DitTensorSpec> read_key_list(const std::string& name) {
   std::vector<DitTensorSpec> out;
-  std::ifstream in(test::golden_dir() / "keys" / name);
+  const auto path = test::golden_dir() / "keys" / name;
+  if (!std::filesystem::exists(path)) {
+    ADD_FAILURE() << path << " is missing: golden fixtures are never skipped (tests/golden/README.md)";
+    return out;
+  }
+  std::ifstream in(path);
   std::string line;
   while (std::getline(in, line)) {
     std::istringstream row(line);
@@ -227,9 +237,8 @@ TEST(DitConfig, JsonRoundTripAndErrors) {
 
 TEST(DitConfig, FromWeightsReadsTheArchitecture) {
   auto g = open_fixture("dit_tiny_weights.safetensors");
-  if (g) {
-    EXPECT_EQ(DitConfig::from_weights(*g).to_json(), DitConfig::golden_tiny().to_json());
-  }
+  ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
+  EXPECT_EQ(DitConfig::from_weights(*g).to_json(), DitConfig::golden_tiny().to_json());
 
   // A saved small model (no projection, custom action width) round-trips and loads strictly.
   auto c = DitConfig::small();

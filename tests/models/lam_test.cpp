@@ -22,9 +22,17 @@ struct Golden {
   SafetensorsFile weights, io;
 };
 
+// A missing fixture fails the test that asks for it, naming the file: golden tests never skip
+// (tests/golden/README.md).
 std::optional<Golden> open_golden() {
   const auto dir = test::golden_dir();
-  if (!std::filesystem::exists(dir / "lam_tiny_weights.safetensors")) return std::nullopt;
+  bool present = true;
+  for (const auto* name : {"lam_tiny_weights.safetensors", "lam_tiny_io.safetensors"}) {
+    if (std::filesystem::exists(dir / name)) continue;
+    ADD_FAILURE() << dir / name << " is missing: golden fixtures are never skipped (tests/golden/README.md)";
+    present = false;
+  }
+  if (!present) return std::nullopt;
   return Golden{SafetensorsFile::open(dir / "lam_tiny_weights.safetensors"),
                 SafetensorsFile::open(dir / "lam_tiny_io.safetensors")};
 }

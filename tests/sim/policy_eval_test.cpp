@@ -198,18 +198,40 @@ TEST(PolicyEval, SuccessDetectorLearnsFromLabelledFrames) {
   EXPECT_GE(true_positives + true_negatives, 5);
   EXPECT_FALSE(r.simulator.has_value());  // DojoSim's frames only
 
-  // Data with the simulator's frames beside the shown ones (here the same frames): the finished
-  // detector, resumed at its last step, is scored on them as on the shown ones.
+  // Data with the simulator's frames beside the shown ones, and other frames than those: the
+  // episodes in reverse order, so an expert's label meets an idle episode's frames and the other
+  // way round. The finished detector, resumed at its last step, is trained on the shown frames
+  // and scored on the simulator's, under the same labels: its score there is the one read off
+  // those frames by hand, and far from its score on the shown frames.
   auto both = data;
-  both.simulator_frames = data.frames.clone();
+  both.simulator_frames = data.frames.flip(0).contiguous();
+  ASSERT_FALSE(torch::equal(both.simulator_frames, both.frames));
   both.save(tmp / "both.safetensors");
   job.data = tmp / "both.safetensors";
   const auto scored = train::run_success_training(job);
+  EXPECT_EQ(scored.steps, r.steps);  // resumed, not trained further
+  EXPECT_DOUBLE_EQ(scored.heldout.balanced_accuracy, r.heldout.balanced_accuracy);
   ASSERT_TRUE(scored.simulator.has_value());
-  EXPECT_DOUBLE_EQ(scored.simulator->heldout.balanced_accuracy, r.heldout.balanced_accuracy);
+  const train::SuccessData simulated{both.simulator_frames, data.labels, data.heldout, {}};
+  const auto windows_by_hand = train::success_accuracy(detector, simulated, data.heldout);
+  int sim_true_positives = 0, sim_true_negatives = 0;
+  for (int64_t e = 0; e < data.frames.size(0); ++e) {
+    if (!data.heldout[e].item<bool>()) continue;
+    const bool success = data.labels[e][T - 1].item<double>() > 0.5;
+    const bool voted = models::success_vote(detector, both.simulator_frames[e]) > 0.5;
+    if (voted == success) (success ? sim_true_positives : sim_true_negatives) += 1;
+  }
+  const double sim_by_hand = 0.5 * (static_cast<double>(sim_true_positives) / positives +
+                                    static_cast<double>(sim_true_negatives) / negatives);
+  // The two kinds of frames score apart, so the check below tells which ones were read.
+  ASSERT_LT(windows_by_hand.balanced_accuracy, r.heldout.balanced_accuracy - 0.25);
+  ASSERT_LT(sim_by_hand, r.heldout_episodes.balanced_accuracy - 0.25);
+  EXPECT_DOUBLE_EQ(scored.simulator->heldout.balanced_accuracy, windows_by_hand.balanced_accuracy);
+  EXPECT_DOUBLE_EQ(scored.simulator->heldout.accuracy, windows_by_hand.accuracy);
   EXPECT_EQ(scored.simulator->heldout.windows, r.heldout.windows);
-  EXPECT_DOUBLE_EQ(scored.simulator->heldout_episodes.balanced_accuracy,
-                   r.heldout_episodes.balanced_accuracy);
+  EXPECT_EQ(scored.simulator->heldout.positives, r.heldout.positives);  // the same labels
+  EXPECT_DOUBLE_EQ(scored.simulator->heldout_episodes.balanced_accuracy, sim_by_hand);
+  EXPECT_EQ(scored.simulator->heldout_episodes.windows, 6);
   both.simulator_frames = data.frames.narrow(1, 0, 5).clone();
   both.save(tmp / "short.safetensors");
   EXPECT_NE(test::error_message([&] {
@@ -259,6 +281,38 @@ TEST(PolicyEval, DetectorWindowSpansItsStride) {
   EXPECT_THROW(models::success_vote(detector, noise.narrow(0, 0, 8)), Error);
 }
 
+// Passes every decision on to `inner` and keeps the frames it was shown.
+class WatchedPolicy : public eval::Policy {
+ public:
+  explicit WatchedPolicy(eval::Policy& inner) : inner_(inner) {}
+  const std::string& name() const override { return inner_.name(); }
+  bool open_loop() const override { return inner_.open_loop(); }
+  void reset(const eval::EpisodeStart& start) override {
+    shown.clear();
+    inner_.reset(start);
+  }
+  torch::Tensor act(const torch::Tensor& frames, const torch::Tensor& last_command, int64_t n) override {
+    shown.push_back(frames.clone());
+    return inner_.act(frames, last_command, n);
+  }
+  std::vector<torch::Tensor> shown;  // [k, H, W, 3] per decision
+
+ private:
+  eval::Policy& inner_;
+};
+
+// The detector's logits on the last `votes` windows of `video`, as success_vote reads them
+// (the window ending at the last frame first).
+torch::Tensor last_window_logits(models::SuccessDetector& detector, const torch::Tensor& video,
+                                 int64_t votes) {
+  std::vector<torch::Tensor> windows;
+  for (int64_t i = 0; i < votes; ++i)
+    windows.push_back(models::window_ending_at(detector->config(), video, video.size(0) - 1 - i));
+  torch::NoGradGuard no_grad;
+  detector->eval();
+  return detector->forward(models::success_input(detector, torch::stack(windows)));  // [votes]
+}
+
 TEST(PolicyEval, WorldModelRunsAPolicyClosedLoop) {
   test::OneThread one;
   const fs::path reference = fs::path(DOJO_SOURCE_DIR) / "models" / "reference";
@@ -268,22 +322,75 @@ TEST(PolicyEval, WorldModelRunsAPolicyClosedLoop) {
   ASSERT_TRUE(ranges.contains("dojosim_robot"));
   data::ActionChunker chunker(data::slot_by_name("dojosim_robot"),
                               data::ArrayStats::from_json(ranges["dojosim_robot"], "ranges"), 4);
+  torch::manual_seed(11);
+  models::SuccessDetector detector(models::SuccessDetectorConfig{});  // random; shared with env
   eval::WorldModelEnvironment env("student", infer::make_student_generator(std::move(engine)),
-                                  std::move(chunker),
-                                  models::SuccessDetector(models::SuccessDetectorConfig{}));
+                                  std::move(chunker), detector);
   const auto starts = scenes(1);
   const auto owned = policies({"expert"});
+  WatchedPolicy watched(*owned[0]);
   eval::PolicyEvalOptions options;
   options.steps = 2;
   options.settle_steps = 1;
-  const double success = eval::run_policy_episode(*owned[0], env, starts[0], options);
-  EXPECT_TRUE(success == 0.0 || success == 1.0) << "an episode's vote is a verdict";
-  EXPECT_EQ(env.video().size(0), 1 + 4 * 3);
-  EXPECT_EQ(env.video().scalar_type(), torch::kUInt8);
+  const double success = eval::run_policy_episode(watched, env, starts[0], options);
+  const auto video = env.video();
+  ASSERT_EQ(video.size(0), 1 + 4 * 3);
+  EXPECT_EQ(video.scalar_type(), torch::kUInt8);
+  // Closed loop: each decision is shown the frames the world model made since the last one (the
+  // start frame as the world model shows it, then each step's 4), not the simulator's.
+  ASSERT_EQ(watched.shown.size(), 2u);
+  EXPECT_TRUE(torch::equal(watched.shown[0], video.narrow(0, 0, 1)));
+  EXPECT_TRUE(torch::equal(watched.shown[1], video.narrow(0, 1, 4)));
+  // An episode's vote is a verdict: 1 when more than half of the last windows of the video it
+  // made read success, else 0.
+  EXPECT_EQ(success, models::success_vote(detector, video) > 0.5 ? 1.0 : 0.0);
   // The same policy gets the same frames: the world model's noise comes from the scene's seed.
-  const auto first = env.video().clone();
-  eval::run_policy_episode(*owned[0], env, starts[0], options);
+  const auto first = video.clone();
+  const auto wm_shown = watched.shown;
+  eval::run_policy_episode(watched, env, starts[0], options);
   EXPECT_TRUE(torch::equal(first, env.video()));
+  // ... and DojoSim shows it other frames for the same commands (the scripted expert plans open
+  // loop), so the checks above tell the two worlds apart.
+  DojoSimEnvironment sim;
+  eval::run_policy_episode(watched, sim, starts[0], options);
+  ASSERT_EQ(watched.shown.size(), 2u);
+  EXPECT_FALSE(torch::equal(watched.shown[1], wm_shown[1]));
+  // Moving the detector's threshold (its head bias) between the logits of those last windows
+  // turns the verdict: 3 of the 5 windows reading success is a success, 2 of 5 a failure. The
+  // random detector reads the windows almost alike (logits within about 1e-5), so its head is
+  // first sharpened until they lie about 1 apart.
+  auto& head = detector->head;
+  const auto original_weight = head->weight.detach().clone();
+  const auto original_bias = head->bias.detach().clone();
+  {
+    const auto raw = last_window_logits(detector, first, models::kSuccessVotes);
+    const double spread = (raw.max() - raw.min()).item<double>();
+    ASSERT_GT(spread, 0.0) << "the last windows read exactly alike: " << raw;
+    torch::NoGradGuard no_grad;
+    head->weight.mul_(1.0 / spread);
+  }
+  const auto logits = std::get<0>(last_window_logits(detector, first, models::kSuccessVotes).sort(0, true));
+  ASSERT_EQ(logits.size(0), models::kSuccessVotes);
+  ASSERT_GT((logits.narrow(0, 0, 4) - logits.narrow(0, 1, 4)).min().item<double>(), 1e-3)
+      << "the windows must read apart: " << logits;
+  const auto verdict_when_reading_success = [&](int64_t windows) {  // the top `windows` logits > 0
+    {
+      torch::NoGradGuard no_grad;
+      const double cut = 0.5 * (logits[windows - 1].item<double>() + logits[windows].item<double>());
+      head->bias.copy_(original_bias - cut);
+    }
+    EXPECT_DOUBLE_EQ(models::success_vote(detector, first), windows / 5.0);
+    return env.success();
+  };
+  EXPECT_EQ(verdict_when_reading_success(4), 1.0);
+  EXPECT_EQ(verdict_when_reading_success(3), 1.0);
+  EXPECT_EQ(verdict_when_reading_success(2), 0.0);
+  EXPECT_EQ(verdict_when_reading_success(1), 0.0);
+  {
+    torch::NoGradGuard no_grad;
+    head->weight.copy_(original_weight);
+    head->bias.copy_(original_bias);
+  }
 
   // Without a detector the world model only makes frames: the detector's training data from its
   // replays holds exactly the frames the evaluation shows, under the simulator's labels.

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include "core/error.h"
 #include "diffusion/samplers.h"
 #include "test_util.h"
 #include "wm_test_fixtures.h"
@@ -58,6 +59,78 @@ TEST(Distill, TrajectoriesAreTheTeachersOdePointsPerClipAndResume) {
   EXPECT_EQ(std::filesystem::last_write_time(shard), written);
   load_or_build_trajectories(*teacher, 5.0, clips, spec, {{"teacher", "b"}}, dir.path());
   EXPECT_NE(std::filesystem::last_write_time(shard), written);
+}
+
+// Counterfactual copies: each clip's first frame and noise again, with another clip's actions. The
+// copy is exactly the trajectory of a clip set whose actions were swapped, and it differs from the
+// clip's own, so the warm-up's target depends on the actions.
+TEST(Distill, CounterfactualTrajectoriesPairEachFirstFrameWithOtherActions) {
+  test::OneThread one;
+  torch::manual_seed(0);
+  models::ActionDit teacher(test_fixtures::tiny_dit(/*live_actions=*/true));
+  teacher->eval();
+  const auto clips = action_clips(4, 3);
+  TrajectorySpec spec;
+  spec.teacher_steps = 6;
+  spec.query_steps = {0, 2, 4};
+  spec.counterfactual_copies = 1;
+  TempDir dir;
+  const auto t = load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path());
+  ASSERT_EQ(t.size(), 8);
+  EXPECT_TRUE(t.actions.narrow(0, 0, 4).equal(clips.actions));  // the clips' own first
+  // Copy k = 1 of clip i carries clip (i + stride) % 4's actions, stride = 4 / 2 / 2 + 1 = 2.
+  LatentClips swapped = clips;
+  swapped.actions = clips.actions.index_select(0, torch::tensor({2, 3, 0, 1}, torch::kLong));
+  EXPECT_TRUE(t.actions.narrow(0, 4, 4).equal(swapped.actions));
+  spec.counterfactual_copies = 0;
+  TempDir plain;
+  const auto direct = load_or_build_trajectories(*teacher, 5.0, swapped, spec, {}, plain.path());
+  EXPECT_LT((t.points.narrow(0, 4, 4) - direct.points).abs().max().item<double>(), 1e-5);
+  // Same first frame, same noise (point 0), other actions: another x0.
+  EXPECT_TRUE(t.points.narrow(0, 4, 4).select(1, 0).equal(t.points.narrow(0, 0, 4).select(1, 0)));
+  const auto last = t.points.size(1) - 1;
+  EXPECT_GT((t.points.narrow(0, 4, 4).select(1, last) - t.points.narrow(0, 0, 4).select(1, last))
+                .narrow(2, 1, 3)
+                .abs()
+                .max()
+                .item<double>(),
+            1e-3);
+}
+
+// Chained chunks: chunk 0 is the one-chunk trajectory of the clip; chunk 1 is the teacher's
+// trajectory from chunk 0's final last latent with the next 12 actions and its own noise.
+TEST(Distill, ChainedTrajectoriesRollTheTeacherOutChunkByChunk) {
+  test::OneThread one;
+  torch::manual_seed(0);
+  models::ActionDit teacher(test_fixtures::tiny_dit(/*live_actions=*/true));
+  teacher->eval();
+  const auto short_clips = action_clips(3, 4);
+  LatentClips clips;  // 7 latents (25 frames), 24 actions: only the first latent and the actions are read
+  clips.latents = torch::cat({short_clips.latents, torch::randn({3, 16, 3, 4, 4}, gen(9))}, 2);
+  clips.actions = torch::cat({short_clips.actions, short_clips.actions.flip(0)}, 1);
+  TrajectorySpec spec;
+  spec.teacher_steps = 6;
+  spec.query_steps = {0, 2, 4};
+  spec.chunks = 2;
+  TempDir dir;
+  const auto t = load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path());
+  ASSERT_EQ(t.points.sizes(), (std::vector<int64_t>{3, 4, 16, 7, 4, 4}));
+  EXPECT_TRUE(t.actions.equal(clips.actions));
+  spec.chunks = 1;
+  TempDir one_chunk;
+  const auto first = load_or_build_trajectories(*teacher, 5.0, short_clips, spec, {}, one_chunk.path());
+  EXPECT_LT((t.points.narrow(3, 0, 4) - first.points).abs().max().item<double>(), 1e-5);
+  LatentClips next;
+  next.latents = short_clips.latents.clone();
+  next.latents.narrow(2, 0, 1).copy_(t.points.select(1, 3).narrow(2, 3, 1));  // chunk 0's last x0
+  next.actions = short_clips.actions.flip(0);
+  spec.seed += 1000003;  // chunk 1's noise
+  TempDir second_chunk;
+  const auto second = load_or_build_trajectories(*teacher, 5.0, next, spec, {}, second_chunk.path());
+  EXPECT_LT((t.points.narrow(3, 4, 3) - second.points.narrow(3, 1, 3)).abs().max().item<double>(), 1e-5);
+  // A clip too short for the chunks asked is refused.
+  spec.chunks = 3;
+  EXPECT_THROW(load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path()), Error);
 }
 
 TEST(Distill, WarmupRegressionLearnsTheTeachersX0) {
