@@ -55,6 +55,7 @@ done
 for split in "val robot val" "ood robot_ood_objects all" "cf robot_counterfactual all"; do
   set -- $split
   "$DOJO" eval --data "$WORK/$2" --split "$3" -n 8 --action-sensitivity --out "$WORK/ref_eval_$1" --videos 2
-  "$DOJO" eval --student --data "$WORK/$2" --split "$3" -n 8 --action-sensitivity \
-    --out "$WORK/ref_student_eval_$1" --videos 2
+  # The student alone, decoded by the Wan decoder (an explicit --tokenizer: no fast decoder).
+  "$DOJO" eval --student --checkpoint "$REF/student" --tokenizer "$REF/tokenizer" --data "$WORK/$2" --split "$3" \
+    -n 8 --action-sensitivity --out "$WORK/ref_student_eval_$1" --videos 2
 done

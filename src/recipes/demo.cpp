@@ -202,6 +202,13 @@ nlohmann::json run_stage(const fs::path& out, const Stage& stage, uint64_t seed,
   if (resumes) {
     LOG_INFO("demo: ", stage.name, " was interrupted; resuming it");
   } else {
+    // Only what a record or a started marker says this demo wrote is discarded: a directory of the
+    // same name that the demo did not make is the user's, and is refused rather than deleted.
+    const bool ours = fs::exists(record) || fs::exists(started);
+    for (const auto& output : stage.outputs)
+      DOJO_CHECK(ours || !fs::exists(out / output),
+                 (out / output).string() + ": exists, but no record in " + (out / "stages").string() +
+                     " says the demo wrote it; move it away or give another --out");
     fs::remove(record);  // first: a record must never outlive the outputs it describes
     for (const auto& output : stage.outputs) fs::remove_all(out / output);
     fs::create_directories(started.parent_path());
@@ -265,9 +272,14 @@ DemoSummary run_demo(const DemoOptions& o) {
                  (o.reference / part).string() + ": missing from the reference model set");
   }
   DOJO_CHECK(o.max_clips > 0, "demo: max_clips must be positive");
-  DOJO_CHECK(o.eval_chunks > 0 && o.frames >= 1 + 12 * o.eval_chunks,
-             "demo: " + std::to_string(o.eval_chunks) + "-chunk rollouts need episodes of at least " +
-                 std::to_string(1 + 12 * o.eval_chunks) + " frames");
+  DOJO_CHECK(o.eval_chunks > 0 && o.warmup_chunks > 0, "demo: eval and warm-up chunks must be positive");
+  // Evaluation rollouts, the warm-up's chained trajectories and the timed stream (4 chunks of a
+  // held-out episode) each need this many frames of an episode.
+  const int needed_frames = 1 + 12 * std::max({o.eval_chunks, o.warmup_chunks, 4});
+  DOJO_CHECK(o.frames >= needed_frames,
+             "demo: --frames " + std::to_string(o.frames) +
+                 " is too short: the rollouts, the warm-up and the timed stream need " +
+                 std::to_string(needed_frames) + " frames an episode");
   DOJO_CHECK(o.stream_frames >= 4 && o.stream_frames % 4 == 0,
              "demo: the student streams 4 frames a step: stream_frames must be a positive multiple of 4");
   if (!o.tokenizer.empty())
@@ -575,6 +587,7 @@ DemoSummary run_demo(const DemoOptions& o) {
     if (o.warmup_chunks == 1)
       link_if_absent(out / "wm_posttrain" / "latents-0.safetensors", job.out / "latents-0.safetensors");
     job.trajectories.chunks = o.warmup_chunks;
+    job.trajectories.seed = o.seed;
     // Trajectories of 13 latents cost ~3x the 4-latent ones a step: half the batch.
     if (o.warmup_chunks > 1) job.batch_size = 4;
     job.steps = o.warmup_steps;

@@ -53,7 +53,10 @@ torch::Tensor teacher_points(models::ActionDitImpl& teacher, const diffusion::Si
 
 // The teacher's rollout of `chunks` chained chunks for clips (first latents [m, 16, 1, h, w],
 // actions [m, 12 chunks, 384]) at the query points: [m, P, 16, 1 + 3 chunks, h, w]. Chunk k starts
-// from the final x0 of chunk k-1's last latent; its noise is drawn per clip (clip_ids) and chunk.
+// from the final x0 of chunk k-1's last latent, in latent space as the student streams (the
+// teacher's own pixel rollouts decode that chunk and re-encode its last frame instead: a
+// single-frame latent where this one holds frames 9-12, an approximation); its noise is drawn per
+// clip (clip_ids) and chunk. Chunk c with seed s draws what chunk 0 with seed s + 1000003·c draws.
 torch::Tensor chained_teacher_points(models::ActionDitImpl& teacher, const diffusion::SigmaSchedule& schedule,
                                      const torch::Tensor& first, const torch::Tensor& actions,
                                      const std::vector<int64_t>& clip_ids, const TrajectorySpec& spec) {
@@ -118,6 +121,11 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
   // motions differ more than a neighbouring window's of the same episode.
   const int64_t clip_count = clips.size(), copies = 1 + spec.counterfactual_copies;
   const int64_t stride = std::max<int64_t>(1, clip_count / copies / 2 + 1);
+  DOJO_CHECK(spec.counterfactual_copies * stride < clip_count,
+             "distill: " + std::to_string(spec.counterfactual_copies) +
+                 " counterfactual copies need more than " +
+                 std::to_string(spec.counterfactual_copies * stride) + " clips (got " +
+                 std::to_string(clip_count) + "), or a copy would get its own clip's actions");
   std::vector<int64_t> action_source(static_cast<size_t>(clip_count * copies));
   for (int64_t j = 0; j < clip_count * copies; ++j)
     action_source[static_cast<size_t>(j)] = (j % clip_count + (j / clip_count) * stride) % clip_count;
@@ -288,6 +296,18 @@ DistillResult run_warmup(const DistillJob& job) {
 
   // The student starts as the teacher (its weights, its architecture); a resumed run from its own.
   const bool resuming = checkpoint_exists(ckpt_dir);
+  // What the trajectories are made of besides teacher and data (their shards check those): a run
+  // resumed on other trajectories would continue a student trained on the old ones, so it is refused.
+  const nlohmann::json trajectory_settings = {
+      {"chunks", job.trajectories.chunks}, {"counterfactual_copies", job.trajectories.counterfactual_copies}};
+  if (resuming) {
+    const auto extra = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).trainer_extra();
+    const auto before =
+        extra.value("trajectories", nlohmann::json{{"chunks", 1}, {"counterfactual_copies", 0}});
+    DOJO_CHECK(before == trajectory_settings,
+               ckpt_dir.string() + ": the warm-up was started on trajectories " + before.dump() + ", not " +
+                   trajectory_settings.dump() + "; give another --out or remove it to start afresh");
+  }
   // A resumed run keeps the architecture and the student settings (window, hops) it was started with.
   const auto saved =
       resuming ? Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config() : nlohmann::json();
@@ -356,10 +376,10 @@ DistillResult run_warmup(const DistillJob& job) {
                           note.str()};
       },
       [&](int64_t, bool) {
-        trainer.save(ckpt_dir, {{"stage", "warmup"}, {"clips", n}});
+        trainer.save(ckpt_dir, {{"stage", "warmup"}, {"clips", n}, {"trajectories", trajectory_settings}});
       });
   if (run.end_step == run.start_step && !resuming)
-    trainer.save(ckpt_dir, {{"stage", "warmup"}, {"clips", n}});
+    trainer.save(ckpt_dir, {{"stage", "warmup"}, {"clips", n}, {"trajectories", trajectory_settings}});
   result.steps = trainer.steps_done();
   result.last_loss = recent_mean();
   if (result.first_loss == 0) result.first_loss = result.last_loss;
@@ -394,6 +414,10 @@ DistillResult run_self_forcing(const DistillJob& job) {
   if (job.matmul_threads > 0) matmul_bound.emplace(job.matmul_threads);
   const auto& clips = data.clips;  // latents [N, 16, max_frames, h, w], actions [N, 4 (max_frames − 1), 384]
   const int64_t n = clips.size();
+  DOJO_CHECK(sf.counterfactual_share == 0 || n >= 2,
+             "self-forcing: --counterfactual-share drives rollouts with another clip's actions: it needs at "
+             "least 2 clips, got " +
+                 std::to_string(n));
 
   const bool resuming = checkpoint_exists(ckpt_dir) && checkpoint_exists(critic_dir);
   DOJO_CHECK(resuming || !job.init.empty(),

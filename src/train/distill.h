@@ -50,9 +50,10 @@ struct TrajectorySpec {
   // to them part of the regression target.
   int counterfactual_copies = 0;
   // Teacher chunks per trajectory: 1 gives the 4-latent clips (13 frames) the teacher was trained
-  // on; K > 1 chains K chunks as the teacher rolls out (chunk k starts from the x0 of chunk k-1's last
-  // latent, with its own 12 actions and noise) into 1 + 3 K latents (1 + 12 K frames), so the
-  // warm-up also teaches the positions a streaming student reaches after its first 13 frames.
+  // on; K > 1 chains K chunks in latent space (chunk k starts from the x0 of chunk k-1's last
+  // latent, with its own 12 actions and noise; the teacher's pixel rollouts re-encode a decoded
+  // frame there instead) into 1 + 3 K latents (1 + 12 K frames), so the warm-up also teaches the
+  // positions a streaming student reaches after its first 13 frames.
   int chunks = 1;
 };
 
