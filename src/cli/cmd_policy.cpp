@@ -201,8 +201,7 @@ WorldModelSource resolve_world_model(const WorldModelArgs& a, const std::string&
   if (!reference.empty()) {
     s.checkpoint = reference;
     s.tokenizer = pick(a.tokenizer, default_reference_dir() / "tokenizer");
-    s.fast_decoder = a.fast_decoder;
-    if (s.fast_decoder.empty() && a.tokenizer.empty()) s.fast_decoder = reference_fast_decoder();
+    s.fast_decoder = reference_model_fast_decoder(a.fast_decoder, !a.tokenizer.empty());
     LOG_INFO(who, ": the reference student ", s.checkpoint.string(),
              s.fast_decoder.empty() ? "" : ", decoded with " + s.fast_decoder.string());
   } else {

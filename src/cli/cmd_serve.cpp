@@ -58,8 +58,7 @@ std::optional<serve::ModelHost::Options> reference_host_options(const ServeArgs&
   s.checkpoint = student;
   s.tokenizer = pick(a.tokenizer, reference / "tokenizer");
   DOJO_CHECK(!s.tokenizer.empty(), "serve: the reference set in " + reference.string() + " has no tokenizer");
-  s.fast_decoder = !a.fast_decoder.empty() ? fs::path(a.fast_decoder)
-                                           : (a.tokenizer.empty() ? reference_fast_decoder() : fs::path());
+  s.fast_decoder = reference_model_fast_decoder(a.fast_decoder, !a.tokenizer.empty());
   o.models.push_back(s);
   const auto teacher = reference / "wm_posttrain";
   if (!a.no_teacher && fs::exists(teacher / "config.json")) {

@@ -45,6 +45,11 @@ std::filesystem::path reference_fast_decoder() {
   return fs::exists(dir / "config.json") ? dir : fs::path();
 }
 
+std::filesystem::path reference_model_fast_decoder(const std::string& given, bool tokenizer_given) {
+  if (!given.empty()) return given;
+  return tokenizer_given ? fs::path() : reference_fast_decoder();
+}
+
 std::string default_eval_data() {
 #ifdef DOJO_WITH_SIM
   const auto dir = fs::temp_directory_path() / "dojo-heldout-robot";
@@ -93,8 +98,8 @@ void ModelArgs::resolve_student(std::string& fast_decoder, std::string* probe) {
     }
   }
   resolve(probe);
-  if (reference && reference_tokenizer && fast_decoder.empty()) {
-    fast_decoder = reference_fast_decoder().string();
+  if (reference && fast_decoder.empty()) {
+    fast_decoder = reference_model_fast_decoder(fast_decoder, !reference_tokenizer).string();
     if (!fast_decoder.empty()) LOG_INFO("decoding with the reference fast decoder ", fast_decoder);
   }
 }

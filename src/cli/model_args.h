@@ -23,11 +23,14 @@ namespace dojo::cli {
 // no checkpoint is given (and its probe, when one is wanted and none given).
 void resolve_models(std::string& checkpoint, std::string& tokenizer, std::string* probe);
 
-// The reference set's distilled real-time student (<ref>/student: a world-model checkpoint whose
-// config.json has a "student" entry) and the fast streaming decoder of its tokenizer
-// (<ref>/fast_decoder); empty paths where the set has none.
+// The reference set's distilled real-time student (<ref>/student, a world-model checkpoint
+// directory) and the fast streaming decoder of its tokenizer (<ref>/fast_decoder); empty paths
+// where the set has no such directory with a config.json.
 std::filesystem::path reference_student();
 std::filesystem::path reference_fast_decoder();
+// The fast decoder of a model taken from the reference set: `given` when set; else the set's own,
+// unless another tokenizer was given (the set's decoder reads only its tokenizer's latents).
+std::filesystem::path reference_model_fast_decoder(const std::string& given, bool tokenizer_given);
 
 // Without --data: held-out DojoSim robot episodes (seed 1001, never a training seed), generated
 // once into the temporary directory and re-used.

@@ -160,9 +160,10 @@ SourceScore score_video(const torch::Tensor& video, const torch::Tensor& gt, con
   s.psnr = m.psnr;
   s.ssim = m.ssim;
   s.lpips = m.lpips;
-  const auto all = video_metrics(video, gt, nullptr);
-  s.psnr_all_frames = all.psnr;
-  s.ssim_all_frames = all.ssim;
+  // The released protocol's means over all T frames: frame 0's values joined to the predicted ones'.
+  const double frame0_ssim = ssim_per_frame(video.narrow(0, 0, 1), gt.narrow(0, 0, 1)).item<double>();
+  s.psnr_all_frames = (s.psnr_per_frame[0] + m.psnr * static_cast<double>(T - 1)) / static_cast<double>(T);
+  s.ssim_all_frames = (frame0_ssim + m.ssim * static_cast<double>(T - 1)) / static_cast<double>(T);
   if (kp.probe != nullptr && kp.truth.defined()) {
     const auto scores = score_keypoints(models::detect_keypoints(*kp.probe, video), kp.offset, kp.truth,
                                         video.size(1), video.size(2));

@@ -159,7 +159,7 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
       // batching does not change the draws.
       std::vector<int64_t> ids;
       for (int64_t j = b; j < b + m; ++j) ids.push_back(j % clip_count);
-      const auto first = clips.latents.index_select(0, torch::tensor(ids, torch::kLong)).narrow(2, 0, 1);
+      const auto first = clips.latents.narrow(2, 0, 1).index_select(0, torch::tensor(ids, torch::kLong));
       shard.push_back(
           chained_teacher_points(teacher, schedule, first, all_actions.narrow(0, b, m), ids, spec));
       progress.advance(m);

@@ -10,10 +10,6 @@
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
-#include <boost/asio/connect.hpp>
-#include <boost/asio/ip/tcp.hpp>
-#include <boost/beast/core.hpp>
-#include <boost/beast/http.hpp>
 
 #include <chrono>
 #include <filesystem>
@@ -23,6 +19,7 @@
 
 #include "core/checkpoint.h"
 #include "models/fast_decoder.h"
+#include "serve/http_request.h"
 #include "synthetic_data.h"
 #include "test_util.h"
 
@@ -124,29 +121,7 @@ TEST_F(ReferenceStudent, StreamAndEvalUseTheStudentAndItsFastDecoder) {
 
 #ifdef DOJO_WITH_SIM
 
-namespace beast = boost::beast;
-namespace http = beast::http;
-namespace net = boost::asio;
-
-// One HTTP request to 127.0.0.1:port: {status, body}.
-std::pair<int, std::string> request(uint16_t port, http::verb verb, const std::string& target,
-                                    const std::string& body = "") {
-  net::io_context ioc;
-  beast::tcp_stream stream(ioc);
-  stream.connect(net::ip::tcp::endpoint(net::ip::make_address("127.0.0.1"), port));
-  http::request<http::string_body> req{verb, target, 11};
-  req.set(http::field::host, "127.0.0.1");
-  if (!body.empty()) {
-    req.set(http::field::content_type, "application/json");
-    req.body() = body;
-    req.prepare_payload();
-  }
-  http::write(stream, req);
-  beast::flat_buffer buffer;
-  http::response<http::string_body> res;
-  http::read(stream, buffer, res);
-  return {static_cast<int>(res.result_int()), res.body()};
-}
+namespace http = boost::beast::http;
 
 // `dojo serve` with no model arguments: the set's student (fast decoder) and teacher on held-out
 // DojoSim episodes made on the spot; a rollout starts from the first of them.
@@ -193,9 +168,9 @@ TEST_F(ReferenceStudent, ServeWithNoArgumentsServesTheSetOnDojoSimScenes) {
   ASSERT_NE(at, std::string::npos) << text;
   const auto port = static_cast<uint16_t>(std::stoi(text.substr(at + listening.size())));
 
-  const auto [code, body] = request(port, http::verb::get, "/api/capabilities");
-  ASSERT_EQ(code, 200) << body;
-  const auto caps = nlohmann::json::parse(body);
+  const auto capabilities = test::http_request(port, http::verb::get, "/api/capabilities");
+  ASSERT_EQ(capabilities.status, 200) << capabilities.body;
+  const auto caps = nlohmann::json::parse(capabilities.body);
   ASSERT_EQ(caps.at("models").size(), 2u) << caps.dump();
   EXPECT_EQ(caps["models"][0].at("name"), "student");
   EXPECT_EQ(caps["models"][0].at("kind"), "student");
@@ -204,11 +179,11 @@ TEST_F(ReferenceStudent, ServeWithNoArgumentsServesTheSetOnDojoSimScenes) {
   EXPECT_EQ(caps.at("embodiments"), nlohmann::json::array({"dojosim_robot"}));
   EXPECT_EQ(caps.at("frame_size"), 64);
   ASSERT_EQ(caps.at("episodes").size(), 8u) << "the held-out DojoSim episodes";
-  const auto [rollout_code, rollout_body] =
-      request(port, http::verb::post, "/v1/rollout",
-              R"({"actions": [[0,0,0,0,0,0],[0,0,0,0,0,0],[0,0,0,0,0,0],[0,0,0,0,0,0]], "format": "jpeg"})");
-  ASSERT_EQ(rollout_code, 200) << rollout_body;
-  const auto rollout = nlohmann::json::parse(rollout_body);
+  const auto rolled = test::http_request(
+      port, http::verb::post, "/v1/rollout",
+      R"({"actions": [[0,0,0,0,0,0],[0,0,0,0,0,0],[0,0,0,0,0,0],[0,0,0,0,0,0]], "format": "jpeg"})");
+  ASSERT_EQ(rolled.status, 200) << rolled.body;
+  const auto rollout = nlohmann::json::parse(rolled.body);
   EXPECT_EQ(rollout.at("episode"), caps["episodes"][0]);
   EXPECT_EQ(rollout.at("frames").size(), 5u) << "the start frame and one step's 4";
 

@@ -18,6 +18,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/error.h"
+#include "http_request.h"
 #include "infer/generator.h"
 #include "infer/world_model.h"
 #include "io/jpeg.h"
@@ -37,29 +38,11 @@ namespace websocket = beast::websocket;
 namespace net = boost::asio;
 using tcp = net::ip::tcp;
 
-struct HttpResult {
-  int status = 0;
-  std::string body, content_type;
-};
-
+using test::HttpResult;
+// Requests to the server under test (tests/serve/http_request.h).
 HttpResult request(uint16_t port, http::verb verb, const std::string& target, const std::string& body = "",
                    const std::string& bearer = "") {
-  net::io_context ioc;
-  beast::tcp_stream stream(ioc);
-  stream.connect(tcp::endpoint(net::ip::make_address("127.0.0.1"), port));
-  http::request<http::string_body> req{verb, target, 11};
-  req.set(http::field::host, "127.0.0.1");
-  if (!bearer.empty()) req.set(http::field::authorization, "Bearer " + bearer);
-  if (!body.empty()) {
-    req.set(http::field::content_type, "application/json");
-    req.body() = body;
-    req.prepare_payload();
-  }
-  http::write(stream, req);
-  beast::flat_buffer buffer;
-  http::response<http::string_body> res;
-  http::read(stream, buffer, res);
-  return {static_cast<int>(res.result_int()), res.body(), std::string(res[http::field::content_type])};
+  return test::http_request(port, verb, target, body, bearer);
 }
 
 class WsClient {
