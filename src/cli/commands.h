@@ -57,6 +57,7 @@ void register_distill(CLI::App& app);
 void register_serve(CLI::App& app);
 void register_study(CLI::App& app);
 void register_serve_load(CLI::App& app);
+void register_serve_check(CLI::App& app);  // DojoSim builds only
 void register_policy(CLI::App& app);  // DojoSim builds only
 
 }  // namespace dojo::cli

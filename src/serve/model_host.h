@@ -78,6 +78,8 @@ class ModelHost {
   // The range of those raw commands (live commands are clamped to it), when known.
   std::optional<data::ArrayStats> command_stats(const std::string& model) const;
   std::vector<std::string> episode_ids() const;
+  const std::filesystem::path& data_dir() const { return options_.data; }
+  const std::string& split() const { return options_.split; }
   int frame_size(const std::string& model) const;
 
  private:

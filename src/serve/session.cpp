@@ -34,10 +34,13 @@ namespace fs = std::filesystem;
 // complete, so a recordings folder never holds half a recording under a real name.
 class SessionRecorder {
  public:
-  SessionRecorder(const fs::path& root, const std::string& name, const torch::Tensor& start, double fps)
+  // `about`: what a replay of the recording needs (session.json: model, episode, dataset, first step).
+  SessionRecorder(const fs::path& root, const std::string& name, const torch::Tensor& start, double fps,
+                  const nlohmann::json& about)
       : partial_(root / ("." + name + ".partial")), final_(root / name) {
     fs::create_directories(partial_);
     write_file_atomic(partial_ / "start.jpg", io::encode_jpeg(start, 95));
+    write_file_atomic(partial_ / "session.json", about.dump(2) + "\n");
     io::VideoWriterOptions w;
     w.fps = fps;
     video_ = std::make_unique<io::VideoWriter>((partial_ / "video.mp4").string(), w);
@@ -160,9 +163,11 @@ void Session::handle(const nlohmann::json& m) {
                "start: 'seed' must be a non-negative integer");
     DOJO_CHECK(!m.value("image", false) || !upload_.empty(),
                "start: 'image' needs a JPEG sent first as a binary message");
+    DOJO_CHECK(!m.contains("record") || m["record"].is_boolean(), "start: 'record' must be true or false");
     start_ = m;
     start_requested_ = true;
     steps_.clear();
+    if (m.value("record", false)) record_requested_ = true;  // from the start frame on
   } else if (type == "control" || type == "command") {
     DOJO_CHECK(streaming_ && !start_requested_, type + ": start a session and wait for 'ready' first");
     const auto& key = type == "control" ? "velocity" : "value";
@@ -329,8 +334,14 @@ void Session::worker() {
           const auto name =
               "session-" + std::to_string(std::chrono::system_clock::now().time_since_epoch().count());
           fs::create_directories(options_.recordings);
-          recorder_ =
-              std::make_unique<SessionRecorder>(options_.recordings, name, start_frame_, 1.0 / frame_dt_);
+          // first_step 0: the video starts at the start frame and every step's commands are in it, so
+          // the session can be replayed (dojo serve-check); later, the steps before it are missing.
+          const nlohmann::json about = {{"model", model_},        {"mode", mode_},
+                                        {"episode", episode_},    {"data", host_.data_dir().string()},
+                                        {"split", host_.split()}, {"seed", seed_},
+                                        {"fps", 1.0 / frame_dt_}, {"first_step", step_index_}};
+          recorder_ = std::make_unique<SessionRecorder>(options_.recordings, name, start_frame_,
+                                                        1.0 / frame_dt_, about);
           send_text({{"type", "recording"}, {"name", name}});
         } else if (!*record && recorder_) {
           const auto where = recorder_->finish();

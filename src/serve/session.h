@@ -4,14 +4,16 @@
 //
 // Client -> server (text, JSON; one object per message):
 //   {"type":"start", "mode":"live"|"step", "model":"student", "episode":"ep-3", "seed":0,
-//    "image":false}        "image": true starts from the last binary message (a JPEG upload)
+//    "image":false, "record":false}   "image": true starts from the last binary message (a JPEG
+//                          upload); "record": true records the stream from its start frame on
 //   {"type":"control", "velocity":[...], "t":1234.5}   live: per-dimension command velocity in the
 //                          embodiment's units per second ("t": the client's clock, echoed back)
 //   {"type":"command", "value":[...], "t":...}         live: an absolute command
 //   {"type":"step", "actions":[[...], ...]}             step mode: one step's actions, raw commands
 //                          (the embodiment's width) or rows of the model's 384-d layout
 //   {"type":"reset"}       back to the start frame
-//   {"type":"record", "on":true|false}                 recording (mp4 + actions + start frame)
+//   {"type":"record", "on":true|false}                 recording (mp4 + actions + start frame +
+//                          session.json); a recording from the start can be replayed (serve-check)
 // Server -> client:
 //   text  {"type":"ready", ...} | {"type":"step_done", ...} | {"type":"recorded", ...} |
 //         {"type":"error", "message":...}   (an error never ends the session)

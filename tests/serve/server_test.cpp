@@ -278,6 +278,21 @@ TEST_F(ServeTest, LiveSessionStreamsFramesAndSurvivesBadMessages) {
   EXPECT_TRUE(std::filesystem::exists(recorded / "video.mp4"));
   EXPECT_TRUE(std::filesystem::exists(recorded / "start.jpg"));
   EXPECT_GT(test::read_file(recorded / "actions.jsonl").size(), 0u);
+  const auto about = nlohmann::json::parse(test::read_file(recorded / "session.json"));
+  EXPECT_GT(about["first_step"].get<int>(), 0) << "begun mid-stream: not replayable, and it says so";
+  EXPECT_EQ(about["model"], "student");
+  EXPECT_FALSE(about["episode"].get<std::string>().empty());
+
+  // Recorded from the start: the recording begins at step 0, so the session can be replayed.
+  ws.send({{"type", "start"}, {"mode", "live"}, {"model", "student"}, {"record", true}});
+  ws.until("recording");
+  ws.frames_until(ws.frames.size() + 8);
+  ws.send({{"type", "record"}, {"on", false}});
+  const auto from_start = std::filesystem::path(ws.until("recorded")["path"].get<std::string>());
+  EXPECT_EQ(nlohmann::json::parse(test::read_file(from_start / "session.json"))["first_step"], 0);
+  ws.send({{"type", "start"}, {"record", 1}});
+  EXPECT_NE(ws.until("error")["message"].get<std::string>().find("'record' must be true or false"),
+            std::string::npos);
   server.stop();
 }
 

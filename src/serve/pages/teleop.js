@@ -10,7 +10,11 @@ const view = $("view"), ctx = view.getContext("2d");
 
 let ws = null, mapping = null, width = 0, velocity = [], held = new Set(), mouse = null;
 let frameTimes = [], latencies = [], framesShown = 0, recording = false, xrSession = null;
-window.dojo = { frames: 0, lastSeq: -1, lastLatencyMs: null, ready: null, errors: [], recorded: null };
+// keyLatencies: per key press, ms from the keydown to the first drawn frame whose step saw it.
+window.dojo = { frames: 0, lastSeq: -1, lastLatencyMs: null, keyLatencies: [], ready: null, errors: [], recorded: null };
+let keyDownAt = null;
+// ?record=1: every session is recorded from its start frame, so it can be replayed (dojo serve-check).
+const recordFromStart = params.get("record") === "1";
 
 function log(text) { $("log").textContent = text; if (text) window.dojo.errors.push(text); }
 
@@ -36,6 +40,9 @@ async function init() {
       row.insertCell().textContent = d.name;
       row.insertCell().textContent = (d.keys || []).map((k) => k.replace("Key", "")).join(" / ");
     }
+    const home = $("keys").insertRow();
+    home.insertCell().textContent = "home (the start pose)";
+    home.insertCell().textContent = "H";
   }
   if (navigator.xr && window.isSecureContext) {
     navigator.xr.isSessionSupported("immersive-vr").then((ok) => { $("xr").hidden = !ok; });
@@ -53,6 +60,9 @@ function start() {
   ws.onopen = async () => {
     const file = $("image").files[0];
     const start = { type: "start", mode: "live", model: $("model").value, episode: $("episode").value, seed: 0 };
+    if (recordFromStart) {
+      start.record = true; recording = true; $("record").textContent = "Stop recording";
+    }
     if (file) { ws.send(await file.arrayBuffer()); start.image = true; }
     send(start);
   };
@@ -117,6 +127,10 @@ function drawNext(now) {
   frameTimes.push(now);
   while (frameTimes.length && frameTimes[0] < now - 2000) frameTimes.shift();
   if (clientT > 0) { latencies.push(now - clientT); if (latencies.length > 30) latencies.shift(); }
+  if (keyDownAt !== null && clientT >= keyDownAt) {
+    if (window.dojo.keyLatencies.length < 10000) window.dojo.keyLatencies.push(now - keyDownAt);
+    keyDownAt = null;
+  }
   framesShown++;
   window.dojo.frames = framesShown; window.dojo.lastSeq = seq;
   window.dojo.lastLatencyMs = latencies.length ? latencies[latencies.length - 1] : null;
@@ -172,7 +186,16 @@ function pumpControls() {
   }
 }
 setInterval(pumpControls, 100);
-document.addEventListener("keydown", (e) => { if (!held.has(e.code)) { held.add(e.code); pumpControls(); } });
+// H: back to the session's start command (the arm returns to the start pose; the stream goes on).
+const kHomeKey = "KeyH";
+document.addEventListener("keydown", (e) => {
+  if (held.has(e.code)) return;
+  held.add(e.code);
+  keyDownAt = performance.now();
+  if (e.code === kHomeKey && window.dojo.ready && window.dojo.ready.command)
+    send({ type: "command", value: window.dojo.ready.command, t: keyDownAt });
+  pumpControls();
+});
 document.addEventListener("keyup", (e) => { held.delete(e.code); pumpControls(); });
 view.addEventListener("mousedown", (e) => { mouse = { x0: e.clientX, y0: e.clientY, dx: 0, dy: 0 }; });
 window.addEventListener("mousemove", (e) => { if (mouse) { mouse.dx = e.clientX - mouse.x0; mouse.dy = e.clientY - mouse.y0; } });
