@@ -7,6 +7,7 @@
 #include <fstream>
 
 #include "core/error.h"
+#include "core/json_file.h"
 #include "core/log.h"
 #include "data/episode_store.h"
 #include "eval/keypoint_metrics.h"
@@ -23,14 +24,6 @@ namespace {
 
 constexpr int64_t kArmKeypoints = 3;
 constexpr double kUnchanged = 1e-6;  // a command value that moved less than this did not move
-
-nlohmann::json read_json_file(const fs::path& path) {
-  std::ifstream in(path);
-  DOJO_CHECK(in.good(), path.string() + ": cannot read (is this a recording of `dojo serve`?)");
-  const auto j = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
-  DOJO_CHECK(!j.is_discarded() && j.is_object(), path.string() + ": not a JSON object");
-  return j;
-}
 
 // actions.jsonl -> every step's raw command rows, in order: [R, w].
 torch::Tensor read_raw_commands(const fs::path& path) {
@@ -70,23 +63,24 @@ size_t find_episode(const data::EpisodeStore& store, const std::string& id) {
 }
 
 // Replays the rows in DojoSim from the episode's scene: arm keypoints [1 + R, 3, 3] (u, v, in_view)
-// and, when `frames` is given, the rendered frames [1 + R, H, W, 3].
-torch::Tensor replay(sim::World& world, const torch::Tensor& rows, torch::Tensor* frames) {
+// and the rendered frames [1 + R, H, W, 3].
+struct Replay {
+  torch::Tensor keypoints, frames;
+};
+Replay replay(sim::World& world, const torch::Tensor& rows) {
   const int64_t n = rows.size(0) + 1;
-  auto truth = torch::zeros({n, kArmKeypoints, 3});
-  std::unique_ptr<sim::Renderer> renderer;
+  Replay out;
+  out.keypoints = torch::zeros({n, kArmKeypoints, 3});
+  sim::Renderer renderer;
   std::vector<torch::Tensor> rendered;
-  if (frames) renderer = std::make_unique<sim::Renderer>();
   const auto record = [&](int64_t t) {
     const auto points = world.keypoints();
     for (int64_t k = 0; k < kArmKeypoints; ++k)
-      truth[t][k] = torch::tensor({static_cast<float>(points[k].u), static_cast<float>(points[k].v),
-                                   points[k].in_view ? 1.0f : 0.0f});
-    if (renderer) {
-      auto rgb = renderer->render(world);
-      rendered.push_back(
-          torch::from_blob(rgb.data(), {world.spec().height, world.spec().width, 3}, torch::kUInt8).clone());
-    }
+      out.keypoints[t][k] = torch::tensor({static_cast<float>(points[k].u), static_cast<float>(points[k].v),
+                                           points[k].in_view ? 1.0f : 0.0f});
+    auto rgb = renderer.render(world);
+    rendered.push_back(
+        torch::from_blob(rgb.data(), {world.spec().height, world.spec().width, 3}, torch::kUInt8).clone());
   };
   record(0);
   const auto r = rows.to(torch::kFloat64).contiguous();
@@ -94,8 +88,8 @@ torch::Tensor replay(sim::World& world, const torch::Tensor& rows, torch::Tensor
     world.step(std::vector<double>(r[i].data_ptr<double>(), r[i].data_ptr<double>() + r.size(1)));
     record(i + 1);
   }
-  if (frames) *frames = torch::stack(rendered);
-  return truth;
+  out.frames = torch::stack(rendered);
+  return out;
 }
 
 // Runs of rows in which exactly one dimension moves, the same way every row. `previous`: the
@@ -180,7 +174,10 @@ nlohmann::json TeleopCheck::to_json() const {
 }
 
 TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
+  DOJO_CHECK(fs::exists(o.recording / "session.json"),
+             (o.recording / "session.json").string() + ": missing (is this a recording of `dojo serve`?)");
   const auto about = read_json_file(o.recording / "session.json");
+  DOJO_CHECK(about.is_object(), (o.recording / "session.json").string() + ": not a JSON object");
   DOJO_CHECK(about.value("first_step", int64_t{-1}) == 0,
              (o.recording / "session.json").string() +
                  ": the recording began after the stream's start (first_step " +
@@ -196,10 +193,11 @@ TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
   const auto store = data::EpisodeStore::open(data_dir);
   TeleopCheck out;
   out.episode = about["episode"].get<std::string>();
-  const auto episode = store.load_arrays(find_episode(store, out.episode));
+  const size_t episode_index = find_episode(store, out.episode);
+  const auto episode_dir = store.episode_dir(episode_index).string();
+  const auto episode = store.load_arrays(episode_index);
   DOJO_CHECK(episode.meta.contains("scene") && episode.actions.defined() && episode.actions.size(0) > 0,
-             store.episode_dir(find_episode(store, out.episode)).string() +
-                 ": not a DojoSim robot episode (no scene or actions to replay)");
+             episode_dir + ": not a DojoSim robot episode (no scene or actions to replay)");
 
   const auto rows = read_raw_commands(o.recording / "actions.jsonl");  // [R, w]
   io::VideoReader reader((o.recording / "video.mp4").string());
@@ -218,8 +216,8 @@ TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
              (o.recording / "actions.jsonl").string() + ": rows of " + std::to_string(rows.size(1)) +
                  " commands, DojoSim takes " + std::to_string(world.action_dim()));
   const auto names = world.command_names();
-  torch::Tensor replay_frames;                             // [1 + R, H, W, 3]
-  const auto truth = replay(world, rows, &replay_frames);  // [1 + R, 3, 3]
+  const auto replayed = replay(world, rows);
+  const auto& truth = replayed.keypoints;  // [1 + R, 3, 3]
   const int64_t height = stream.size(1), width = stream.size(2);
   if (episode.keypoints.defined() && episode.keypoints.size(0) > 0) {
     const auto recorded = episode.keypoints[0].view({-1, 3}).narrow(0, 0, kArmKeypoints);
@@ -228,21 +226,23 @@ TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
                            .norm(2, 1)
                            .max()
                            .item<double>();
-    DOJO_CHECK(off < 0.5, store.episode_dir(find_episode(store, out.episode)).string() +
-                              ": the replay does not start where the episode does (" + std::to_string(off) +
+    DOJO_CHECK(off < 0.5, episode_dir + ": the replay does not start where the episode does (" +
+                              std::to_string(off) +
                               " px off): another DojoSim version, or not this recording's data");
   }
 
   auto probe = models::load_keypoint_probe(o.probe);
   const auto found = models::detect_keypoints(probe, stream);
   const int64_t offset = models::keypoint_offset(probe->config(), "robot");
-  const auto present = found.presence.narrow(1, offset, kArmKeypoints).gt(0);  // [T, 3]
-  const auto arm_found = present.sum(1).ge(2);                                 // [T]
-  const auto arm_in_view = truth.select(2, 2).gt(0.5).sum(1).ge(2);            // [T]
+  const auto arm_present = [&](const models::KeypointOutput& k) {  // [T, 3]
+    return k.presence.narrow(1, offset, kArmKeypoints).gt(0);
+  };
+  const auto present = arm_present(found);
+  const auto arm_found = present.sum(1).ge(2);                       // [T]
+  const auto arm_in_view = truth.select(2, 2).gt(0.5).sum(1).ge(2);  // [T]
   // The probe's own ceiling: on DojoSim's frames of the same commands it misses the arm sometimes too.
-  const auto replay_found =
-      models::detect_keypoints(probe, replay_frames).presence.narrow(1, offset, kArmKeypoints);
-  out.arm_found_in_replay = share(replay_found.gt(0).sum(1).ge(2).masked_select(arm_in_view));
+  const auto replay_found = arm_present(models::detect_keypoints(probe, replayed.frames)).sum(1).ge(2);
+  out.arm_found_in_replay = share(replay_found.masked_select(arm_in_view));
   out.arm_found = share(arm_found);
   out.arm_in_view = share(arm_in_view);
   out.arm_found_where_in_view = arm_in_view.any().item<bool>() ? share(arm_found.masked_select(arm_in_view))
@@ -285,7 +285,7 @@ TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
     static const std::vector<std::array<uint8_t, 3>> kColors = {{255, 60, 60}, {60, 220, 60}, {70, 140, 255}};
     constexpr int64_t kScale = 4;
     auto left = io::upscale_nearest(stream, kScale).clone();
-    auto right = io::upscale_nearest(replay_frames, kScale).clone();
+    auto right = io::upscale_nearest(replayed.frames, kScale).clone();
     io::draw_markers(left, found.coords.narrow(1, offset, kArmKeypoints), present, kScale, kColors);
     io::draw_markers(right, truth.narrow(2, 0, 2), truth.select(2, 2).gt(0.5), kScale, kColors);
     io::write_comparison_video(o.video.string(), {left, right}, {"stream (probe)", "DojoSim replay"},

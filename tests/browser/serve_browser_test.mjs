@@ -7,13 +7,14 @@
 // Environment: DOJO_EXE (default build/dojo), DOJO_SOURCE_DIR (default .), CHROMIUM (default
 // /usr/bin/chromium). --bench measures instead of testing: N live sessions for SECONDS, frames/s
 // and input-to-frame latency as the pages see them, as one JSON line.
-import { spawn, execFileSync } from "node:child_process";
+import { execFileSync } from "node:child_process";
 import { existsSync, mkdtempSync, readFileSync, rmSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
+import { startServer } from "./serve_process.mjs";
 import assert from "node:assert/strict";
 
-let server = null;  // declared before the first fail(): it reads it
+let server = null, base = null;  // declared before the first fail(): it reads it
 let chromium;
 try {
   ({ chromium } = await import("playwright-core"));
@@ -58,26 +59,8 @@ const serverArgs = ["serve", "--student", join(reference, "wm_posttrain"), "--no
   join(reference, "tokenizer"), "--data", join(tmp, "robot"), "--split", "all", "--port", "0",
   "--recordings", join(tmp, "recordings"), "--max-sessions", String(Math.max(4, benchSessions))];
 if (!benchSeconds) serverArgs.push("--study", join(tmp, "study"));
-server = spawn(exe, serverArgs, { stdio: ["ignore", "pipe", "pipe"] });
-let serverLog = "";
-const port = await new Promise((resolve, reject) => {
-  const timer = setTimeout(() => reject(new Error("server did not start:\n" + serverLog)), 60000);
-  const onData = (d) => {
-    serverLog += d;
-    const m = /listening on https?:\/\/[\d.]+:(\d+)/.exec(serverLog);
-    if (m) { clearTimeout(timer); resolve(Number(m[1])); }
-  };
-  server.stderr.on("data", onData);
-  server.stdout.on("data", onData);
-  server.on("exit", (code) => reject(new Error(`server exited (${code}):\n${serverLog}`)));
-}).catch((e) => fail(e.message));
-const base = `http://127.0.0.1:${port}`;
-for (let i = 0; ; ++i) {
-  const r = await fetch(base + "/health").catch(() => null);
-  if (r && r.status === 200) break;
-  if (i > 600) fail("the models did not load within 60 s:\n" + serverLog);
-  await new Promise((r) => setTimeout(r, 100));
-}
+let serverLog;
+({ server, base, log: serverLog } = await startServer(exe, serverArgs).catch((e) => fail(e.message)));
 step(`server up on ${base}`);
 
 const browser = await chromium
@@ -212,7 +195,7 @@ try {
     step("all passed");
   }
 } catch (e) {
-  console.error(serverLog.split("\n").slice(-20).join("\n"));
+  console.error(serverLog().split("\n").slice(-20).join("\n"));
   console.error("FAIL: " + (e.stack || String(e)));
   process.exitCode = 1;
 } finally {  // never leave a server or a browser behind

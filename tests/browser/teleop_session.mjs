@@ -10,10 +10,11 @@
 // --idle: no key at all for that long instead (does the stream keep a resting arm?).
 // Environment: DOJO_EXE (default build/dojo), CHROMIUM (default /usr/bin/chromium).
 // A measurement, not a test: docs/benchmarks.md records its numbers with the machine.
-import { spawn, execFileSync } from "node:child_process";
+import { execFileSync } from "node:child_process";
 import { existsSync, mkdtempSync, readFileSync, rmSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
+import { startServer } from "./serve_process.mjs";
 
 const args = process.argv.slice(2);
 const option = (name, fallback) => (args.includes(name) ? args[args.indexOf(name) + 1] : fallback);
@@ -22,7 +23,7 @@ const video = option("--video", ""), model = option("--model", "student");
 const idleSeconds = Number(option("--idle", 0));
 const exe = process.env.DOJO_EXE || join(".", "build", "dojo");
 const browserPath = process.env.CHROMIUM || "/usr/bin/chromium";
-let server = null;
+let server = null, base = null;
 function fail(message) {
   if (server) server.kill("SIGKILL");
   console.error("FAIL: " + message);
@@ -35,26 +36,9 @@ if (!existsSync(exe)) fail(`no dojo binary at ${exe} (build first, or set DOJO_E
 const tmp = mkdtempSync(join(tmpdir(), "dojo-teleop-"));
 const serveArgs = ["serve", "--port", "0", "--recordings", join(tmp, "recordings")];
 if (args.includes("--teacher-steps")) serveArgs.push("--teacher-steps", option("--teacher-steps", "35"));
-server = spawn(exe, serveArgs, { stdio: ["ignore", "pipe", "pipe"] });
-let serverLog = "";
-const port = await new Promise((resolve, reject) => {
-  const timer = setTimeout(() => reject(new Error("server did not start:\n" + serverLog)), 120000);
-  const onData = (d) => {
-    serverLog += d;
-    const m = /listening on https?:\/\/[\d.]+:(\d+)/.exec(serverLog);
-    if (m) { clearTimeout(timer); resolve(Number(m[1])); }
-  };
-  server.stderr.on("data", onData);
-  server.stdout.on("data", onData);
-  server.on("exit", (code) => reject(new Error(`server exited (${code}):\n${serverLog}`)));
-}).catch((e) => fail(e.message));
-const base = `http://127.0.0.1:${port}`;
-for (let i = 0; ; ++i) {
-  const r = await fetch(base + "/health").catch(() => null);
-  if (r && r.status === 200) break;
-  if (i > 1200) fail("the models did not load within 120 s:\n" + serverLog);
-  await new Promise((r) => setTimeout(r, 100));
-}
+let serverLog;
+({ server, base, log: serverLog } =
+  await startServer(exe, serveArgs, { startSeconds: 120, loadSeconds: 120 }).catch((e) => fail(e.message)));
 
 const browser = await chromium.launch({ executablePath: browserPath, args: ["--no-sandbox", "--disable-gpu"] })
   .catch((e) => fail("cannot start chromium: " + e.message));
@@ -104,7 +88,7 @@ try {
     key_to_frame_ms_p50: percentile(shown.keyLatencies, 0.5), key_to_frame_ms_p95: percentile(shown.keyLatencies, 0.95),
     key_presses_measured: shown.keyLatencies.length, check }));
 } catch (e) {
-  console.error(serverLog.split("\n").slice(-20).join("\n"));
+  console.error(serverLog().split("\n").slice(-20).join("\n"));
   console.error("FAIL: " + (e.stack || String(e)));
   process.exitCode = 1;
 } finally {
