@@ -60,6 +60,11 @@ void add_generate(CLI::App& sim) {
          "Robot train split: share of episodes moving the arm at random (play) instead of the bin task")
       ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
+  cmd->add_option("--play-behaviors", o->play_behaviors,
+                  "Robot train split: the play episodes' behaviours, in turn (random_motion, teleop_play: an "
+                  "operator holding the teleoperation page's keys); default random_motion")
+      ->check(CLI::IsMember({"random_motion", "teleop_play"}))
+      ->delimiter(',');
   cmd->add_option("--policies", *policies,
                   "Robot train split: the episodes run the policies of this policy-set file in turn (as "
                   "`policy eval --policies`; scripted policies only), or 'default' for the built-in set "

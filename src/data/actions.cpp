@@ -6,6 +6,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/error.h"
+#include "core/safetensors.h"
 
 namespace dojo::data {
 
@@ -163,7 +164,7 @@ void ActionChunker::set_baseline(const at::Tensor& raw_row) {
 at::Tensor ActionChunker::push(const at::Tensor& raw_rows) {
   DOJO_CHECK(raw_rows.dim() == 2 && raw_rows.size(0) == rows_per_push_ && raw_rows.size(1) == width(),
              "an action chunk must be " + std::to_string(rows_per_push_) + " rows of " +
-                 std::to_string(width()) + " values");
+                 std::to_string(width()) + " values, got shape " + shape_string(raw_rows.sizes()));
   const auto normalized = normalize_min_max(raw_rows, stats_);  // [rows, w]
   if (!last_.defined()) last_ = normalized[0];
   // Baseline of model chunk k: the row before it (chunk k-1's last row, or the stream's last).

@@ -136,6 +136,8 @@ std::string write_demo_report(const fs::path& out, const nlohmann::json& stages)
   }
   write_file_atomic(out / "eval.md", md);
 
+  // The rollouts' length as the evaluation recorded it (every split rolls out the same chunks).
+  const int64_t frames = evals.empty() ? 0 : evals[0].value("frames_per_video", int64_t{0});
   eval::HtmlReport html("DreamDojo.cpp demo on DojoSim");
   const bool tokenizer_copied =
       stages.contains("tokenizer") &&
@@ -150,13 +152,14 @@ std::string write_demo_report(const fs::path& out, const nlohmann::json& stages)
                       : "a small Wan2.1-architecture tokenizer learned the latent space; ") +
       "a keypoint probe learned to find the arm and the hand; the action-conditioned DiT "
       "was "
-      "pretrained on human video with latent actions and post-trained on robot actions. It then rolled out "
-      "49-frame videos (4 chunks of 12 actions, 3 autoregressive resets) from the first frame and the "
-      "actions of "
-      "episodes it never saw.");
+      "pretrained on human video with latent actions and post-trained on robot actions. It then rolled out " +
+      std::to_string(frames) +
+      "-frame videos (chunks of 12 actions, each started from the last frame of the one "
+      "before) from the first frame and the actions of episodes it never saw.");
   html.heading("Rollouts vs ground truth");
   html.paragraph(
-      "PSNR/SSIM per frame (piq conventions) on the predicted frames 1-48 (frame 0, which every method is "
+      "PSNR/SSIM per frame (piq conventions) on the predicted frames 1-" + std::to_string(frames - 1) +
+      " (frame 0, which every method is "
       "given, is left out: copy-frame's frame 0 is the ground truth itself), mean per video, then over "
       "videos; the last column is the released protocol's PSNR with frame 0 included. The copy-frame "
       "baseline repeats "

@@ -144,10 +144,12 @@ nlohmann::json ModelHost::capabilities() const {
       slots.push_back({{"slot", slot}, {"begin", s.begin}, {"width", stats.at("min").size()}});
       embodiments.insert(slot);
     }
+    const int64_t per_step =
+        h->spec.streaming ? infer::StreamingEngine::kActionsPerStep : infer::WorldModel::kChunkActions;
     models.push_back({{"name", h->spec.name},
                       {"kind", h->spec.streaming ? "student" : "teacher"},
-                      {"actions_per_step", h->spec.streaming ? 4 : 12},
-                      {"frames_per_step", h->spec.streaming ? 4 : 12},
+                      {"actions_per_step", per_step},
+                      {"frames_per_step", per_step},  // a frame per action row in both models
                       {"decoder", h->spec.fast_decoder.empty() ? "wan" : "fast"},
                       {"action_slots", slots}});
   }

@@ -42,6 +42,7 @@ nlohmann::json GenerateOptions::to_json() const {
       {"skills", skills},         {"quality", quality}};
   // Recorded only when used, so runs from before the option still resume.
   if (play_fraction > 0) j["play_fraction"] = play_fraction;
+  if (!play_behaviors.empty()) j["play_behaviors"] = play_behaviors;
   if (!policies.empty()) {
     auto& list = j["policies"] = nlohmann::json::array();
     for (const auto& p : policies)
@@ -94,7 +95,10 @@ PlannedEpisode plan_episode(const GenerateOptions& o, int index) {
       controller.robot.behavior = kBehaviors[index % 4];
     } else if (o.split == "train" && o.play_fraction > 0 &&
                data::uniform_index(rng, 1000000) < static_cast<uint64_t>(o.play_fraction * 1000000)) {
-      controller.robot.behavior = RobotBehavior::kRandomMotion;
+      controller.robot.behavior =
+          o.play_behaviors.empty()
+              ? RobotBehavior::kRandomMotion
+              : parse_robot_behavior(o.play_behaviors[static_cast<size_t>(index) % o.play_behaviors.size()]);
     } else if (o.split == "train" && !o.policies.empty()) {
       const auto& drawn = o.policies[static_cast<size_t>(index) % o.policies.size()];  // in turn (play aside)
       controller.robot = drawn.options;
@@ -246,6 +250,9 @@ GenerateSummary generate_dataset(const fs::path& out, const GenerateOptions& opt
                "--policies: only the robot train split runs a policy set");
     DOJO_CHECK(options.quality.empty(), "--policies and --quality both choose the policy; give one");
   }
+  for (const auto& name : options.play_behaviors)
+    DOJO_CHECK(name == "random_motion" || name == "teleop_play",
+               "--play-behaviors: '" + name + "' is not play (expected random_motion or teleop_play)");
 
   // Plan everything up front: a bad option fails before any work is done.
   std::vector<PlannedEpisode> plans;

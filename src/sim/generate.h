@@ -41,6 +41,9 @@ struct GenerateOptions {
   // the next motion predictable from the scene; play data is where a world model must read the
   // actions to know where the arm goes.
   double play_fraction = 0;
+  // The play episodes' behaviours, in turn (episode i the (i mod n)-th): random_motion and/or
+  // teleop_play (an operator's held keys). Empty: random_motion.
+  std::vector<std::string> play_behaviors;
   // Robot train split: each episode that is not play runs one of these in turn (episode i the
   // (i mod n)-th; a named behaviour and quality: a policy set, as `dojo policy eval` uses) instead
   // of the expert/good/medium mix; the name goes into the episode's meta as "policy". A world

@@ -3,6 +3,7 @@
 #include "sim/skills.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <deque>
 #include <set>
@@ -147,7 +148,8 @@ class RobotController : public Controller {
       case RobotBehavior::kRandomMotion:
         plan_random(w, now);
         break;
-      case RobotBehavior::kIdle:  // made a HoldController instead; kept for a complete switch
+      case RobotBehavior::kTeleopPlay:  // made a TeleopPlayController instead; kept for a complete switch
+      case RobotBehavior::kIdle:        // made a HoldController instead; kept for a complete switch
         script_.wait(1.0);
         break;
     }
@@ -376,6 +378,61 @@ class HoldController : public Controller {
   nlohmann::json describe() const override { return {{"behavior", "idle"}}; }
 };
 
+// Play as an operator at the teleoperation page's keyboard makes it: one joint (sometimes two)
+// driven at the key's constant rate for 0.3-3.5 s, released, now and then sent back to the start
+// command (the page's home key). Rates are those of src/serve/pages/dojosim_robot.mapping.json.
+// Scripted demonstrations and random_motion move smoothly between poses over the workspace;
+// a held key is a ramp on one joint that can swing the arm far from it, which a world model
+// streamed under teleoperation must have seen.
+class TeleopPlayController : public Controller {
+ public:
+  TeleopPlayController(const World& world, uint64_t seed)
+      : rng_(seed), home_(world.initial_command()), velocity_(arm::kActionDim, 0.0) {}
+
+  std::vector<double> act(const World& world, int) override {
+    if (command_.empty()) command_ = world.last_command();
+    if (steps_left_ <= 0) draw_segment(world.control_dt());
+    --steps_left_;
+    for (size_t j = 0; j < command_.size(); ++j) command_[j] += velocity_[j] * world.control_dt();
+    for (int j = 0; j < arm::kNumArmJoints; ++j)
+      command_[j] = std::clamp(command_[j], arm::kJointLimits[j].lo, arm::kJointLimits[j].hi);
+    command_[5] = std::clamp(command_[5], 0.0, 1.0);
+    return command_;
+  }
+  std::string task_text() const override { return "move the arm around"; }
+  nlohmann::json describe() const override { return {{"behavior", to_string(RobotBehavior::kTeleopPlay)}}; }
+
+ private:
+  static constexpr std::array<double, arm::kActionDim> kKeyRates = {0.8, 0.6, 0.6, 0.8, 1.0, 1.5};
+
+  void draw_segment(double dt) {
+    std::fill(velocity_.begin(), velocity_.end(), 0.0);
+    const double u = rng_.uniform(0.0, 1.0);
+    if (u < 0.15) {  // home: the command jumps back, the arm follows while the keys rest
+      command_ = home_;
+      steps_left_ = static_cast<int>(rng_.uniform(0.5, 1.5) / dt);
+      return;
+    }
+    if (u < 0.35) {  // keys released
+      steps_left_ = static_cast<int>(rng_.uniform(0.2, 1.5) / dt);
+      return;
+    }
+    const int joints = rng_.bernoulli(0.25) ? 2 : 1;
+    for (int k = 0; k < joints; ++k) {
+      const int dim = rng_.randint(0, arm::kActionDim - 1);
+      const double speed = rng_.bernoulli(0.6) ? 1.0 : rng_.uniform(0.3, 1.0);  // a gamepad's partial tilt
+      velocity_[dim] = (rng_.bernoulli(0.5) ? 1.0 : -1.0) * speed * kKeyRates[dim];
+    }
+    steps_left_ = std::max(1, static_cast<int>(rng_.uniform(0.3, 3.5) / dt));
+  }
+
+  Rng rng_;
+  std::vector<double> home_;
+  std::vector<double> command_;
+  std::vector<double> velocity_;
+  int steps_left_ = 0;
+};
+
 }  // namespace
 
 // ================================================================================================
@@ -454,6 +511,8 @@ const char* to_string(RobotBehavior behavior) {
       return "push";
     case RobotBehavior::kRandomMotion:
       return "random_motion";
+    case RobotBehavior::kTeleopPlay:
+      return "teleop_play";
     case RobotBehavior::kIdle:
       return "idle";
   }
@@ -465,7 +524,7 @@ RobotBehavior parse_robot_behavior(const std::string& name) {
     if (name == to_string(static_cast<RobotBehavior>(i))) return static_cast<RobotBehavior>(i);
   }
   throw UsageError("unknown robot behavior '" + name +
-                   "' (expected bin_pick, pat, reach_miss, push, random_motion or idle)");
+                   "' (expected bin_pick, pat, reach_miss, push, random_motion, teleop_play or idle)");
 }
 
 std::unique_ptr<Controller> make_robot_controller(const World& world, const RobotPolicyOptions& options,
@@ -476,6 +535,8 @@ std::unique_ptr<Controller> make_robot_controller(const World& world, const Robo
   DOJO_CHECK(options.quality.delay_steps >= 0 && options.quality.delay_steps < 100,
              "policy quality: delay_steps must be in [0, 100)");
   if (options.behavior == RobotBehavior::kIdle) return std::make_unique<HoldController>();
+  if (options.behavior == RobotBehavior::kTeleopPlay)
+    return std::make_unique<TeleopPlayController>(world, seed);
   return std::make_unique<RobotController>(world, options, seed);
 }
 

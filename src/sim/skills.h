@@ -84,6 +84,7 @@ enum class RobotBehavior {
   kReachMiss,     // reach for an object, grasp beside it, lift nothing
   kPush,          // push an object sideways with the closed gripper
   kRandomMotion,  // random smooth joint-space motion
+  kTeleopPlay,    // an operator at the keyboard: one or two joints at a key's constant rate (quality ignored)
   kIdle,          // hold the settled start command: a policy that does nothing (quality ignored)
 };
 const char* to_string(RobotBehavior behavior);

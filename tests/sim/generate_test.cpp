@@ -114,6 +114,25 @@ TEST(Generate, EvaluationSplits) {
   EXPECT_THROW(generate_dataset(tmp / "bad", bad), Error);
 }
 
+TEST(Generate, PlayBehaviorsTakeTurns) {
+  test::TempDir tmp;
+  auto o = small("robot", 4);
+  o.val_fraction = 0;
+  o.play_fraction = 1;
+  o.play_behaviors = {"teleop_play", "random_motion"};
+  generate_dataset(tmp / "p", o);
+  const auto store = data::EpisodeStore::open(tmp / "p");
+  for (size_t i = 0; i < store.size(); ++i)
+    EXPECT_EQ(store.load_arrays(i).meta.at("controller").at("behavior"),
+              i % 2 ? "random_motion" : "teleop_play")
+        << "episode " << i;
+  o.play_behaviors = {"teleop_play"};  // the kinds are part of the run's identity
+  const auto message = test::error_message([&] { generate_dataset(tmp / "p", o); });
+  EXPECT_NE(message.find("play_behaviors"), std::string::npos) << message;
+  o.play_behaviors = {"bin_pick"};
+  EXPECT_THROW(generate_dataset(tmp / "q", o), Error);
+}
+
 TEST(Generate, PolicySetTakesTurnsAndIdleHoldsStill) {
   test::TempDir tmp;
   auto o = small("robot", 6);

@@ -137,6 +137,47 @@ TEST(SimSkills, RobotCounterfactualBehaviours) {
     EXPECT_FALSE(r->meta["task"].get<std::string>().empty());
 }
 
+// Teleoperation play is held keys: between the home jumps, at most two joints move per step, each
+// by at most its key's rate times the control step, and full-rate ramps of several steps occur.
+TEST(SimSkills, TeleopPlayMovesLikeHeldKeys) {
+  const double kRates[6] = {0.8, 0.6, 0.6, 0.8, 1.0, 1.5};  // dojosim_robot.mapping.json's
+  int full_rate_runs = 0, homes = 0;
+  for (uint64_t seed = 0; seed < 4; ++seed) {
+    EpisodeSpec e;
+    e.scene = sample_scene(Embodiment::kRobot, {}, 40 + seed);
+    e.controller = default_controller(Embodiment::kRobot);
+    e.controller.robot.behavior = RobotBehavior::kTeleopPlay;
+    e.num_steps = 64;
+    e.render = false;
+    e.seed = seed;
+    const EpisodeRecord r = run_episode(e);
+    EXPECT_EQ(r.meta["controller"]["behavior"], "teleop_play");
+    const double dt = 0.1;
+    int run = 0;
+    for (size_t t = 1; t < r.actions.size(); ++t) {
+      int moving = 0, full = 0;
+      for (int d = 0; d < 6; ++d) {
+        const double delta = std::fabs(double(r.actions[t][d]) - r.actions[t - 1][d]);
+        if (delta > 1e-5) ++moving;
+        if (std::fabs(delta - kRates[d] * dt) < 1e-4) ++full;
+      }
+      bool jump = false;
+      for (int d = 0; d < 6; ++d)
+        jump |= std::fabs(double(r.actions[t][d]) - r.actions[t - 1][d]) > kRates[d] * dt + 1e-4;
+      if (jump) {
+        ++homes;
+        run = 0;
+        continue;
+      }
+      EXPECT_LE(moving, 2) << "seed " << seed << " step " << t;
+      run = full > 0 ? run + 1 : 0;
+      if (run == 5) ++full_rate_runs;
+    }
+  }
+  EXPECT_GE(full_rate_runs, 4);
+  EXPECT_GE(homes, 1);
+}
+
 TEST(SimSkills, ControllersRejectTheWrongEmbodiment) {
   World human(sample_scene(Embodiment::kHuman, {}, 0));
   World robot(sample_scene(Embodiment::kRobot, {}, 0));
