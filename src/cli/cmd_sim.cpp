@@ -63,7 +63,7 @@ void add_generate(CLI::App& sim) {
   cmd->add_option("--play-behaviors", o->play_behaviors,
                   "Robot train split: the play episodes' behaviours, in turn (random_motion, teleop_play: an "
                   "operator holding the teleoperation page's keys); default random_motion")
-      ->check(CLI::IsMember({"random_motion", "teleop_play"}))
+      ->check(CLI::IsMember(sim::play_behavior_names()))
       ->delimiter(',');
   cmd->add_option("--policies", *policies,
                   "Robot train split: the episodes run the policies of this policy-set file in turn (as "

@@ -174,22 +174,21 @@ nlohmann::json TeleopCheck::to_json() const {
 }
 
 TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
-  DOJO_CHECK(fs::exists(o.recording / "session.json"),
-             (o.recording / "session.json").string() + ": missing (is this a recording of `dojo serve`?)");
-  const auto about = read_json_file(o.recording / "session.json");
-  DOJO_CHECK(about.is_object(), (o.recording / "session.json").string() + ": not a JSON object");
+  const auto session_path = (o.recording / "session.json").string();
+  DOJO_CHECK(fs::exists(session_path), session_path + ": missing (is this a recording of `dojo serve`?)");
+  const auto about = read_json_file(session_path);
+  DOJO_CHECK(about.is_object(), session_path + ": not a JSON object");
   DOJO_CHECK(about.value("first_step", int64_t{-1}) == 0,
-             (o.recording / "session.json").string() +
-                 ": the recording began after the stream's start (first_step " +
+             session_path + ": the recording began after the stream's start (first_step " +
                  about.value("first_step", nlohmann::json()).dump() +
                  "); record from the start ('record': true in the start message, or the page's ?record=1)");
   DOJO_CHECK(about.contains("episode") && about["episode"].is_string() &&
                  !about["episode"].get<std::string>().empty(),
-             (o.recording / "session.json").string() +
+             session_path +
                  ": no 'episode' (a session from an uploaded image has no "
                  "scene to replay)");
   const fs::path data_dir = !o.data.empty() ? o.data : fs::path(about.value("data", std::string()));
-  DOJO_CHECK(!data_dir.empty(), (o.recording / "session.json").string() + ": no 'data'; give --data");
+  DOJO_CHECK(!data_dir.empty(), session_path + ": no 'data'; give --data");
   const auto store = data::EpisodeStore::open(data_dir);
   TeleopCheck out;
   out.episode = about["episode"].get<std::string>();

@@ -2,6 +2,7 @@
 
 #include <torch/torch.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -31,6 +32,12 @@ namespace dojo::sim {
 const std::vector<std::string>& split_names() {
   static const std::vector<std::string> names = {"train", "ood-objects", "counterfactual", "novel-background",
                                                  "long-horizon"};
+  return names;
+}
+
+const std::vector<std::string>& play_behavior_names() {
+  static const std::vector<std::string> names = {to_string(RobotBehavior::kRandomMotion),
+                                                 to_string(RobotBehavior::kTeleopPlay)};
   return names;
 }
 
@@ -250,9 +257,10 @@ GenerateSummary generate_dataset(const fs::path& out, const GenerateOptions& opt
                "--policies: only the robot train split runs a policy set");
     DOJO_CHECK(options.quality.empty(), "--policies and --quality both choose the policy; give one");
   }
+  const auto& play = play_behavior_names();
   for (const auto& name : options.play_behaviors)
-    DOJO_CHECK(name == "random_motion" || name == "teleop_play",
-               "--play-behaviors: '" + name + "' is not play (expected random_motion or teleop_play)");
+    DOJO_CHECK(std::find(play.begin(), play.end(), name) != play.end(),
+               "--play-behaviors: '" + name + "' is not play (expected " + play[0] + " or " + play[1] + ")");
 
   // Plan everything up front: a bad option fails before any work is done.
   std::vector<PlannedEpisode> plans;

@@ -23,6 +23,9 @@ namespace dojo::sim {
 //   novel-background robot bin task in front of backgrounds never used for training
 //   long-horizon     robot bin task over 600 frames (60 s at 10 Hz)
 const std::vector<std::string>& split_names();
+// The robot behaviours that are play (--play-behaviors): random_motion and teleop_play (an
+// operator's held keys).
+const std::vector<std::string>& play_behavior_names();
 
 struct GenerateOptions {
   std::string embodiment = "robot";  // human | robot
@@ -41,8 +44,8 @@ struct GenerateOptions {
   // the next motion predictable from the scene; play data is where a world model must read the
   // actions to know where the arm goes.
   double play_fraction = 0;
-  // The play episodes' behaviours, in turn (episode i the (i mod n)-th): random_motion and/or
-  // teleop_play (an operator's held keys). Empty: random_motion.
+  // The play episodes' behaviours, in turn (episode i the (i mod n)-th), of play_behavior_names().
+  // Empty: random_motion.
   std::vector<std::string> play_behaviors;
   // Robot train split: each episode that is not play runs one of these in turn (episode i the
   // (i mod n)-th; a named behaviour and quality: a policy set, as `dojo policy eval` uses) instead
