@@ -20,20 +20,6 @@
 namespace dojo::cli {
 namespace {
 
-// "DIR" or "DIR:WEIGHT".
-std::pair<std::filesystem::path, double> parse_dataset(const std::string& text) {
-  const auto colon = text.rfind(':');
-  if (colon == std::string::npos || colon == 0) return {text, 1.0};
-  try {
-    size_t used = 0;
-    const double w = std::stod(text.substr(colon + 1), &used);
-    if (used != text.size() - colon - 1 || !(w > 0)) throw std::invalid_argument("weight");
-    return {text.substr(0, colon), w};
-  } catch (const std::exception&) {
-    throw UsageError("--data must look like DIR or DIR:WEIGHT with WEIGHT > 0, got '" + text + "'");
-  }
-}
-
 void add_train(CLI::App& lam) {
   auto* cmd = lam.add_subcommand(
       "train",
@@ -65,7 +51,10 @@ void add_train(CLI::App& lam) {
   add_seed_option(cmd, job->seed);
   cmd->callback([=] {
     set_action([=] {
-      for (const auto& d : *data) job->datasets.push_back(parse_dataset(d));
+      for (const auto& d : *data) {
+        const auto parsed = parse_weighted_data(d);
+        job->datasets.emplace_back(parsed.dir, parsed.weight);
+      }
       job->out = *out;
       job->time_budget_s = *minutes * 60.0;
       job->model = *size == "tiny"    ? models::LamConfig::tiny()

@@ -22,6 +22,7 @@ namespace {
 struct ServeCheckArgs {
   std::string recording, data, probe, video, json_out;
   double min_motion_px = recipes::TeleopCheckOptions{}.min_motion_px;
+  double min_scene_share = recipes::TeleopCheckOptions{}.min_scene_share;
   bool json = false;
 };
 
@@ -32,6 +33,7 @@ int run_serve_check(const ServeCheckArgs& a) {
   o.probe = !a.probe.empty() ? fs::path(a.probe) : default_reference_dir() / "probe";
   DOJO_CHECK(fs::exists(o.probe / "config.json"), o.probe.string() + ": no keypoint probe (give --probe)");
   o.min_motion_px = a.min_motion_px;
+  o.min_scene_share = a.min_scene_share;
   o.video = a.video;
   const auto r = recipes::check_teleop_recording(o);
   const auto j = r.to_json();
@@ -43,7 +45,14 @@ int run_serve_check(const ServeCheckArgs& a) {
   std::printf("%s: %lld frames (%.1f s) from episode %s\n", a.recording.c_str(),
               static_cast<long long>(r.frames), r.seconds, r.episode.c_str());
   std::printf(
-      "arm found by the probe in %.1f %% of frames (the DojoSim replay shows it in %.1f %%; found in %.1f %% "
+      "scene kept (>= %.0f %% of the replay's unchanged pixels shown) in %.1f %% of frames; first 100 frames "
+      "%.1f %%, last 100 %.1f %%\n",
+      100 * o.min_scene_share, 100 * r.scene_kept, 100 * r.scene_kept_first_100, 100 * r.scene_kept_last_100);
+  std::printf("arm found by the probe in a kept scene in %.1f %% of frames (by the probe alone %.1f %%)\n",
+              100 * r.arm_found, 100 * r.arm_found_by_probe_alone);
+  std::printf(
+      "arm found (kept scenes) in %.1f %% of frames (the DojoSim replay shows it in %.1f %%; found in %.1f "
+      "%% "
       "of those, where the probe finds it in %.1f %% of the replay's own frames); first 100 frames %.1f %%, "
       "last 100 %.1f %%\n",
       100 * r.arm_found, 100 * r.arm_in_view, 100 * r.arm_found_where_in_view, 100 * r.arm_found_in_replay,
@@ -80,6 +89,11 @@ void register_serve_check(CLI::App& app) {
   cmd->add_option("--min-motion", a->min_motion_px,
                   "A held key counts when the replay moves the gripper this many pixels (at 64x64)")
       ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_option("--min-scene-share", a->min_scene_share,
+                  "A frame keeps the scene when this share of the pixels the replay leaves as at its start "
+                  "are within 24 grey levels of the replay")
+      ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
   cmd->add_option("--video", a->video,
                   "Write the stream beside the DojoSim replay, with keypoints, to this mp4");

@@ -52,9 +52,13 @@ int run_wm_train(const WmTrainArgs& a) {
   job.stage = train::parse_wm_stage(a.stage);
   const auto mode = train::parse_action_mode(
       !a.actions.empty() ? a.actions : (job.stage == train::WmStage::kPretrain ? "latent" : "dataset"));
+  bool any_weight = false;
+  for (const auto& d : a.data) any_weight = any_weight || parse_weighted_data(d).weighted;
   for (const auto& d : a.data) {
+    const auto parsed = parse_weighted_data(d);
+    if (any_weight) job.weights.push_back(parsed.weight);
     train::LatentCacheSpec spec;
-    spec.dataset = d;
+    spec.dataset = parsed.dir;
     spec.split = a.split;
     spec.tokenizer = a.tokenizer;
     spec.lam = a.lam;
@@ -229,7 +233,10 @@ void register_wm(CLI::App& app) {
   train_cmd
       ->add_option("--stage", t->stage, "pretrain (human video) | posttrain (robot, needs --init) | scratch")
       ->capture_default_str();
-  add_data_option(train_cmd, t->data)->required();
+  add_data_option(train_cmd, t->data,
+                  "DIR:WEIGHT draws that dataset in proportion to WEIGHT (a dataset without one weighs 1); "
+                  "with no weight anywhere every cached clip is drawn alike")
+      ->required();
   add_split_option(train_cmd, t->split);
   train_cmd->add_option("--tokenizer", t->tokenizer, "Tokenizer checkpoint (dojo tokenizer train)")
       ->required();

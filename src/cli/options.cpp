@@ -2,6 +2,11 @@
 
 #include <CLI/CLI.hpp>
 
+#include <cmath>
+#include <stdexcept>
+
+#include "core/error.h"
+
 namespace dojo::cli {
 
 const std::vector<SharedOption>& shared_options() {
@@ -83,6 +88,22 @@ CLI::Option* add_out_option(CLI::App* cmd, std::string& out, const std::string& 
 CLI::Option* add_checkpoint_option(CLI::App* cmd, std::string& dir, const std::string& what) {
   const auto& o = shared("--checkpoint,--ckpt,-c");
   return cmd->add_option(o.names, dir, o.help + ": " + what);
+}
+
+WeightedData parse_weighted_data(const std::string& text) {
+  const auto colon = text.rfind(':');
+  if (colon == std::string::npos || colon == 0) return {text};
+  const auto tail = text.substr(colon + 1);
+  // A path may hold colons of its own: only a numeric tail is a weight.
+  if (tail.empty() || tail.find_first_not_of("0123456789.eE+-") != std::string::npos) return {text};
+  try {
+    size_t used = 0;
+    const double weight = std::stod(tail, &used);
+    if (used != tail.size() || !(weight > 0) || !std::isfinite(weight)) throw std::invalid_argument("weight");
+    return {text.substr(0, colon), weight, true};
+  } catch (const std::exception&) {
+    throw UsageError("--data must look like DIR or DIR:WEIGHT with WEIGHT > 0, got '" + text + "'");
+  }
 }
 
 }  // namespace dojo::cli

@@ -23,6 +23,14 @@ CLI::Option* add_split_option(CLI::App* cmd, std::vector<std::string>& splits);
 CLI::Option* add_seed_option(CLI::App* cmd, uint64_t& seed);   // --seed
 CLI::Option* add_workers_option(CLI::App* cmd, int& workers);  // --workers,-j
 CLI::Option* add_json_option(CLI::App* cmd, bool& json);       // --json
+// A --data value "DIR" or "DIR:WEIGHT" (a mixture weight > 0; a colon not followed by a number
+// belongs to the path). Throws dojo::UsageError naming the value.
+struct WeightedData {
+  std::string dir;
+  double weight = 1.0;
+  bool weighted = false;  // the value gave a weight
+};
+WeightedData parse_weighted_data(const std::string& text);
 // --out,-o: `what` says what the command writes there (a checkpoint directory, an mp4, ...).
 CLI::Option* add_out_option(CLI::App* cmd, std::string& out, const std::string& what);
 // --checkpoint,--ckpt,-c: `what` names the model the checkpoint holds.

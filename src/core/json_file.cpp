@@ -1,6 +1,7 @@
 #include "core/json_file.h"
 
 #include <cerrno>
+#include <cmath>
 #include <cstring>
 #include <fstream>
 
@@ -42,6 +43,10 @@ void JsonFields::get(const char* key, bool& v) const {
 
 void check_positive(const std::string& what, const char* field, int64_t value) {
   DOJO_CHECK(value > 0, what + ": field '" + field + "' must be positive, got " + std::to_string(value));
+}
+
+nlohmann::json finite_or_null(double value) {
+  return std::isfinite(value) ? nlohmann::json(value) : nlohmann::json(nullptr);
 }
 
 }  // namespace dojo

@@ -28,6 +28,10 @@ class JsonFields {
   std::string what_;
 };
 
+// A number for a JSON document: the value when finite, else null (JSON has no NaN or infinity, and
+// a metric that could not be measured must read as missing, not as a number).
+nlohmann::json finite_or_null(double value);
+
 // Throws dojo::Error "WHAT: field 'FIELD' must be positive, got V" unless value > 0.
 void check_positive(const std::string& what, const char* field, int64_t value);
 

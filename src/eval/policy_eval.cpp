@@ -9,6 +9,7 @@
 #include <set>
 
 #include "core/error.h"
+#include "core/json_file.h"
 #include "core/log.h"
 #include "core/timing.h"
 #include "eval/html_report.h"
@@ -197,11 +198,10 @@ nlohmann::json PolicyEvalReport::to_json() const {
         {{"name", rates.names[i]}, {"world_model", rates.world_model[i]}, {"real", rates.real[i]}});
   nlohmann::json eps = nlohmann::json::array();
   for (const auto& e : episodes) eps.push_back(e.to_json());
-  const auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
   return {{"policies", policies},
           {"agreement", agreement.to_json()},
-          {"episode_agreement", number(episode_agreement)},
-          {"open_loop_agreement", number(open_loop_agreement)},
+          {"episode_agreement", finite_or_null(episode_agreement)},
+          {"open_loop_agreement", finite_or_null(open_loop_agreement)},
           {"seconds_per_episode",
            {{"real", real_seconds_per_episode}, {"world_model", world_model_seconds_per_episode}}},
           {"episodes", eps}};

@@ -6,6 +6,7 @@
 #include <optional>
 
 #include "core/error.h"
+#include "core/json_file.h"
 #include "core/log.h"
 #include "core/progress.h"
 #include "core/safetensors.h"
@@ -19,14 +20,6 @@
 namespace fs = std::filesystem;
 
 namespace dojo::eval {
-
-namespace {
-
-nlohmann::json number_or_null(double v) {
-  return std::isnan(v) ? nlohmann::json(nullptr) : nlohmann::json(v);
-}
-
-}  // namespace
 
 nlohmann::json SourceScore::to_json() const {
   nlohmann::json j = {{"psnr", psnr},
@@ -67,7 +60,7 @@ nlohmann::json WmEvalResult::to_json() const {
     if (!s.keypoint_error_per_frame.empty()) {
       auto numbers = [](const std::vector<double>& values) {
         nlohmann::json a = nlohmann::json::array();
-        for (double v : values) a.push_back(number_or_null(v));
+        for (double v : values) a.push_back(finite_or_null(v));
         return a;
       };
       curves[name]["keypoint_error_px"] = numbers(s.keypoint_error_per_frame);

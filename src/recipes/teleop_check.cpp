@@ -135,9 +135,17 @@ double share(const torch::Tensor& mask) {
 
 }  // namespace
 
+torch::Tensor unchanged_scene_share(const torch::Tensor& stream, const torch::Tensor& replay) {
+  DOJO_CHECK(stream.sizes() == replay.sizes() && stream.dim() == 4 && stream.size(3) == 3,
+             "unchanged_scene_share: stream and replay must be [T, H, W, 3] of one size");
+  const auto s = stream.to(torch::kFloat64), r = replay.to(torch::kFloat64);
+  const auto unchanged = (r - r.narrow(0, 0, 1)).abs().amax(-1).le(12);  // [T, H, W]
+  const auto kept = (s - r).abs().mean(-1).le(kSceneTolerance) & unchanged;
+  return kept.sum({1, 2}).to(torch::kFloat64) / unchanged.sum({1, 2}).clamp_min(1).to(torch::kFloat64);
+}
+
 nlohmann::json TeleopCheck::to_json() const {
   nlohmann::json held = nlohmann::json::array();
-  const auto number = [](double x) { return std::isfinite(x) ? nlohmann::json(x) : nlohmann::json(); };
   for (const auto& k : keys)
     held.push_back({{"dimension", k.dimension},
                     {"sign", k.sign},
@@ -153,20 +161,28 @@ nlohmann::json TeleopCheck::to_json() const {
       {"frames", frames},
       {"seconds", seconds},
       {"arm_found", arm_found},
+      {"arm_found_by_probe_alone", arm_found_by_probe_alone},
+      {"scene_kept", scene_kept},
+      {"scene_kept_first_100", scene_kept_first_100},
+      {"scene_kept_last_100", scene_kept_last_100},
+      {"scene_share", scene_share},
       {"arm_in_view", arm_in_view},
-      {"arm_found_where_in_view", number(arm_found_where_in_view)},
-      {"arm_found_in_replay", number(arm_found_in_replay)},
+      {"arm_found_where_in_view", finite_or_null(arm_found_where_in_view)},
+      {"arm_found_in_replay", finite_or_null(arm_found_in_replay)},
       {"arm_found_first_100", arm_found_first_100},
       {"arm_found_last_100", arm_found_last_100},
       {"arm_lost_frames", arm_lost_frames},
-      {"keypoint_error_px", number(keypoint_error_px)},
-      {"detected", number(detected)},
+      {"keypoint_error_px", finite_or_null(keypoint_error_px)},
+      {"detected", finite_or_null(detected)},
       {"held_keys", held},
       {"counted_keys", counted_keys},
       {"agreeing_keys", agreeing_keys},
-      {"sign_agreement", number(sign_agreement)},
+      {"sign_agreement", finite_or_null(sign_agreement)},
       {"definitions",
-       "arm found: the probe says >= 2 of the arm's 3 keypoints are present; a held key counts when the "
+       "scene kept: at least min_scene_share of the pixels the replay leaves as at its start are within 24 "
+       "grey levels of the replay; arm found: the scene is kept and the probe says >= 2 of the arm's 3 "
+       "keypoints are present (arm_found_by_probe_alone: the probe whatever the frame); a held key counts "
+       "when the "
        "DojoSim replay moves the gripper >= min_motion_px over the hold, and agrees when the probe finds the "
        "gripper at both ends of the hold in the stream and its displacement along the replay's direction is "
        "at least half min_motion_px; keypoint error and detection (within the radius) against the replay's "
@@ -237,12 +253,23 @@ TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
     return k.presence.narrow(1, offset, kArmKeypoints).gt(0);
   };
   const auto present = arm_present(found);
-  const auto arm_found = present.sum(1).ge(2);                       // [T]
+  DOJO_CHECK(replayed.frames.sizes() == stream.sizes(),
+             (o.recording / "video.mp4").string() + ": frames of " + std::to_string(height) + "x" +
+                 std::to_string(width) + ", DojoSim renders this scene at " +
+                 std::to_string(replayed.frames.size(1)) + "x" + std::to_string(replayed.frames.size(2)));
+  const auto scene_share = unchanged_scene_share(stream, replayed.frames).contiguous();  // [T]
+  const auto scene_kept = scene_share.ge(o.min_scene_share);
+  out.scene_share.assign(scene_share.data_ptr<double>(),
+                         scene_share.data_ptr<double>() + scene_share.numel());
+  const auto probe_found = present.sum(1).ge(2);  // [T]
+  const auto arm_found = probe_found & scene_kept;
   const auto arm_in_view = truth.select(2, 2).gt(0.5).sum(1).ge(2);  // [T]
   // The probe's own ceiling: on DojoSim's frames of the same commands it misses the arm sometimes too.
   const auto replay_found = arm_present(models::detect_keypoints(probe, replayed.frames)).sum(1).ge(2);
   out.arm_found_in_replay = share(replay_found.masked_select(arm_in_view));
   out.arm_found = share(arm_found);
+  out.arm_found_by_probe_alone = share(probe_found);
+  out.scene_kept = share(scene_kept);
   out.arm_in_view = share(arm_in_view);
   out.arm_found_where_in_view = arm_in_view.any().item<bool>() ? share(arm_found.masked_select(arm_in_view))
                                                                : std::numeric_limits<double>::quiet_NaN();
@@ -251,6 +278,8 @@ TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
   const int64_t window = std::min<int64_t>(100, out.frames);
   out.arm_found_first_100 = share(arm_found.narrow(0, 0, window));
   out.arm_found_last_100 = share(arm_found.narrow(0, out.frames - window, window));
+  out.scene_kept_first_100 = share(scene_kept.narrow(0, 0, window));
+  out.scene_kept_last_100 = share(scene_kept.narrow(0, out.frames - window, window));
   const auto scores = eval::score_keypoints(found, offset, truth, height, width);
   out.keypoint_error_px = eval::nan_mean(scores.error);
   out.detected = eval::nan_mean(scores.detected);

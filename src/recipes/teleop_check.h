@@ -8,6 +8,8 @@
 // "raw" rows in order) is executed during step r of the replay and its result is frame r + 1.
 #pragma once
 
+#include <ATen/core/Tensor.h>
+
 #include <array>
 #include <cstdint>
 #include <filesystem>
@@ -26,7 +28,15 @@ struct TeleopCheckOptions {
   // with the frame): holds at a joint limit or along the camera's axis show no direction to agree with.
   double min_motion_px = 1.5;
   std::filesystem::path video;  // when set: the stream beside the DojoSim replay, probe marks on both
+  // A streamed frame still shows the scene when at least this share of the pixels the replay leaves
+  // as they were at its start (table, wall, bin, resting links) are within kSceneTolerance of the
+  // replay. An arm drawn in the wrong place costs a good frame about a tenth; a stream dissolved
+  // into arm-coloured bands loses most of them, while the probe alone still reads an arm into it.
+  double min_scene_share = 0.75;
 };
+
+// Grey levels (mean over the channels, of 255) within which a streamed pixel matches the replay's.
+constexpr double kSceneTolerance = 24;
 
 // One key held: a run of command rows in which exactly one dimension moves, always the same way.
 struct HeldKey {
@@ -42,10 +52,15 @@ struct HeldKey {
 
 struct TeleopCheck {
   std::string episode;
-  int64_t frames = 0;      // streamed frames, the start frame included
-  double seconds = 0;      // at the session's frame rate
-  double arm_found = 0;    // share of frames where the probe finds the arm (>= 2 of its 3 keypoints)
-  double arm_in_view = 0;  // share of frames where the replay has >= 2 arm keypoints in view
+  int64_t frames = 0;  // streamed frames, the start frame included
+  double seconds = 0;  // at the session's frame rate
+  // Share of frames that still show the scene (min_scene_share) and where the probe finds the
+  // arm (>= 2 of its 3 keypoints). Every arm_found figure below counts kept-scene frames only.
+  double arm_found = 0;
+  double arm_found_by_probe_alone = 0;  // the probe's reading whatever the frame has become
+  double scene_kept = 0, scene_kept_first_100 = 0, scene_kept_last_100 = 0;
+  std::vector<double> scene_share;  // per frame: share of the replay's unchanged pixels the stream keeps
+  double arm_in_view = 0;           // share of frames where the replay has >= 2 arm keypoints in view
   double arm_found_where_in_view = 0;
   // The probe on DojoSim's own frames of the same commands, where they show the arm: its ceiling.
   double arm_found_in_replay = 0;
@@ -59,6 +74,11 @@ struct TeleopCheck {
 
   nlohmann::json to_json() const;
 };
+
+// Per frame, the share of the pixels where the replay still equals its own frame 0 (every channel
+// within 12) that the stream shows within kSceneTolerance of the replay: what a stream must keep of
+// the scene wherever the arm is. Both [T, H, W, 3] uint8 of one size; returns [T] float64.
+at::Tensor unchanged_scene_share(const at::Tensor& stream, const at::Tensor& replay);
 
 // Throws dojo::Error naming the file for a recording that cannot be replayed: missing files, a
 // recording begun after the stream's start, no raw commands, frames and commands that do not line

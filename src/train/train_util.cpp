@@ -2,6 +2,7 @@
 
 #include <ATen/CPUGeneratorImpl.h>
 
+#include <algorithm>
 #include <cmath>
 #include <deque>
 #include <fstream>
@@ -212,6 +213,52 @@ AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
   out.seconds = run.seconds;
   out.items_per_second = run.items_per_second;
   return out;
+}
+
+MixtureIndex::MixtureIndex(std::vector<int64_t> sizes, std::vector<double> weights)
+    : sizes_(std::move(sizes)), weights_(std::move(weights)) {
+  DOJO_CHECK(weights_.empty() || weights_.size() == sizes_.size(),
+             "mixture: " + std::to_string(weights_.size()) + " weights for " + std::to_string(sizes_.size()) +
+                 " datasets");
+  int64_t total = 0;
+  for (const auto size : sizes_) offsets_.push_back(total), total += size;
+  DOJO_CHECK(total > 0, "mixture: no clips in any dataset");
+  double sum = 0;
+  for (size_t d = 0; d < weights_.size(); ++d) {
+    DOJO_CHECK(weights_[d] > 0, "mixture: dataset " + std::to_string(d) + " has weight " +
+                                    std::to_string(weights_[d]) + "; weights must be positive");
+    DOJO_CHECK(sizes_[d] > 0, "mixture: dataset " + std::to_string(d) + " is weighted but has no clips");
+    sum += weights_[d];
+  }
+  double running = 0;
+  for (const auto w : weights_) cumulative_.push_back(running += w / sum);
+  if (!cumulative_.empty()) cumulative_.back() = 1.0;
+}
+
+torch::Tensor MixtureIndex::draw(int64_t count, torch::Generator& gen) const {
+  const int64_t total = offsets_.back() + sizes_.back();
+  if (weights_.empty()) return torch::randint(total, {count}, gen, torch::kLong);
+  const auto pick = torch::rand({count}, gen, torch::kDouble);
+  const auto within = torch::rand({count}, gen, torch::kDouble);
+  auto index = torch::empty({count}, torch::kLong);
+  auto out = index.accessor<int64_t, 1>();
+  const auto p = pick.accessor<double, 1>(), w = within.accessor<double, 1>();
+  for (int64_t i = 0; i < count; ++i) {
+    const auto d = static_cast<size_t>(std::upper_bound(cumulative_.begin(), cumulative_.end() - 1, p[i]) -
+                                       cumulative_.begin());
+    const auto clip = std::min(sizes_[d] - 1, static_cast<int64_t>(w[i] * static_cast<double>(sizes_[d])));
+    out[i] = offsets_[d] + clip;
+  }
+  return index;
+}
+
+std::vector<double> MixtureIndex::shares() const {
+  std::vector<double> shares;
+  const double total = static_cast<double>(offsets_.back() + sizes_.back());
+  for (size_t d = 0; d < sizes_.size(); ++d)
+    shares.push_back(weights_.empty() ? static_cast<double>(sizes_[d]) / total
+                                      : cumulative_[d] - (d == 0 ? 0.0 : cumulative_[d - 1]));
+  return shares;
 }
 
 }  // namespace dojo::train

@@ -38,6 +38,24 @@ NamedTensors named_adamw_state(NamedTensors tensors, const torch::nn::Module& mo
 torch::Generator cpu_generator(uint64_t seed);
 torch::Generator step_generator(uint64_t seed, int64_t step);
 
+// Clip indices into the concatenation of datasets of `sizes` clips. With one weight per dataset,
+// a draw picks dataset d with probability weight[d] / sum(weights), then one of its clips
+// uniformly: a small dataset keeps its share however many clips the others hold. Without weights
+// every clip is alike (each dataset's share is its share of the clips). Draws depend on `gen` only.
+class MixtureIndex {
+ public:
+  // Throws dojo::Error when weights and sizes differ in number, a weight is not positive or a
+  // weighted dataset is empty.
+  MixtureIndex(std::vector<int64_t> sizes, std::vector<double> weights = {});
+  torch::Tensor draw(int64_t count, torch::Generator& gen) const;  // [count] int64
+  std::vector<double> shares() const;                              // probability of drawing from each dataset
+  bool weighted() const { return !weights_.empty(); }
+
+ private:
+  std::vector<int64_t> sizes_, offsets_;
+  std::vector<double> weights_, cumulative_;  // cumulative probabilities, last = 1
+};
+
 // Gaussian blur of each image of [B, C, S, S] with its own sigma [B] in pixels (0: untouched): the
 // augmentation that keeps frame classifiers reading generated frames, which are softer than renders.
 torch::Tensor gaussian_blur(const torch::Tensor& images, const torch::Tensor& sigma);

@@ -338,6 +338,19 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   }
   const auto clips = concat_latent_clips(sets);
   const int64_t n = clips.size();
+  std::vector<int64_t> set_sizes;
+  for (const auto& set : sets) set_sizes.push_back(set.size());
+  const MixtureIndex mixture(set_sizes, job.weights);
+  nlohmann::json mixture_record = nlohmann::json::array();
+  for (size_t i = 0; i < sets.size(); ++i)
+    mixture_record.push_back(
+        {{"data", job.data[i].dataset.string()},
+         {"clips", set_sizes[i]},
+         {"weight", job.weights.empty() ? nlohmann::json(nullptr) : nlohmann::json(job.weights[i])},
+         {"share", mixture.shares()[i]}});
+  if (mixture.weighted()) LOG_INFO("wm train: mixture ", mixture_record.dump());
+  const nlohmann::json checkpoint_extra = {
+      {"stage", to_string(job.stage)}, {"clips", n}, {"mixture", mixture_record}};
   std::optional<ScopedThreads> matmul_bound;
   if (job.matmul_threads > 0) matmul_bound.emplace(job.matmul_threads);
 
@@ -398,7 +411,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
       [&](const LoopStep& info) {
         // Batch and noise of step k depend on (seed, k) only, so a resumed run sees the same stream.
         auto gen = step_generator(job.seed, info.index);
-        const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
+        const auto idx = mixture.draw(job.batch_size, gen);
         const auto t0 = std::chrono::steady_clock::now();
         const auto s =
             trainer.step(clips.latents.index_select(0, idx), clips.actions.index_select(0, idx), gen);
@@ -416,12 +429,9 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
                           job.batch_size,
                           note.str()};
       },
-      [&](int64_t, bool) {
-        trainer.save(ckpt_dir, {{"stage", to_string(job.stage)}, {"clips", n}});
-      });
+      [&](int64_t, bool) { trainer.save(ckpt_dir, checkpoint_extra); });
   // A job with no steps to run still leaves a checkpoint behind.
-  if (run.end_step == run.start_step && !resuming)
-    trainer.save(ckpt_dir, {{"stage", to_string(job.stage)}, {"clips", n}});
+  if (run.end_step == run.start_step && !resuming) trainer.save(ckpt_dir, checkpoint_extra);
   result.last_loss = recent_mean();
   if (result.first_loss == 0) result.first_loss = result.last_loss;
   result.steps = trainer.steps_done();

@@ -108,6 +108,9 @@ std::string to_string(WmStage stage);
 struct WmTrainJob {
   WmStage stage = WmStage::kPretrain;
   std::vector<LatentCacheSpec> data;
+  // One mixture weight per dataset of `data` (MixtureIndex): dataset d fills weight[d] / sum of
+  // each batch whatever its size. Empty: every cached clip alike, as before weights existed.
+  std::vector<double> weights;
   std::filesystem::path out;   // out/checkpoint, out/loss.csv, out/latents-<i>.safetensors
   std::filesystem::path init;  // posttrain: the pretrained checkpoint (a post-trained one: continued)
   models::DitConfig model = models::DitConfig::small();

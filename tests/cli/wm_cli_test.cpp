@@ -67,12 +67,21 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   const auto other_stats =
       nlohmann::json::parse(test::read_file(tmp / "robot2" / "info.json")).at("stats").at("action");
   ASSERT_NE(other_stats.at("max"), stats.at("max"));
-  // Another seed: a re-initialised layer would not land on the weights it had before.
+  // Another seed: a re-initialised layer would not land on the weights it had before. A weighted
+  // mixture of the new data and the old: the weights and shares are recorded in the checkpoint.
   r = test::run_dojo("--threads 1 wm train --stage posttrain --steps 1 --lr 1e-9 --seed 1 --data " +
-                     (tmp / "robot2").string() + " --tokenizer " + tok + " --batch 2 --hop 4 --init " +
-                     (tmp / "p" / "checkpoint").string() + " --out " + (tmp / "p2").string());
+                     (tmp / "robot2").string() + ":3 --data " + data + " --tokenizer " + tok +
+                     " --batch 2 --hop 4 --init " + (tmp / "p" / "checkpoint").string() + " --out " +
+                     (tmp / "p2").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_NE(r.output.find("continuing it"), std::string::npos) << r.output;
+  const auto mixture = nlohmann::json::parse(
+      test::read_file(tmp / "p2" / "checkpoint" / "trainer_state.json"))["extra"]["mixture"];
+  ASSERT_EQ(mixture.size(), 2u) << mixture.dump();
+  EXPECT_EQ(mixture[0].at("data"), (tmp / "robot2").string());
+  EXPECT_EQ(mixture[0].at("weight"), 3.0);
+  EXPECT_EQ(mixture[1].at("weight"), 1.0);
+  EXPECT_DOUBLE_EQ(mixture[0].at("share").get<double>(), 0.75);
   const auto continued = nlohmann::json::parse(test::read_file(tmp / "p2" / "checkpoint" / "config.json"));
   EXPECT_EQ(continued.at("actions"), config.at("actions"));
   const std::string fc1 = "net.action_embedder_B_D.fc1.weight";
@@ -115,6 +124,10 @@ TEST(WmCli, TrainPosttrainRolloutAndEvalOnGeneratedData) {
   r = test::run_dojo("wm train --stage pretrain --steps 2" + common + " --out " + (tmp / "q").string());
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("LAM"), std::string::npos) << r.output;
+  r = test::run_dojo("wm train --stage scratch --steps 2 --data " + data + ":0 --tokenizer " + tok +
+                     " --out " + (tmp / "q").string());
+  EXPECT_EQ(r.exit_code, 2);
+  EXPECT_NE(r.output.find("DIR:WEIGHT with WEIGHT > 0, got '" + data + ":0'"), std::string::npos) << r.output;
   r = test::run_dojo("eval --checkpoint " + tok + " --tokenizer " + tok + " --data " + data);
   EXPECT_EQ(r.exit_code, 1);
   EXPECT_NE(r.output.find("not a world-model checkpoint"), std::string::npos) << r.output;

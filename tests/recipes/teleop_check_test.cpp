@@ -7,12 +7,14 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
 
+#include "core/error.h"
 #include "data/episode_store.h"
 #include "io/video.h"
 #include "sim/episode.h"
@@ -143,6 +145,27 @@ TEST_F(TeleopCheckTest, DojoSimsOwnFramesFollowEveryKeyAndKeepTheArm) {
   EXPECT_NEAR(r.arm_found_in_replay, r.arm_found_where_in_view, 0.05);  // the same frames, up to the mp4
   EXPECT_LT(r.keypoint_error_px, 3.0);
   EXPECT_GT(r.detected, 0.5);
+  EXPECT_GE(r.scene_kept, 0.98);
+  EXPECT_NEAR(r.arm_found, r.arm_found_by_probe_alone, 0.02);  // (almost) nothing gated away
+  ASSERT_EQ(r.scene_share.size(), 61u);
+}
+
+// A stream that dissolves into horizontal bands of the arm's dark grey across the scene (how a
+// drifting student ends): the probe may still read an arm into the bands; the scene check keeps
+// none of those frames.
+TEST_F(TeleopCheckTest, AStreamDissolvedIntoBandsKeepsNoSceneAndNoArm) {
+  auto frames = dojosim_frames(scene, rows).clone();  // [61, H, W, 3]
+  const int64_t kept = 11;
+  for (int64_t t = kept; t < frames.size(0); ++t)
+    for (int64_t y = 0; y < frames.size(1); y += 8) frames[t].narrow(0, y, 4).fill_(55);
+  write_recording(tmp / "bands", tmp / "robot", episode, rows, frames);
+  const auto r = check(tmp / "bands");
+  SCOPED_TRACE(r.to_json().dump());
+  EXPECT_NEAR(r.scene_kept, static_cast<double>(kept) / 61, 0.02);
+  EXPECT_EQ(r.scene_kept_last_100, r.scene_kept);  // 61 frames: the last 100 are all of them
+  EXPECT_LE(r.arm_found, static_cast<double>(kept) / 61 + 1e-9);
+  EXPECT_GT(r.scene_share[0], 0.95);
+  EXPECT_LT(r.scene_share[40], 0.6);
 }
 
 TEST_F(TeleopCheckTest, AFrozenStreamAndAStreamDrivenTheOtherWayDisagree) {
@@ -173,6 +196,24 @@ TEST_F(TeleopCheckTest, RecordingsThatCannotBeReplayedAreRefused) {
   write_recording(tmp / "other", tmp / "robot", "999999", rows, frames);
   EXPECT_NE(test::error_message([&] { check(tmp / "other"); }).find("no episode '999999'"),
             std::string::npos);
+}
+
+
+TEST(UnchangedSceneShare, ScoresOnlyWhatTheReplayLeavesUnchanged) {
+  // A grey scene with a bright square that moves: the square's old and new pixels are not scored.
+  auto replay = torch::full({3, 16, 16, 3}, 100, torch::kUInt8);
+  replay[0].narrow(0, 2, 4).narrow(1, 2, 4).fill_(250);
+  replay[1].narrow(0, 8, 4).narrow(1, 8, 4).fill_(250);
+  replay[2].narrow(0, 8, 4).narrow(1, 8, 4).fill_(250);
+  auto stream = replay.clone();
+  stream[1].narrow(0, 8, 4).narrow(1, 8, 4).fill_(0);  // the moving part wrong: not scored
+  stream[2].narrow(0, 0, 2).fill_(160);                // 32 unchanged pixels off by 60: scored
+  stream[2].narrow(0, 14, 2).fill_(120);               // 32 more off by 20: within the tolerance
+  const auto share = recipes::unchanged_scene_share(stream, replay);
+  EXPECT_EQ(share[0].item<double>(), 1.0);
+  EXPECT_EQ(share[1].item<double>(), 1.0);
+  EXPECT_NEAR(share[2].item<double>(), 1.0 - 32.0 / 224, 1e-12);  // 224 unchanged pixels
+  EXPECT_THROW(recipes::unchanged_scene_share(stream.narrow(0, 0, 2), replay), Error);
 }
 
 }  // namespace

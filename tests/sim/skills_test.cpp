@@ -2,9 +2,12 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <filesystem>
 
 #include "core/error.h"
+#include "core/json_file.h"
 #include "sim/episode.h"
 #include "sim/task.h"
 
@@ -139,10 +142,17 @@ TEST(SimSkills, RobotCounterfactualBehaviours) {
 
 // Teleoperation play is held keys: between the home jumps, at most two joints move per step, each
 // by at most its key's rate times the control step, and full-rate ramps of several steps occur.
+// The rates are read from the teleoperation page's mapping, so the play data and the page cannot
+// drift apart.
 TEST(SimSkills, TeleopPlayMovesLikeHeldKeys) {
-  const double kRates[6] = {0.8, 0.6, 0.6, 0.8, 1.0, 1.5};  // dojosim_robot.mapping.json's
+  const auto mapping = read_json_file(std::filesystem::path(DOJO_SOURCE_DIR) / "src" / "serve" / "pages" /
+                                      "dojosim_robot.mapping.json");
+  ASSERT_EQ(mapping.at("dims").size(), 6u);
+  double kRates[6];
+  for (int d = 0; d < 6; ++d) kRates[d] = mapping["dims"][d].at("rate").get<double>();
   int full_rate_runs = 0, homes = 0;
-  for (uint64_t seed = 0; seed < 4; ++seed) {
+  double fastest[6] = {0, 0, 0, 0, 0, 0};  // each joint's largest step outside the home jumps
+  for (uint64_t seed = 0; seed < 12; ++seed) {
     EpisodeSpec e;
     e.scene = sample_scene(Embodiment::kRobot, {}, 40 + seed);
     e.controller = default_controller(Embodiment::kRobot);
@@ -170,12 +180,17 @@ TEST(SimSkills, TeleopPlayMovesLikeHeldKeys) {
         continue;
       }
       EXPECT_LE(moving, 2) << "seed " << seed << " step " << t;
+      for (int d = 0; d < 6; ++d)
+        fastest[d] = std::max(fastest[d], std::fabs(double(r.actions[t][d]) - r.actions[t - 1][d]));
       run = full > 0 ? run + 1 : 0;
       if (run == 5) ++full_rate_runs;
     }
   }
   EXPECT_GE(full_rate_runs, 4);
   EXPECT_GE(homes, 1);
+  // Every key is held at full rate somewhere, and moves its joint at exactly the page's rate.
+  for (int d = 0; d < 6; ++d)
+    EXPECT_NEAR(fastest[d], kRates[d] * 0.1, 1e-4) << mapping["dims"][d].at("name").get<std::string>();
 }
 
 TEST(SimSkills, ControllersRejectTheWrongEmbodiment) {

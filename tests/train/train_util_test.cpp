@@ -4,6 +4,7 @@
 #include <torch/torch.h>
 
 #include "core/checkpoint.h"
+#include "core/error.h"
 #include "core/state_dict.h"
 #include "test_util.h"
 
@@ -90,6 +91,65 @@ TEST(TrainUtil, AdamwLoopResumesExactlyWithItsSchedule) {
   const auto [again, again_run] = train(tmp / "whole", -1);
   EXPECT_TRUE(std::isnan(again_run.loss));
   EXPECT_TRUE(torch::equal(again, whole));
+}
+
+}  // namespace
+}  // namespace dojo::train
+
+namespace dojo::train {
+namespace {
+
+// Shares of each dataset in `draws` draws of a mixture over datasets of `sizes` clips.
+std::vector<double> drawn_shares(const MixtureIndex& mixture, const std::vector<int64_t>& sizes,
+                                 int64_t draws) {
+  auto gen = step_generator(7, 0);
+  const auto idx = mixture.draw(draws, gen);
+  std::vector<double> shares(sizes.size(), 0);
+  int64_t offset = 0;
+  for (size_t d = 0; d < sizes.size(); ++d) {
+    shares[d] = idx.ge(offset).logical_and(idx.lt(offset + sizes[d])).sum().item<double>() / draws;
+    offset += sizes[d];
+  }
+  EXPECT_EQ(idx.min().item<int64_t>() >= 0 && idx.max().item<int64_t>() < offset, true);
+  return shares;
+}
+
+TEST(MixtureIndex, WeightsSetEachDatasetsShareWhateverItsSize) {
+  // 1:2:10, the paper's pretraining recipe, over datasets whose clip counts run the other way.
+  const std::vector<int64_t> sizes = {5000, 300, 40};
+  const MixtureIndex mixture(sizes, {1, 2, 10});
+  const auto shares = drawn_shares(mixture, sizes, 20000);
+  EXPECT_NEAR(shares[0], 1.0 / 13, 0.01);
+  EXPECT_NEAR(shares[1], 2.0 / 13, 0.01);
+  EXPECT_NEAR(shares[2], 10.0 / 13, 0.01);
+  EXPECT_NEAR(mixture.shares()[2], 10.0 / 13, 1e-12);
+  // Every clip of the small dataset is reached.
+  auto gen = step_generator(3, 0);
+  const auto idx = mixture.draw(4000, gen);
+  auto seen = torch::zeros({5340}, torch::kBool);
+  seen.index_put_({idx}, true);
+  EXPECT_TRUE(seen.narrow(0, 5300, 40).all().item<bool>());
+}
+
+TEST(MixtureIndex, WithoutWeightsEveryClipIsAlike) {
+  const std::vector<int64_t> sizes = {900, 100};
+  const MixtureIndex mixture(sizes);
+  EXPECT_FALSE(mixture.weighted());
+  const auto shares = drawn_shares(mixture, sizes, 20000);
+  EXPECT_NEAR(shares[0], 0.9, 0.01);
+  EXPECT_NEAR(mixture.shares()[1], 0.1, 1e-12);
+  // The unweighted stream is the one trainers drew before weights existed.
+  auto a = step_generator(5, 2), b = step_generator(5, 2);
+  EXPECT_TRUE(torch::equal(mixture.draw(8, a), torch::randint(1000, {8}, b, torch::kLong)));
+}
+
+TEST(MixtureIndex, SameGeneratorSameDrawsAndBadWeightsRefused) {
+  const MixtureIndex mixture({10, 10}, {1, 3});
+  auto a = step_generator(1, 9), b = step_generator(1, 9);
+  EXPECT_TRUE(torch::equal(mixture.draw(64, a), mixture.draw(64, b)));
+  EXPECT_THROW(MixtureIndex({10, 10}, {1}), Error);
+  EXPECT_THROW(MixtureIndex({10, 10}, {1, 0}), Error);
+  EXPECT_THROW(MixtureIndex({10, 0}, {1, 1}), Error);
 }
 
 }  // namespace
