@@ -182,11 +182,10 @@ nlohmann::json TeleopCheck::to_json() const {
        "scene kept: at least min_scene_share of the pixels the replay leaves as at its start are within 24 "
        "grey levels of the replay; arm found: the scene is kept and the probe says >= 2 of the arm's 3 "
        "keypoints are present (arm_found_by_probe_alone: the probe whatever the frame); a held key counts "
-       "when the "
-       "DojoSim replay moves the gripper >= min_motion_px over the hold, and agrees when the probe finds the "
-       "gripper at both ends of the hold in the stream and its displacement along the replay's direction is "
-       "at least half min_motion_px; keypoint error and detection (within the radius) against the replay's "
-       "keypoints"}};
+       "when the DojoSim replay moves the gripper >= min_motion_px over the hold, and agrees when both ends "
+       "of the hold keep the scene, the probe finds the gripper there in the stream, and its displacement "
+       "along the replay's direction is at least half min_motion_px; keypoint error and detection (within "
+       "the radius) against the replay's keypoints"}};
 }
 
 TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
@@ -296,7 +295,8 @@ TeleopCheck check_teleop_recording(const TeleopCheckOptions& o) {
     const auto d_stream = stream_gripper[b] - stream_gripper[a];
     k.replay_motion = {d_replay[0].item<double>(), d_replay[1].item<double>()};
     k.stream_motion = {d_stream[0].item<double>(), d_stream[1].item<double>()};
-    k.stream_found = present[a][0].item<bool>() && present[b][0].item<bool>();
+    k.stream_found = present[a][0].item<bool>() && present[b][0].item<bool>() && scene_kept[a].item<bool>() &&
+                     scene_kept[b].item<bool>();
     const bool replay_in_view = truth[a][0][2].item<float>() > 0.5f && truth[b][0][2].item<float>() > 0.5f;
     k.counted = replay_in_view && d_replay.norm().item<double>() >= min_motion;
     // Moving the replay's way means moving: the stream's displacement along the replay's direction

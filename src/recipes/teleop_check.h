@@ -45,9 +45,11 @@ struct HeldKey {
   int64_t first_row = 0, rows = 0;
   std::array<double, 2> replay_motion{};  // gripper keypoint displacement over the hold, pixels (u, v)
   std::array<double, 2> stream_motion{};  // the same, read by the probe from the streamed frames
-  bool stream_found = false;              // the probe found the gripper at both ends of the hold
-  bool counted = false;                   // the replay's motion is at least min_motion_px
-  bool agrees = false;  // counted, found, and the stream moved >= min_motion_px / 2 along the replay's way
+  // Both ends of the hold keep the scene and the probe finds the gripper there (in a dissolved
+  // frame the probe's gripper is noise, and so would be its motion).
+  bool stream_found = false;
+  bool counted = false;  // the replay's motion is at least min_motion_px
+  bool agrees = false;   // counted, found, and the stream moved >= min_motion_px / 2 along the replay's way
 };
 
 struct TeleopCheck {
