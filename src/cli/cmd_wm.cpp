@@ -1,6 +1,8 @@
 // `dojo wm train|rollout` and `dojo eval`: the action-conditioned world model.
 #include <CLI/CLI.hpp>
 
+#include <algorithm>
+
 #include <cstdio>
 #include <filesystem>
 #include <memory>
@@ -52,11 +54,12 @@ int run_wm_train(const WmTrainArgs& a) {
   job.stage = train::parse_wm_stage(a.stage);
   const auto mode = train::parse_action_mode(
       !a.actions.empty() ? a.actions : (job.stage == train::WmStage::kPretrain ? "latent" : "dataset"));
-  bool any_weight = false;
-  for (const auto& d : a.data) any_weight = any_weight || parse_weighted_data(d).weighted;
-  for (const auto& d : a.data) {
-    const auto parsed = parse_weighted_data(d);
-    if (any_weight) job.weights.push_back(parsed.weight);
+  std::vector<WeightedData> data;
+  for (const auto& d : a.data) data.push_back(parse_weighted_data(d));
+  // One weight given anywhere weighs every dataset (1 where none is given); none keeps clips alike.
+  if (std::any_of(data.begin(), data.end(), [](const WeightedData& d) { return d.weighted; }))
+    for (const auto& d : data) job.weights.push_back(d.weight);
+  for (const auto& parsed : data) {
     train::LatentCacheSpec spec;
     spec.dataset = parsed.dir;
     spec.split = a.split;

@@ -259,8 +259,9 @@ GenerateSummary generate_dataset(const fs::path& out, const GenerateOptions& opt
   }
   const auto& play = play_behavior_names();
   for (const auto& name : options.play_behaviors)
-    DOJO_CHECK(std::find(play.begin(), play.end(), name) != play.end(),
-               "--play-behaviors: '" + name + "' is not play (expected " + play[0] + " or " + play[1] + ")");
+    DOJO_CHECK(
+        std::find(play.begin(), play.end(), name) != play.end(),
+        "--play-behaviors: '" + name + "' is not play (expected one of " + nlohmann::json(play).dump() + ")");
 
   // Plan everything up front: a bad option fails before any work is done.
   std::vector<PlannedEpisode> plans;

@@ -341,13 +341,14 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   std::vector<int64_t> set_sizes;
   for (const auto& set : sets) set_sizes.push_back(set.size());
   const MixtureIndex mixture(set_sizes, job.weights);
+  const auto shares = mixture.shares();
   nlohmann::json mixture_record = nlohmann::json::array();
   for (size_t i = 0; i < sets.size(); ++i)
     mixture_record.push_back(
         {{"data", job.data[i].dataset.string()},
          {"clips", set_sizes[i]},
          {"weight", job.weights.empty() ? nlohmann::json(nullptr) : nlohmann::json(job.weights[i])},
-         {"share", mixture.shares()[i]}});
+         {"share", shares[i]}});
   if (mixture.weighted()) LOG_INFO("wm train: mixture ", mixture_record.dump());
   const nlohmann::json checkpoint_extra = {
       {"stage", to_string(job.stage)}, {"clips", n}, {"mixture", mixture_record}};

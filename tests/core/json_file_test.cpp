@@ -11,27 +11,16 @@
 namespace dojo {
 namespace {
 
-// The message of the dojo::Error `f` throws ("" when it throws none).
-template <typename F>
-std::string error_of(F&& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.what();
-  }
-  return "";
-}
-
 TEST(JsonFile, ReadErrorsNameTheFile) {
   test::TempDir dir;
   write_file_atomic(dir / "good.json", std::string(R"({"a": 1})"));
   EXPECT_EQ(read_json_file(dir / "good.json").at("a"), 1);
   write_file_atomic(dir / "bad.json", std::string("{\"a\": "));
-  EXPECT_NE(error_of([&] {
+  EXPECT_NE(test::error_message([&] {
               read_json_file(dir / "bad.json");
             }).find((dir / "bad.json").string() + ": invalid JSON"),
             std::string::npos);
-  EXPECT_NE(error_of([&] { read_json_file(dir / "none.json"); }).find("none.json: cannot open"),
+  EXPECT_NE(test::error_message([&] { read_json_file(dir / "none.json"); }).find("none.json: cannot open"),
             std::string::npos);
 }
 
@@ -49,11 +38,12 @@ TEST(JsonFile, FieldsKeepAbsentValuesAndNameWrongTypes) {
   EXPECT_EQ(lr, 0.5);
   EXPECT_TRUE(on);
   EXPECT_EQ(absent, 7);
-  EXPECT_EQ(error_of([&] { fields.get("bad", steps); }), "run.json: field 'bad' must be an integer");
-  EXPECT_EQ(error_of([&] { fields.get("lr", steps); }), "run.json: field 'lr' must be an integer");
-  EXPECT_EQ(error_of([&] { JsonFields(nlohmann::json::array(), "list.json"); }),
+  EXPECT_EQ(test::error_message([&] { fields.get("bad", steps); }),
+            "run.json: field 'bad' must be an integer");
+  EXPECT_EQ(test::error_message([&] { fields.get("lr", steps); }), "run.json: field 'lr' must be an integer");
+  EXPECT_EQ(test::error_message([&] { JsonFields(nlohmann::json::array(), "list.json"); }),
             "list.json: expected a JSON object");
-  EXPECT_EQ(error_of([&] { check_positive("run.json", "steps", 0); }),
+  EXPECT_EQ(test::error_message([&] { check_positive("run.json", "steps", 0); }),
             "run.json: field 'steps' must be positive, got 0");
 }
 
