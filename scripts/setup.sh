@@ -9,6 +9,7 @@ cd "$(dirname "$0")/.."
 PACKAGES=(
   build-essential cmake ninja-build ccache pkg-config git python3
   libtorch-dev libopenblas0-pthread libgloo-dev      # libtorch 1.13 (CPU); fast BLAS; c10d headers
+  python3-torch                                      # writes real torch.save files for the converter tests
   libavformat-dev libavcodec-dev libswscale-dev libavutil-dev ffmpeg
   nlohmann-json3-dev libcli11-dev libgtest-dev
   libmujoco-dev libosmesa6-dev                       # DojoSim physics + headless rendering

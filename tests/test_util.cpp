@@ -8,6 +8,7 @@
 
 #include <array>
 #include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <iterator>
 #include <random>
@@ -81,5 +82,57 @@ CommandResult run_command(const std::string& command) {
 }
 
 CommandResult run_dojo(const std::string& args) { return run_command(std::string(DOJO_EXE) + " " + args); }
+
+}  // namespace dojo::test
+
+namespace dojo::test {
+
+namespace {
+struct TorchFiles {
+  TempDir dir;
+  std::filesystem::path marker;
+  bool ok = false;
+  std::string output;
+  TorchFiles() {
+    marker = dir / "payload_ran";
+    std::filesystem::create_directories(dir / "files");
+    const auto script = std::filesystem::path(DOJO_SOURCE_DIR) / "tests" / "core" / "write_torch_files.py";
+    // The first interpreter that has torch: $DOJO_PYTHON, python3 on PATH, then Debian's own (a
+    // python3 earlier on PATH, e.g. from pyenv, may lack the python3-torch package).
+    std::string python;
+    for (const std::string candidate :
+         {std::getenv("DOJO_PYTHON") ? std::getenv("DOJO_PYTHON") : "", "python3", "/usr/bin/python3"})
+      if (!candidate.empty() && run_command(candidate + " -c 'import torch'").exit_code == 0) {
+        python = candidate;
+        break;
+      }
+    if (python.empty()) {
+      output = "no python3 with torch found ($DOJO_PYTHON, python3, /usr/bin/python3)";
+      return;
+    }
+    const auto result = run_command(python + " " + script.string() + " " + (dir / "files").string() + " " +
+                                    marker.string() + " " + golden_dir().string());
+    ok = result.exit_code == 0;
+    output = result.output;
+  }
+};
+TorchFiles& torch_files() {
+  static TorchFiles files;
+  return files;
+}
+}  // namespace
+
+std::filesystem::path torch_files_dir() {
+  auto& files = torch_files();
+  if (!files.ok)
+    ADD_FAILURE() << "tests/core/write_torch_files.py failed (python3-torch installed?): " << files.output;
+  return files.dir / "files";
+}
+
+std::filesystem::path torch_files_marker() { return torch_files().marker; }
+
+std::filesystem::path dcp_fixture_dir() {
+  return std::filesystem::path(DOJO_SOURCE_DIR) / "tests" / "fixtures" / "dcp";
+}
 
 }  // namespace dojo::test

@@ -64,3 +64,14 @@ class OneThread : public ScopedThreads {
   do {                                                                      \
     if (!torch::cuda::is_available()) GTEST_SKIP() << "CUDA not available"; \
   } while (0)
+
+namespace dojo::test {
+// Files written once per test process by tests/core/write_torch_files.py with the system's
+// PyTorch (python3-torch): see that script for the list. A missing PyTorch fails the tests that
+// ask for them (ADD_FAILURE naming the command), never skips them.
+std::filesystem::path torch_files_dir();
+// Where those files' malicious payloads would `touch` a marker if anything ran them.
+std::filesystem::path torch_files_marker();
+// tests/fixtures/dcp: a distributed checkpoint written by PyTorch 2.11 (tests/fixtures/README.md).
+std::filesystem::path dcp_fixture_dir();
+}  // namespace dojo::test

@@ -141,7 +141,13 @@ void register_data(CLI::App& app) {
   auto preview_out = std::make_shared<std::string>();
   auto preview_count = std::make_shared<int>(4);
   auto preview_scale = std::make_shared<int>(2);
-  preview_cmd->add_option("DIR", *preview_dir, "Dataset directory")->required();
+  auto preview_open = std::make_shared<data::OpenOptions>();
+  auto preview_frames = std::make_shared<int64_t>(300);
+  preview_cmd->add_option("DIR", *preview_dir, "Dataset directory (any format `data info` reads)")
+      ->required();
+  preview_cmd->add_option("--max-frames", *preview_frames, "Frames per episode at most (0 = all)")
+      ->capture_default_str();
+  add_open_options(preview_cmd, preview_open);
   add_out_option(preview_cmd, *preview_out, "mp4 file")->required();
   preview_cmd->add_option("--episodes,-n", *preview_count, "How many episodes (the first N)")
       ->capture_default_str();
@@ -150,10 +156,11 @@ void register_data(CLI::App& app) {
       ->capture_default_str();
   preview_cmd->callback([=] {
     set_action([=] {
-      const auto store = data::EpisodeStore::open(*preview_dir);
-      const size_t n = std::min<size_t>(store.size(), static_cast<size_t>(std::max(1, *preview_count)));
-      data::write_preview_video(store, *preview_out, n, *preview_scale);
-      std::printf("%s: %zu episodes of %s\n", preview_out->c_str(), n, store.dir().string().c_str());
+      const auto source = data::open_dataset(*preview_dir, *preview_open);
+      const size_t n = std::min<size_t>(source->size(), static_cast<size_t>(std::max(1, *preview_count)));
+      data::write_preview_video(*source, *preview_out, n, *preview_scale, *preview_frames);
+      std::printf("%s: %zu episodes of %s (%s)\n", preview_out->c_str(), n, source->root().string().c_str(),
+                  source->format().c_str());
       return 0;
     });
   });
@@ -162,14 +169,16 @@ void register_data(CLI::App& app) {
       "check",
       "Decode every episode and validate arrays (lengths, NaN, video frame counts); exit 1 on problems");
   auto check_dir = std::make_shared<std::string>();
-  check_cmd->add_option("DIR", *check_dir, "Dataset directory")->required();
+  auto check_open = std::make_shared<data::OpenOptions>();
+  check_cmd->add_option("DIR", *check_dir, "Dataset directory (any format `data info` reads)")->required();
+  add_open_options(check_cmd, check_open);
   check_cmd->callback([=] {
     set_action([=] {
-      const auto store = data::EpisodeStore::open(*check_dir);
-      Progress progress("check", static_cast<int64_t>(store.size()), "episodes");
+      const auto source = data::open_dataset(*check_dir, *check_open);
+      Progress progress("check", static_cast<int64_t>(source->size()), "episodes");
       int bad = 0;
-      for (size_t i = 0; i < store.size(); ++i) {
-        const std::string problem = store.check_episode(i);
+      for (size_t i = 0; i < source->size(); ++i) {
+        const std::string problem = data::check_episode(*source, i);
         if (!problem.empty()) {
           ++bad;
           std::fprintf(stderr, "bad episode: %s\n", problem.c_str());
@@ -177,7 +186,7 @@ void register_data(CLI::App& app) {
         progress.advance();
       }
       progress.finish();
-      std::printf("%zu episodes checked, %d bad\n", store.size(), bad);
+      std::printf("%zu episodes of %s checked, %d bad\n", source->size(), source->format().c_str(), bad);
       return bad == 0 ? 0 : 1;
     });
   });

@@ -27,6 +27,7 @@ namespace {
 struct ServeArgs {
   serve::ServeOptions server;
   std::string demo, student, teacher, tokenizer, fast_decoder, data, split = "val";  // demo "": dojo_demo
+  std::string text_context;  // every model's prompt embedding (empty: zeros)
   std::string device = "cpu", precision = "fp32";
   bool no_teacher = false, no_cuda_graphs = false;
   int teacher_steps = 0;
@@ -37,6 +38,7 @@ fs::path pick(const std::string& given, const fs::path& fallback) {
 }
 
 void set_runtime(const ServeArgs& a, serve::ModelHost::Options& o) {
+  for (auto& model : o.models) model.text_context = a.text_context;
   o.split = a.split;
   o.device = parse_device(a.device);
   o.precision = parse_precision(a.precision);
@@ -211,6 +213,9 @@ void register_serve(CLI::App& app) {
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--tokenizer", a->tokenizer, "Tokenizer checkpoint");
   cmd->add_option("--fast-decoder", a->fast_decoder, "Fast streaming decoder for the student");
+  cmd->add_option("--text-context", a->text_context,
+                  "The prompt embedding every model cross-attends to: a .pt file holding the tensor or a "
+                  "safetensors file with one tensor 'context', [L, C] (default: zeros; docs/checkpoints.md)");
   cmd->add_option("--data", a->data,
                   "Dataset whose episodes sessions start from (default: with the reference set, 8 held-out "
                   "DojoSim episodes made on the spot; else the demo's robot data)");

@@ -116,6 +116,8 @@ int run_rollout(RolloutArgs a) {
   ScopedThreads matmul_bound(matmul_bound_command_threads("wm rollout", device.is_cuda()));
   auto model =
       infer::WorldModel::load(a.model.checkpoint, a.model.tokenizer, device, parse_precision(a.precision));
+  if (!a.model.text_context.empty())
+    model.set_text_context(infer::load_text_context(a.model.text_context), a.model.text_context);
   const auto clip =
       eval::read_episode_clip(a.model.data, a.split, a.episode, a.chunks, model.action_ranges());
   // Counterfactual: the episode's first frame with actions from a file.
@@ -157,6 +159,8 @@ int run_eval(EvalArgs a) {
   ScopedThreads matmul_bound(matmul_bound_command_threads("eval", device.is_cuda()));
   auto model =
       infer::WorldModel::load(a.model.checkpoint, a.model.tokenizer, device, parse_precision(a.precision));
+  if (!a.model.text_context.empty())
+    model.set_text_context(infer::load_text_context(a.model.text_context), a.model.text_context);
   eval::WmEvalOptions o;
   o.chunks = a.chunks;
   o.max_episodes = a.episodes;
@@ -174,6 +178,7 @@ int run_eval(EvalArgs a) {
     so.device = device;
     so.precision = parse_precision(a.precision);
     if (!a.fast_decoder.empty()) so.fast_decoder = models::load_fast_decoder(a.fast_decoder);
+    if (!a.model.text_context.empty()) so.text_context = infer::load_text_context(a.model.text_context);
     student.emplace(infer::StreamingEngine::load(a.model.checkpoint, a.model.tokenizer, so,
                                                  [&](infer::StudentConfig& s) { a.sink.apply(s); }));
     o.student = &*student;

@@ -18,10 +18,12 @@
 #include "core/error.h"
 #include "core/log.h"
 #include "core/runtime.h"
+#include "data/action_rows.h"
 #include "data/actions.h"
 #include "eval/wm_eval.h"
 #include "infer/stream_stats.h"
 #include "infer/streaming.h"
+#include "infer/world_model.h"
 #include "io/video.h"
 
 namespace dojo::cli {
@@ -48,15 +50,17 @@ class ActionLines {
       DOJO_CHECK(!j.is_discarded(), where + ": not valid JSON");
       if (j.is_object() && j.contains("baseline")) {
         DOJO_CHECK(chunker_.has_value(), where + ": a baseline needs a model with an action range");
-        chunker_->set_baseline(row_tensor(j["baseline"], chunker_->width(), where + ": 'baseline'"));
+        const auto baseline =
+            data::action_rows_from_json(nlohmann::json::array({j["baseline"]}), where + ": 'baseline'");
+        DOJO_CHECK(baseline.size(1) == chunker_->width(),
+                   where + ": 'baseline' must have " + std::to_string(chunker_->width()) + " values");
+        chunker_->set_baseline(baseline[0]);
         continue;
       }
       const auto& rows = j.is_object() ? j.value("actions", nlohmann::json()) : j;
-      DOJO_CHECK(rows.is_array() && rows.size() == 4, where + ": expected 4 action rows");
-      const auto width = rows[0].is_array() ? rows[0].size() : 0;
-      std::vector<torch::Tensor> parsed;
-      for (const auto& r : rows) parsed.push_back(row_tensor(r, width, where));
-      const auto chunk = torch::stack(parsed);  // [4, w]
+      const auto chunk = data::action_rows_from_json(rows, where);  // [4, w]
+      DOJO_CHECK(chunk.size(0) == 4, where + ": expected 4 action rows");
+      const int64_t width = chunk.size(1);
       if (static_cast<int>(width) == data::kUnifiedActionDim) return chunk;
       DOJO_CHECK(
           chunker_.has_value() && static_cast<int>(width) == chunker_->width(),
@@ -68,17 +72,6 @@ class ActionLines {
   }
 
  private:
-  static torch::Tensor row_tensor(const nlohmann::json& r, size_t width, const std::string& where) {
-    DOJO_CHECK(r.is_array() && r.size() == width && width > 0,
-               where + ": every row must be an array of " + std::to_string(width) + " numbers");
-    std::vector<float> v;
-    for (const auto& x : r) {
-      DOJO_CHECK(x.is_number(), where + ": action values must be numbers");
-      v.push_back(x.get<float>());
-    }
-    return torch::tensor(v);
-  }
-
   std::istream& in_;
   std::string name_;
   std::optional<data::ActionChunker> chunker_;
@@ -109,6 +102,7 @@ int run_stream(StreamArgs a) {
   o.device = parse_device(a.device);
   o.precision = parse_precision(a.precision);
   if (!a.fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(a.fast_decoder);
+  if (!a.model.text_context.empty()) o.text_context = infer::load_text_context(a.model.text_context);
   auto engine = infer::StreamingEngine::load(
       a.model.checkpoint, a.model.tokenizer, o, [&](infer::StudentConfig& student) {
         if (a.window >= 0) {

@@ -40,6 +40,7 @@ void set_action(std::function<int()> action);
 
 void register_version(CLI::App& app);
 void register_ckpt(CLI::App& app);
+void register_convert(CLI::App& app);  // engine-only builds too
 void register_video(CLI::App& app);
 void register_bench(CLI::App& app);
 void register_sim(CLI::App& app);

@@ -136,6 +136,7 @@ int main(int argc, char** argv) {
   app.add_flag("-q,--quiet", opts.quiet, "Log warnings and errors only");
 
   cli::register_version(app);
+  cli::register_convert(app);
 #ifdef DOJO_ENGINE_ONLY
   // The engine-only build (CMake option DOJO_ENGINE_ONLY): the streaming engine's timing alone.
   auto* wm = app.add_subcommand("wm", "Action-conditioned world model (DiT, rectified flow)");

@@ -71,6 +71,11 @@ void ModelArgs::add_options(CLI::App* cmd, const std::string& what) {
   add_data_option(cmd, data)->description(
       "Dataset directory (episode store, LeRobot, EgoDex or video folder); default: 8 held-out DojoSim robot "
       "episodes made on the spot");
+  cmd->add_option(
+      "--text-context", text_context,
+      "The prompt embedding the model cross-attends to: a .pt file holding the tensor or a safetensors file "
+      "with one tensor 'context', [L, C] (default: zeros, as DojoSim models are trained; "
+      "docs/checkpoints.md)");
 }
 
 void ModelArgs::add_sampler_options(CLI::App* cmd) {

@@ -38,6 +38,7 @@ std::string default_eval_data();
 
 struct ModelArgs {
   std::string checkpoint, tokenizer, data;
+  std::string text_context;  // --text-context: a safetensors file with the prompt embedding
   int steps = 35;
   std::string solver = "unipc", concat = "aligned";
   double shift = 0;  // 0: the checkpoint's

@@ -112,7 +112,10 @@ void save_checkpoint(const fs::path& dir_in, const CheckpointData& data) {
     write_file_atomic(temp / kConfigFile, data.config.dump(2) + "\n");
     Metadata metadata = data.model_metadata;
     if (metadata.count("config") == 0) metadata["config"] = data.config.dump();
-    save_safetensors(temp / kModelFile, data.model, metadata);
+    if (data.model_stream)
+      save_safetensors(temp / kModelFile, *data.model_stream, metadata);
+    else
+      save_safetensors(temp / kModelFile, data.model, metadata);
     if (data.trainer) {
       save_safetensors(temp / kTrainerTensorsFile, data.trainer->tensors);
       const nlohmann::json state = {{"step", data.trainer->step}, {"extra", data.trainer->extra}};

@@ -38,6 +38,9 @@ struct TrainerState {
 struct CheckpointData {
   nlohmann::json config = nlohmann::json::object();
   NamedTensors model;
+  // When set, model.safetensors is written from this stream instead of `model` (a converted
+  // checkpoint larger than memory: each tensor is read, written and dropped in turn).
+  std::optional<TensorStream> model_stream;
   Metadata model_metadata;              // extra __metadata__ entries for model.safetensors
   std::optional<TrainerState> trainer;  // absent: an inference-only checkpoint
 };

@@ -1,7 +1,6 @@
 #include "core/safetensors.h"
 
 #include <fcntl.h>
-#include <sys/mman.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -13,6 +12,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/mapped_file.h"
 
 static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__,
               "safetensors data is little-endian; this code copies it as host memory");
@@ -47,17 +47,6 @@ const DtypeSpec* find_dtype(const std::string& name) {
 }
 
 std::string quote_name(const std::string& name) { return "'" + name + "'"; }
-
-// A read-only view of the whole file, mapped private and writable (copy-on-write) so tensors
-// built on it may be modified in place without touching the file. MAP_NORESERVE: a mapping
-// larger than RAM + swap must not be refused for commit accounting.
-struct Mapping {
-  void* base = nullptr;
-  size_t size = 0;
-  ~Mapping() {
-    if (base != nullptr) ::munmap(base, size);
-  }
-};
 
 // Reads exactly `size` bytes at `offset`; false on a short read.
 bool read_at(int fd, void* buffer, size_t size, uint64_t offset) {
@@ -100,7 +89,7 @@ struct SafetensorsFile::State {
   std::vector<std::string> keys;
   std::unordered_map<std::string, TensorInfo> infos;
   Metadata metadata;
-  std::shared_ptr<Mapping> mapping;  // null when the data region is empty
+  std::shared_ptr<const MappedFile> mapping;  // null when the data region is empty
 
   const uint8_t* data(const TensorInfo& info) const {
     return static_cast<const uint8_t*>(mapping->base) + 8 + header_size + info.begin;
@@ -227,13 +216,7 @@ SafetensorsFile SafetensorsFile::open(const std::filesystem::path& path) {
     throw fail(std::to_string(data_size - position) + " bytes after the last tensor (corrupt header?)");
 
   if (data_size > 0) {
-    auto mapping = std::make_shared<Mapping>();
-    void* base =
-        ::mmap(nullptr, state->file_size, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_NORESERVE, fd, 0);
-    if (base == MAP_FAILED) throw fail(std::string("cannot memory-map: ") + std::strerror(errno));
-    mapping->base = base;
-    mapping->size = state->file_size;
-    state->mapping = std::move(mapping);
+    state->mapping = MappedFile::map(fd, state->file_size, path);
   }
   return SafetensorsFile(std::move(state));
 }
@@ -277,7 +260,7 @@ torch::Tensor SafetensorsFile::tensor(const std::string& name, bool copy) const 
     std::memcpy(out.data_ptr(), data, meta.nbytes());
     return out;
   }
-  std::shared_ptr<Mapping> keep = state_->mapping;
+  std::shared_ptr<const MappedFile> keep = state_->mapping;
   return torch::from_blob(
       data, meta.shape, [keep](void*) mutable { keep.reset(); }, options);
 }
@@ -292,35 +275,50 @@ NamedTensors SafetensorsFile::tensors(bool copy) const {
 void save_safetensors(const std::filesystem::path& path, const NamedTensors& tensors,
                       const Metadata& metadata) {
   const std::string file = path.string();
-  std::vector<torch::Tensor> data;
-  data.reserve(tensors.size());
+  TensorStream stream;
+  stream.specs.reserve(tensors.size());
+  for (const auto& [name, tensor] : tensors) {
+    if (!tensor.defined()) throw Error(file + ": tensor " + quote_name(name) + ": undefined tensor");
+    if (tensor.is_sparse() || tensor.is_quantized())
+      throw Error(file + ": tensor " + quote_name(name) + ": only dense tensors can be saved");
+    stream.specs.push_back({name, tensor.sizes().vec(), tensor.scalar_type()});
+  }
+  stream.produce = [&tensors](size_t i) { return tensors[i].second; };
+  save_safetensors(path, stream, metadata);
+}
+
+void save_safetensors(const std::filesystem::path& path, const TensorStream& stream,
+                      const Metadata& metadata) {
+  const std::string file = path.string();
   std::unordered_set<std::string> seen;
   nlohmann::ordered_json header = nlohmann::ordered_json::object();
   uint64_t offset = 0;
-  for (const auto& [name, tensor] : tensors) {
+  for (const auto& spec : stream.specs) {
+    const std::string& name = spec.name;
     auto bad = [&](const std::string& message) {
       return Error(file + ": tensor " + quote_name(name) + ": " + message);
     };
     if (name.empty()) throw Error(file + ": empty tensor name");
     if (name == "__metadata__") throw bad("reserved name");
     if (!seen.insert(name).second) throw bad("name given twice");
-    if (!tensor.defined()) throw bad("undefined tensor");
-    if (tensor.is_sparse() || tensor.is_quantized()) throw bad("only dense tensors can be saved");
     std::string dtype;
     try {
-      dtype = safetensors_dtype(tensor.scalar_type());
+      dtype = safetensors_dtype(spec.dtype);
     } catch (const Error& e) {
       throw bad(e.what());
     }
-    torch::Tensor cpu = tensor.detach().to(torch::kCPU).contiguous();
-    const uint64_t nbytes = static_cast<uint64_t>(cpu.numel()) * cpu.element_size();
+    uint64_t numel = 1;
+    for (const int64_t d : spec.shape) {
+      if (d < 0) throw bad("negative dimension");
+      numel *= static_cast<uint64_t>(d);
+    }
+    const uint64_t nbytes = numel * c10::elementSize(spec.dtype);
     nlohmann::ordered_json entry = nlohmann::ordered_json::object();
     entry["dtype"] = dtype;
-    entry["shape"] = cpu.sizes().vec();
+    entry["shape"] = spec.shape;
     entry["data_offsets"] = {offset, offset + nbytes};
     header[name] = std::move(entry);
     offset += nbytes;
-    data.push_back(std::move(cpu));
   }
   if (!metadata.empty()) {
     nlohmann::ordered_json meta = nlohmann::ordered_json::object();
@@ -341,9 +339,16 @@ void save_safetensors(const std::filesystem::path& path, const NamedTensors& ten
     for (int i = 0; i < 8; ++i, n >>= 8) length_bytes[i] = static_cast<uint8_t>(n & 0xff);
     out.write(reinterpret_cast<const char*>(length_bytes), 8);
     out.write(header_text.data(), static_cast<std::streamsize>(header_text.size()));
-    for (const auto& tensor : data)
-      out.write(static_cast<const char*>(tensor.data_ptr()),
-                static_cast<std::streamsize>(tensor.numel() * tensor.element_size()));
+    for (size_t i = 0; i < stream.specs.size(); ++i) {
+      const TensorSpec& spec = stream.specs[i];
+      const torch::Tensor cpu = stream.produce(i).detach().to(torch::kCPU).contiguous();
+      if (cpu.sizes().vec() != spec.shape || cpu.scalar_type() != spec.dtype)
+        throw Error(file + ": tensor " + quote_name(spec.name) + ": produced " +
+                    c10::toString(cpu.scalar_type()) + " " + shape_string(cpu.sizes()) +
+                    ", the header says " + c10::toString(spec.dtype) + " " + shape_string(spec.shape));
+      out.write(static_cast<const char*>(cpu.data_ptr()),
+                static_cast<std::streamsize>(cpu.numel() * cpu.element_size()));
+    }
   });
 }
 

@@ -23,6 +23,7 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <optional>
@@ -92,10 +93,26 @@ class SafetensorsFile {
   std::shared_ptr<const State> state_;
 };
 
+// Tensors made one at a time while a file is written, so that a model larger than memory can be
+// converted: the header is written from `specs`, then produce(i) is called in order and each
+// result is dropped once its bytes are out. A produced tensor must match its spec's shape and dtype.
+struct TensorSpec {
+  std::string name;
+  std::vector<int64_t> shape;
+  torch::ScalarType dtype = torch::kFloat32;
+};
+struct TensorStream {
+  std::vector<TensorSpec> specs;
+  std::function<torch::Tensor(size_t)> produce;
+};
+
 // Writes `tensors` (any device, any layout: copied to contiguous CPU first) and `metadata` to
 // `path`, atomically (see atomic_file.h). Names must be unique and non-empty and may not be
 // "__metadata__". Throws dojo::Error naming the file and the offending tensor.
 void save_safetensors(const std::filesystem::path& path, const NamedTensors& tensors,
+                      const Metadata& metadata = {});
+// The same from a stream of tensors (the file is identical to the one the tensors would give).
+void save_safetensors(const std::filesystem::path& path, const TensorStream& tensors,
                       const Metadata& metadata = {});
 
 }  // namespace dojo

@@ -196,4 +196,52 @@ ConvertResult convert_dataset(const EpisodeSource& source, const fs::path& dst, 
   return result;
 }
 
+std::string check_episode(const EpisodeSource& source, size_t index) {
+  const auto& entry = source.info().episodes.at(index);
+  const std::string where = source.episode_location(index);
+  try {
+    const EpisodeData arrays = source.read_arrays(index);
+    for (const auto& [name, array] :
+         {std::pair<const char*, const at::Tensor&>{"actions", arrays.actions}, {"states", arrays.states}}) {
+      if (!array.defined()) continue;
+      if (array.size(0) != entry.frames)
+        return where + ": " + name + " have " + std::to_string(array.size(0)) + " rows for " +
+               std::to_string(entry.frames) + " frames";
+      if (!torch::isfinite(array).all().item<bool>())
+        return where + ": " + name + " hold NaN or infinite values";
+    }
+    constexpr int64_t kChunk = 64;
+    for (int64_t start = 0; start < entry.frames; start += kChunk) {
+      std::vector<int64_t> frames;
+      for (int64_t f = start; f < std::min(entry.frames, start + kChunk); ++f) frames.push_back(f);
+      const at::Tensor decoded = source.read_frames(index, frames);
+      if (decoded.size(0) != static_cast<int64_t>(frames.size()))
+        return where + ": frames " + std::to_string(start) + "+ decoded " + std::to_string(decoded.size(0)) +
+               " of " + std::to_string(frames.size());
+    }
+    return "";
+  } catch (const std::exception& e) {
+    return e.what();
+  }
+}
+
+void write_preview_video(const EpisodeSource& source, const fs::path& out, size_t count, int scale,
+                         int64_t max_frames) {
+  DOJO_CHECK(scale >= 1, "preview scale must be at least 1");
+  std::vector<at::Tensor> videos;
+  std::vector<std::string> labels;
+  for (size_t i = 0; i < std::min(source.size(), count); ++i) {
+    const auto& entry = source.info().episodes[i];
+    const int64_t n = max_frames > 0 ? std::min(max_frames, entry.frames) : entry.frames;
+    std::vector<int64_t> frames(static_cast<size_t>(n));
+    for (int64_t f = 0; f < n; ++f) frames[static_cast<size_t>(f)] = f;
+    at::Tensor video = source.read_frames(i, frames);  // [T, H, W, 3] u8
+    if (scale > 1) video = video.repeat_interleave(scale, 1).repeat_interleave(scale, 2);
+    videos.push_back(video);
+    labels.push_back(entry.task.empty() ? entry.id : entry.task);
+  }
+  DOJO_CHECK(!videos.empty(), source.root().string() + ": no episodes to preview");
+  io::write_comparison_video(out.string(), videos, labels, source.info().fps);
+}
+
 }  // namespace dojo::data

@@ -81,6 +81,15 @@ struct OpenOptions {
 std::shared_ptr<const EpisodeSource> open_dataset(const std::filesystem::path& path,
                                                   const OpenOptions& options = {});
 
+// What is wrong with episode i, or "" when nothing is: its arrays read (the Parquet rows, HDF5
+// datasets or safetensors behind them), are finite and have one row per frame, and every frame
+// decodes (in chunks, so memory stays bounded). Messages name the file that failed.
+std::string check_episode(const EpisodeSource& source, size_t index);
+// A side-by-side mp4 of the first `count` episodes (at most `max_frames` frames each, 0 = all),
+// frames enlarged `scale` times (nearest neighbour), labelled with their tasks.
+void write_preview_video(const EpisodeSource& source, const std::filesystem::path& out, size_t count,
+                         int scale, int64_t max_frames = 0);
+
 // Statistics of actions and states over every episode of a source, in LeRobot's stats.json
 // shape: {"action": {min, max, mean, std, count}, "observation.state": {...}}.
 nlohmann::json compute_stats(const EpisodeSource& source);

@@ -1,5 +1,7 @@
 #include "data/episode_store.h"
 
+#include "data/episode_source.h"
+
 #include <torch/torch.h>
 #include <unistd.h>
 
@@ -170,18 +172,7 @@ DatasetInfo DatasetInfo::from_json(const nlohmann::json& j, const std::string& w
 }
 
 void write_preview_video(const EpisodeStore& store, const fs::path& out, size_t count, int scale) {
-  DOJO_CHECK(scale >= 1, "preview scale must be at least 1");
-  std::vector<at::Tensor> videos;
-  std::vector<std::string> labels;
-  for (size_t i = 0; i < std::min(store.size(), count); ++i) {
-    auto frames = store.load(i).frames;  // [T, H, W, 3] u8
-    if (scale > 1) frames = frames.repeat_interleave(scale, 1).repeat_interleave(scale, 2);
-    videos.push_back(frames);
-    const auto& entry = store.info().episodes[i];
-    labels.push_back(entry.task.empty() ? entry.id : entry.task);
-  }
-  DOJO_CHECK(!videos.empty(), store.dir().string() + ": no episodes to preview");
-  io::write_comparison_video(out.string(), videos, labels, store.info().fps);
+  write_preview_video(EpisodeStoreSource(store), out, count, scale);
 }
 
 void write_dataset_info(const fs::path& dir, const DatasetInfo& info) {

@@ -174,9 +174,16 @@ StreamingEngine::StreamingEngine(models::ActionDit student, models::WanVae token
     if (options_.fast_decoder) cast_matmul_weights(*options_.fast_decoder, dtype);
   }
   AutocastGuard autocast(options_.device.type(), options_.precision);
-  projected_context_ = net_->project_context(torch::zeros({1, 1, net_->config.crossattn_emb_channels},
-                                                          torch::TensorOptions(options_.device)))
-                           .to(torch::kFloat32);
+  const int64_t channels = net_->config.crossattn_emb_channels;
+  torch::Tensor context = torch::zeros({1, 1, channels}, torch::TensorOptions(options_.device));
+  if (options_.text_context.defined()) {
+    DOJO_CHECK(options_.text_context.dim() == 3 && options_.text_context.size(0) == 1 &&
+                   options_.text_context.size(2) == channels,
+               "the text context is " + shape_string(options_.text_context.sizes()) +
+                   "; this model takes [1, L, " + std::to_string(channels) + "]");
+    context = options_.text_context.to(options_.device, torch::kFloat32);
+  }
+  projected_context_ = net_->project_context(context).to(torch::kFloat32);
 }
 
 StreamingEngine StreamingEngine::load(const std::filesystem::path& checkpoint,

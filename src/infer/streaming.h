@@ -125,6 +125,9 @@ class StreamingEngine {
     // storage while the engine streams (training in place does; cast_weights of another engine at
     // another precision would not). Ignored on the CPU.
     bool cuda_graphs = true;
+    // The prompt embedding [1, L, C] (load_text_context in world_model.h); undefined: zeros, as
+    // every DojoSim model is trained.
+    torch::Tensor text_context;
   };
 
   StreamingEngine(models::ActionDit student, models::WanVae tokenizer, Options options);

@@ -4,6 +4,8 @@
 
 #include "core/checkpoint.h"
 #include "core/error.h"
+#include "core/safetensors.h"
+#include "core/torch_file.h"
 
 namespace dojo::infer {
 
@@ -80,6 +82,45 @@ torch::Tensor WorldModel::reconstruct_chunks(const torch::Tensor& video, ConcatM
   return torch::cat(parts, 1);  // [B, 1 + 12 K, H, W, 3]
 }
 
+torch::Tensor load_text_context(const std::filesystem::path& file) {
+  torch::Tensor context;
+  const std::string ext = file.extension().string();
+  if (ext == ".pt" || ext == ".pth") {
+    // A torch.save file holding the tensor itself or a dict with one tensor (the released empty-
+    // prompt embedding asset), read without running anything (core/torch_file.h).
+    const TorchFile torch_file = TorchFile::open(file);
+    if (TorchFile::is_tensor(torch_file.root())) {
+      context = torch_file.tensor(torch_file.root());
+    } else {
+      const auto tensors = torch_file.tensors();
+      DOJO_CHECK(tensors.size() == 1, file.string() + ": holds " + std::to_string(tensors.size()) +
+                                          " tensors, not one prompt embedding");
+      context = tensors[0].second;
+    }
+  } else {
+    const auto tensors = SafetensorsFile::open(file);
+    DOJO_CHECK(tensors.contains("context"),
+               file.string() + ": no tensor 'context' (the prompt embedding, [L, C])");
+    context = tensors.tensor("context");
+  }
+  context = context.to(torch::kFloat32).contiguous().clone();
+  if (context.dim() == 2) context = context.unsqueeze(0);
+  DOJO_CHECK(context.dim() == 3 && context.size(0) == 1 && context.size(1) > 0,
+             file.string() + ": the prompt embedding is " + shape_string(context.sizes()) +
+                 ", not [L, C] or [1, L, C]");
+  DOJO_CHECK(torch::isfinite(context).all().item<bool>(),
+             file.string() + ": the prompt embedding holds NaN or infinity");
+  return context;
+}
+
+void WorldModel::set_text_context(const torch::Tensor& context, const std::string& source) {
+  const int64_t channels = net_->config.crossattn_emb_channels;
+  DOJO_CHECK(context.dim() == 3 && context.size(0) == 1 && context.size(2) == channels,
+             source + ": the text context is " + shape_string(context.sizes()) +
+                 "; this model takes [1, L, " + std::to_string(channels) + "]");
+  text_context_ = context.to(device_, torch::kFloat32);
+}
+
 torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::Tensor& actions,
                                         uint64_t seed, const SamplerOptions& sampler) {
   DOJO_CHECK(cond.dim() == 4 && cond.size(3) == 3 && cond.scalar_type() == torch::kUInt8,
@@ -109,6 +150,7 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
     in.timesteps = torch::full({batch, 1}, static_cast<double>(timestep), opts);
     in.condition_mask = mask;
     in.actions = acts;
+    if (text_context_.defined()) in.context = text_context_.expand({batch, -1, -1});
     // Only the network runs in the lower precision; the solver's updates stay float32.
     AutocastGuard autocast(device_.type(), precision_);
     if (!guided) return models::denoise_velocity(*net_, in, x, gt, noise, mask).to(torch::kFloat32);
@@ -116,6 +158,7 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
     in.timesteps = in.timesteps.repeat({2, 1});
     in.condition_mask = mask.repeat({2, 1, 1, 1, 1});
     in.actions = torch::cat({acts, torch::zeros_like(acts)});
+    if (text_context_.defined()) in.context = text_context_.expand({2 * batch, -1, -1});
     const auto v = models::denoise_velocity(*net_, in, x.repeat({2, 1, 1, 1, 1}), gt.repeat({2, 1, 1, 1, 1}),
                                             noise.repeat({2, 1, 1, 1, 1}), in.condition_mask)
                        .to(torch::kFloat32);

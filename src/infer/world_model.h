@@ -35,6 +35,13 @@ diffusion::Solver parse_solver(const std::string& text);  // unipc | euler
 enum class ConcatMode { kAligned, kReleased };
 ConcatMode parse_concat_mode(const std::string& text);  // aligned | released
 
+// The prompt embedding the released model cross-attends to (the release embeds its prompt once
+// with its text encoder and feeds the result to every call): a safetensors file holding one
+// tensor "context", or a .pt / .pth torch.save file holding one tensor (as the released empty-
+// prompt embedding asset), [L, C] or [1, L, C] -> [1, L, C] float32. Throws dojo::Error naming the file.
+// Without one, models run on a zero context [1, 1, C]: what every DojoSim model is trained with.
+torch::Tensor load_text_context(const std::filesystem::path& file);
+
 // Both networks live on `device`. With precision bf16 (or fp16, CUDA only) the DiT's velocity
 // calls run under autocast; the tokenizer runs in float32. Inputs may be on any device; outputs
 // come back on the CPU.
@@ -46,6 +53,10 @@ class WorldModel {
   // records of its training: the time shift (trained_sampler) and the action ranges.
   static WorldModel load(const std::filesystem::path& checkpoint, const std::filesystem::path& tokenizer,
                          torch::Device device = torch::kCPU, Precision precision = Precision::kFloat32);
+
+  // Replaces the zero text context with `context` [1, L, C] (load_text_context); C must be the
+  // network's crossattn_emb_channels (throws dojo::Error naming `source` otherwise).
+  void set_text_context(const torch::Tensor& context, const std::string& source = "text context");
 
   // cond: [B, H, W, 3] uint8, actions: [B, 12, 384] -> [B, 13, H, W, 3] uint8. Frame 0 is the
   // tokenizer's reconstruction of cond. Noise is drawn from `seed` (same seed, same video).
@@ -88,6 +99,7 @@ class WorldModel {
   Precision precision_;
   SamplerOptions trained_sampler_;
   nlohmann::json action_ranges_ = nlohmann::json::object();
+  torch::Tensor text_context_;  // [1, L, C] on device_; undefined: zeros
 };
 
 }  // namespace dojo::infer

@@ -26,6 +26,7 @@
 namespace dojo {
 class SafetensorsFile;
 struct CheckpointData;
+using NamedTensors = std::vector<std::pair<std::string, torch::Tensor>>;  // as core/safetensors.h
 }  // namespace dojo
 
 namespace dojo::models {
@@ -103,6 +104,9 @@ struct DitConfig {
   // pos_embedder.seq. Assumes 16 latent channels in and out. Throws dojo::Error naming the tensor
   // when one it needs is missing or inconsistent.
   static DitConfig from_weights(const SafetensorsFile& file, const std::string& prefix = "net.");
+  // The same for tensors in memory (a converted release file); `source` names them in errors.
+  static DitConfig from_weights(const NamedTensors& tensors, const std::string& prefix,
+                                const std::string& source);
   void validate() const;
   // The action_scale factors as a tensor [action_dim] (ones when empty).
   torch::Tensor action_scale_tensor() const;

@@ -1,7 +1,9 @@
 // The DiT's configuration, its parameter inventory, FLOP count and checkpoint format: everything
 // about the network that needs no forward pass.
 #include <cmath>
+#include <functional>
 #include <limits>
+#include <map>
 
 #include "core/checkpoint.h"
 #include "core/error.h"
@@ -191,14 +193,23 @@ DitConfig DitConfig::from_reference_kwargs(const nlohmann::json& j) {
   return c;
 }
 
-DitConfig DitConfig::from_weights(const SafetensorsFile& file, const std::string& prefix) {
+namespace {
+
+// What from_weights reads of a set of tensors: shapes and dtypes by name.
+struct WeightShapes {
+  std::string source;
+  std::function<const std::vector<int64_t>*(const std::string&)> shape;  // null when absent
+  std::function<bool(const std::string&)> is_bf16;
+};
+
+DitConfig config_from_shapes(const WeightShapes& file, const std::string& prefix) {
   auto shape = [&](const std::string& name) -> std::vector<int64_t> {
-    DOJO_CHECK(file.contains(prefix + name),
-               "DiT weights " + file.path().string() + ": no tensor '" + prefix + name + "'");
-    return file.info(prefix + name).shape;
+    const std::vector<int64_t>* found = file.shape(prefix + name);
+    DOJO_CHECK(found, "DiT weights " + file.source + ": no tensor '" + prefix + name + "'");
+    return *found;
   };
   auto check = [&](bool ok, const std::string& name) {
-    DOJO_CHECK(ok, "DiT weights " + file.path().string() + ": unexpected shape of '" + prefix + name + "'");
+    DOJO_CHECK(ok, "DiT weights " + file.source + ": unexpected shape of '" + prefix + name + "'");
   };
   DitConfig c;
   c.zero_init_action_fc2 = false;  // the weights come from the file
@@ -207,10 +218,10 @@ DitConfig DitConfig::from_weights(const SafetensorsFile& file, const std::string
   c.model_channels = x_emb[0];
   const int64_t D = c.model_channels;
   c.num_blocks = 0;
-  while (file.contains(prefix + "blocks." + std::to_string(c.num_blocks) + ".self_attn.q_proj.weight"))
+  while (file.shape(prefix + "blocks." + std::to_string(c.num_blocks) + ".self_attn.q_proj.weight"))
     ++c.num_blocks;
-  DOJO_CHECK(c.num_blocks > 0, "DiT weights " + file.path().string() + ": no tensor '" + prefix +
-                                   "blocks.0.self_attn.q_proj.weight'");
+  DOJO_CHECK(c.num_blocks > 0,
+             "DiT weights " + file.source + ": no tensor '" + prefix + "blocks.0.self_attn.q_proj.weight'");
   const int64_t head_dim = shape("blocks.0.self_attn.q_norm.weight").at(0);
   check(head_dim > 0 && D % head_dim == 0, "blocks.0.self_attn.q_norm.weight");
   c.num_heads = D / head_dim;
@@ -225,7 +236,7 @@ DitConfig DitConfig::from_weights(const SafetensorsFile& file, const std::string
   check(x_emb[1] == (c.in_channels + 2) * pp || x_emb[1] == (c.in_channels + 1) * pp,
         "x_embedder.proj.1.weight");
   c.concat_padding_mask = x_emb[1] == (c.in_channels + 2) * pp;
-  c.use_crossattn_projection = file.contains(prefix + "crossattn_proj.0.weight");
+  c.use_crossattn_projection = file.shape(prefix + "crossattn_proj.0.weight") != nullptr;
   if (c.use_crossattn_projection) {
     const auto proj = shape("crossattn_proj.0.weight");
     c.crossattn_proj_dim = proj.at(0);
@@ -242,9 +253,41 @@ DitConfig DitConfig::from_weights(const SafetensorsFile& file, const std::string
   const int64_t seq_len = shape("pos_embedder.seq").at(0);
   c.max_frames = seq_len;
   if (seq_len < c.max_img_h / c.patch_spatial) c.max_img_h = c.max_img_w = seq_len * c.patch_spatial;
-  c.rope_bf16_ranges = file.info(prefix + "pos_embedder.dim_spatial_range").dtype == "BF16";
+  c.rope_bf16_ranges = file.is_bf16(prefix + "pos_embedder.dim_spatial_range");
   c.validate();
   return c;
+}
+
+}  // namespace
+
+DitConfig DitConfig::from_weights(const SafetensorsFile& file, const std::string& prefix) {
+  WeightShapes shapes;
+  shapes.source = file.path().string();
+  shapes.shape = [&file](const std::string& name) -> const std::vector<int64_t>* {
+    return file.contains(name) ? &file.info(name).shape : nullptr;
+  };
+  shapes.is_bf16 = [&file](const std::string& name) {
+    return file.contains(name) && file.info(name).dtype == "BF16";
+  };
+  return config_from_shapes(shapes, prefix);
+}
+
+DitConfig DitConfig::from_weights(const NamedTensors& tensors, const std::string& prefix,
+                                  const std::string& source) {
+  std::map<std::string, std::pair<std::vector<int64_t>, bool>> by_name;
+  for (const auto& [name, t] : tensors)
+    by_name[name] = {t.sizes().vec(), t.scalar_type() == torch::kBFloat16};
+  WeightShapes shapes;
+  shapes.source = source;
+  shapes.shape = [&by_name](const std::string& name) -> const std::vector<int64_t>* {
+    const auto it = by_name.find(name);
+    return it == by_name.end() ? nullptr : &it->second.first;
+  };
+  shapes.is_bf16 = [&by_name](const std::string& name) {
+    const auto it = by_name.find(name);
+    return it != by_name.end() && it->second.second;
+  };
+  return config_from_shapes(shapes, prefix);
 }
 
 void DitConfig::validate() const {

@@ -1,5 +1,7 @@
 #include "serve/external_policy.h"
 
+#include "data/action_rows.h"
+
 #include <signal.h>
 #include <spawn.h>
 #include <sys/wait.h>
@@ -87,7 +89,7 @@ class ExternalPolicy : public eval::Policy {
       }
       try {
         DOJO_CHECK(m.contains("actions"), "step: missing 'actions'");
-        const auto rows = json_rows(m["actions"], "step.actions");  // [n, w]
+        const auto rows = data::action_rows_from_json(m["actions"], "step.actions", 64);  // [n, w]
         DOJO_CHECK(rows.size(0) == n && rows.size(1) == width,
                    "step.actions: expected " + std::to_string(n) + " raw commands of " +
                        std::to_string(width) + " values, got [" + std::to_string(rows.size(0)) + ", " +

@@ -47,11 +47,15 @@ void ModelHost::load() {
       o.precision = options_.precision;
       o.cuda_graphs = options_.cuda_graphs;
       if (!h->spec.fast_decoder.empty()) o.fast_decoder = models::load_fast_decoder(h->spec.fast_decoder);
+      if (!h->spec.text_context.empty()) o.text_context = infer::load_text_context(h->spec.text_context);
       h->prototype = std::make_unique<infer::StreamingEngine>(
           infer::StreamingEngine::load(h->spec.checkpoint, h->spec.tokenizer, o));
     } else {
       h->teacher = std::make_unique<infer::WorldModel>(infer::WorldModel::load(
           h->spec.checkpoint, h->spec.tokenizer, options_.device, options_.precision));
+      if (!h->spec.text_context.empty())
+        h->teacher->set_text_context(infer::load_text_context(h->spec.text_context),
+                                     h->spec.text_context.string());
     }
     LOG_INFO("serve: model '", h->spec.name, "' loaded from ", h->spec.checkpoint.string());
   }

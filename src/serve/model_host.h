@@ -34,6 +34,7 @@ struct ModelSpec {
   std::filesystem::path checkpoint, tokenizer;
   std::filesystem::path fast_decoder;  // student only; empty: the Wan decoder
   int teacher_steps = 0;               // teacher only: sampler steps a chunk (0: the trained sampler's)
+  std::filesystem::path text_context;  // the prompt embedding (infer::load_text_context); empty: zeros
 };
 
 // A session's view of a model: frames in, actions in, frames out (infer/generator.h).

@@ -1,5 +1,7 @@
 #include "serve/rollout_api.h"
 
+#include "data/action_rows.h"
+
 #include <array>
 #include <cmath>
 #include <filesystem>
@@ -17,23 +19,6 @@ namespace dojo::serve {
 namespace {
 
 constexpr char kAlphabet[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-
-torch::Tensor rows_from_json(const nlohmann::json& rows, const std::string& where) {  // [n, w]
-  DOJO_CHECK(rows.is_array() && !rows.empty(), where + " must be a non-empty array of rows");
-  const size_t width = rows[0].is_array() ? rows[0].size() : 0;
-  DOJO_CHECK(width > 0 && width <= 1024, where + ": every row must be an array of numbers");
-  std::vector<float> values;
-  values.reserve(rows.size() * width);
-  for (const auto& r : rows) {
-    DOJO_CHECK(r.is_array() && r.size() == width,
-               where + ": every row must have " + std::to_string(width) + " values");
-    for (const auto& x : r) {
-      DOJO_CHECK(x.is_number() && std::isfinite(x.get<double>()), where + ": values must be finite numbers");
-      values.push_back(x.get<float>());
-    }
-  }
-  return torch::tensor(values).view({static_cast<int64_t>(rows.size()), static_cast<int64_t>(width)});
-}
 
 HttpReply bad_request(const std::string& message) {
   return {400, "application/json", nlohmann::json{{"error", message}}.dump()};
@@ -98,7 +83,7 @@ HttpReply run_rollout_request(const ModelHost& host, const std::string& body, Se
     DOJO_CHECK(!request.contains("seed") || request["seed"].is_number_unsigned(),
                "'seed' must be a non-negative integer");
     DOJO_CHECK(request.contains("actions"), "missing 'actions'");
-    const auto rows = rows_from_json(request["actions"], "'actions'");  // [n, w]
+    const auto rows = data::action_rows_from_json(request["actions"], "'actions'");  // [n, w]
 
     auto generator = host.make_generator(model);
     const int64_t per_step = generator->actions_per_step();
@@ -122,7 +107,7 @@ HttpReply run_rollout_request(const ModelHost& host, const std::string& body, Se
               (chunker ? " or " + std::to_string(chunker->width()) + " (raw commands)" : std::string()));
       torch::Tensor baseline = start.baseline;
       if (request.contains("baseline"))
-        baseline = rows_from_json(nlohmann::json::array({request["baseline"]}), "'baseline'")[0];
+        baseline = data::action_rows_from_json(nlohmann::json::array({request["baseline"]}), "'baseline'")[0];
       if (baseline.defined()) {
         DOJO_CHECK(baseline.size(0) == chunker->width(),
                    "'baseline' must have " + std::to_string(chunker->width()) + " values");

@@ -1,5 +1,7 @@
 #include "serve/session.h"
 
+#include "data/action_rows.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstring>
@@ -78,29 +80,12 @@ class SessionRecorder {
   std::ofstream actions_;
 };
 
-torch::Tensor json_rows(const nlohmann::json& rows, const std::string& where) {  // -> [n, w] float
-  DOJO_CHECK(rows.is_array() && !rows.empty() && rows.size() <= 64,
-             where + " must be a non-empty array of rows");
-  const size_t width = rows[0].is_array() ? rows[0].size() : 0;
-  DOJO_CHECK(width > 0 && width <= 1024, where + ": every row must be an array of numbers");
-  std::vector<float> values;
-  for (const auto& r : rows) {
-    DOJO_CHECK(r.is_array() && r.size() == width,
-               where + ": every row must have " + std::to_string(width) + " values");
-    for (const auto& x : r) {
-      DOJO_CHECK(x.is_number() && std::isfinite(x.get<double>()), where + ": values must be finite numbers");
-      values.push_back(x.get<float>());
-    }
-  }
-  return torch::tensor(values).view({static_cast<int64_t>(rows.size()), static_cast<int64_t>(width)});
-}
-
 namespace {
 
 torch::Tensor json_vector(const nlohmann::json& v, int64_t width, const std::string& where) {  // -> [w]
   DOJO_CHECK(v.is_array() && static_cast<int64_t>(v.size()) == width,
              where + " must be an array of " + std::to_string(width) + " numbers");
-  return json_rows(nlohmann::json::array({v}), where)[0];
+  return data::action_rows_from_json(nlohmann::json::array({v}), where, 64)[0];
 }
 
 }  // namespace
@@ -187,7 +172,7 @@ void Session::handle(const nlohmann::json& m) {
                                                                std::to_string(options_.max_pending_steps) +
                                                                " steps pending; wait for step_done");
     DOJO_CHECK(m.contains("actions"), "step: missing 'actions'");
-    const auto rows = json_rows(m["actions"], "step.actions");
+    const auto rows = data::action_rows_from_json(m["actions"], "step.actions", 64);
     DOJO_CHECK(rows.size(0) == actions_per_step_,
                "step.actions: this model takes " + std::to_string(actions_per_step_) +
                    " actions per step, got " + std::to_string(rows.size(0)));

@@ -46,9 +46,8 @@ namespace dojo::serve {
 std::string frame_message(std::string_view jpeg, uint32_t sequence, uint32_t step, uint32_t compute_us,
                           double client_t, double server_ms);
 inline constexpr size_t kFrameHeaderBytes = 32;
-// A message's rows of numbers ("actions": [[...], ...]) -> [n, w] float; throws dojo::Error naming
-// `where` unless it is 1..64 rows of equal width, all finite numbers.
-torch::Tensor json_rows(const nlohmann::json& rows, const std::string& where);
+// A message's rows of numbers ("actions": [[...], ...]) are read by data::action_rows_from_json
+// (data/action_rows.h), at most 64 rows a message.
 
 class ModelHost;
 using Generator = infer::Generator;

@@ -589,3 +589,63 @@ TEST(LeRobot, PrefetchLoaderMixesFormats) {
 }
 
 }  // namespace dojo::data
+
+namespace dojo::data {
+
+// `dojo data check` on LeRobot copies: each copy the converter refuses is reported with the file
+// that is broken; an intact copy passes.
+TEST(DataCheck, NamesTheBrokenFileOfEveryCopyTheConverterRefuses) {
+  test::TempDir tmp;
+  Fixture fx;
+  fx.episodes = 1;
+  fx.frames = 12;
+  const fs::path episode_file = "data/chunk-000/episode_000000.parquet";
+  const fs::path video_file = fs::path("videos/chunk-000") / kCamera / "episode_000000.mp4";
+  {
+    const auto root = make_lerobot(tmp / "intact", fx);
+    EXPECT_EQ(check_episode(*open_dataset(root), 0), "");
+    const auto result = test::run_dojo("data check " + root.string());
+    EXPECT_EQ(result.exit_code, 0) << result.output;
+    EXPECT_NE(result.output.find("1 episodes of lerobot-v2.1 checked, 0 bad"), std::string::npos)
+        << result.output;
+  }
+  std::vector<std::pair<fs::path, fs::path>> broken;  // (copy, the file named)
+  {
+    const auto root = make_lerobot(tmp / "truncated_parquet", fx);
+    const std::string bytes = test::read_file(root / episode_file);
+    std::ofstream(root / episode_file, std::ios::binary | std::ios::trunc)
+        << bytes.substr(0, bytes.size() / 2);
+    broken.emplace_back(root, root / episode_file);
+  }
+  {
+    const auto root = make_lerobot(tmp / "truncated_video", fx);
+    const std::string bytes = test::read_file(root / video_file);
+    std::ofstream(root / video_file, std::ios::binary | std::ios::trunc) << bytes.substr(0, bytes.size() / 3);
+    broken.emplace_back(root, root / video_file);
+  }
+  {
+    const auto root = make_lerobot(tmp / "missing_video", fx);
+    fs::remove(root / video_file);
+    broken.emplace_back(root, root / video_file);
+  }
+  {
+    const auto root = make_lerobot(tmp / "short_table", fx);
+    std::ofstream(root / "meta" / "episodes.jsonl", std::ios::trunc)
+        << nlohmann::json{{"episode_index", 0}, {"tasks", {"x"}}, {"length", 13}}.dump() << "\n";
+    broken.emplace_back(root, root / episode_file);
+  }
+  for (const auto& [root, file] : broken) {
+    const auto source = open_dataset(root);  // `data info` opens every one of them
+    EXPECT_NE(test::error_message(
+                  [&] { convert_dataset(*source, tmp / ("converted_" + root.filename().string())); }),
+              "(no error)")
+        << root;
+    const std::string problem = check_episode(*source, 0);
+    EXPECT_NE(problem.find(file.string()), std::string::npos) << root << ": " << problem;
+    const auto result = test::run_dojo("data check " + root.string());
+    EXPECT_EQ(result.exit_code, 1) << result.output;
+    EXPECT_NE(result.output.find(file.string()), std::string::npos) << result.output;
+  }
+}
+
+}  // namespace dojo::data

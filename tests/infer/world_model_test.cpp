@@ -168,3 +168,44 @@ TEST(WorldModel, TeacherGeneratorSamplesWithTheStepsAsked) {
 }
 
 }  // namespace dojo::infer
+
+namespace dojo::infer {
+namespace {
+
+// --text-context: a zero embedding is the default; another one changes the prediction; a file of
+// the wrong width is refused naming it.
+TEST(WorldModel, TextContextFromAFile) {
+  test::OneThread one;
+  test::TempDir tmp;
+  auto model = random_model();
+  const int64_t channels = train::test_fixtures::tiny_dit(true, 32).crossattn_emb_channels;
+  const auto first = torch::randint(0, 255, {1, 16, 16, 3}, torch::kByte);
+  const auto actions = torch::rand({1, 12, 384});
+  SamplerOptions s;
+  s.steps = 2;
+  const auto plain = model.predict_chunk(first, actions, 3, s);
+  save_safetensors(tmp / "zeros.safetensors", {{"context", torch::zeros({1, channels})}});
+  model.set_text_context(load_text_context(tmp / "zeros.safetensors"));
+  EXPECT_TRUE(model.predict_chunk(first, actions, 3, s).equal(plain));
+  torch::manual_seed(5);
+  save_safetensors(tmp / "prompt.safetensors", {{"context", torch::randn({7, channels}) * 3}});
+  model.set_text_context(load_text_context(tmp / "prompt.safetensors"));
+  EXPECT_FALSE(model.predict_chunk(first, actions, 3, s).equal(plain));
+
+  save_safetensors(tmp / "wide.safetensors", {{"context", torch::zeros({4, channels + 1})}});
+  const std::string message = test::error_message([&] {
+    model.set_text_context(load_text_context(tmp / "wide.safetensors"), (tmp / "wide.safetensors").string());
+  });
+  EXPECT_NE(message.find("wide.safetensors"), std::string::npos) << message;
+  save_safetensors(tmp / "unnamed.safetensors", {{"prompt", torch::zeros({4, channels})}});
+  EXPECT_NE(test::error_message([&] {
+              load_text_context(tmp / "unnamed.safetensors");
+            }).find("no tensor 'context'"),
+            std::string::npos);
+  // A torch.save file holding the tensor alone, as the released empty-prompt asset.
+  const auto asset = load_text_context(test::torch_files_dir() / "prompt_embedding.pt");
+  EXPECT_TRUE(asset.equal(torch::arange(12.0).reshape({1, 3, 4}).to(torch::kFloat32)));
+}
+
+}  // namespace
+}  // namespace dojo::infer
