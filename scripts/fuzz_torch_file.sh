@@ -17,8 +17,7 @@ CXX="${CXX_FUZZ:-clang++}"
 TORCH_INCLUDE=(-I/usr/include/torch/csrc/api/include)
 FLAGS=(-std=c++17 -O1 -g -fno-omit-frame-pointer -D_GLIBCXX_USE_CXX11_ABI=1 -Isrc -Ifuzz "${TORCH_INCLUDE[@]}")
 SAN=(-fsanitize=fuzzer,address,undefined -fno-sanitize-recover=undefined)
-READER=(src/core/zip_archive.cpp src/core/pickle.cpp src/core/torch_file.cpp src/core/mapped_file.cpp
-        src/core/safetensors.cpp src/core/atomic_file.cpp)
+READER=(src/core/zip_archive.cpp src/core/pickle.cpp src/core/torch_file.cpp src/core/mapped_file.cpp)
 "$CXX" "${FLAGS[@]}" "${SAN[@]}" fuzz/torch_file_fuzz.cpp "${READER[@]}" -ltorch -ltorch_cpu -lc10 \
   -o "$OUT/torch_file_fuzz"
 for d in seeds inputs crashers; do cp fuzz/corpus/torch_file/$d/* "$OUT/corpus/" 2>/dev/null || true; done

@@ -3,6 +3,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
+#include <functional>
 #include <map>
 #include <unordered_map>
 
@@ -49,10 +50,72 @@ void append_utf8(std::string& out, uint32_t code) {
   }
 }
 
+// The references a value holds, as slots that can be cleared.
+std::vector<PickleRef*> child_slots(PickleValue& v) {
+  std::vector<PickleRef*> slots;
+  for (auto& c : v.items) slots.push_back(&c);
+  for (auto& c : v.appended) slots.push_back(&c);
+  for (auto& [k, x] : v.entries) {
+    slots.push_back(&k);
+    slots.push_back(&x);
+  }
+  if (v.state) slots.push_back(&v.state);
+  return slots;
+}
+
+// Depth-first over the values reachable from `roots`; `on_cycle` gets each slot that points back
+// at a value on the current path (the edge that closes a cycle). Iterative: no recursion.
+void for_each_cycle_edge(const std::vector<PickleValue*>& roots, const std::function<void(PickleRef&)>& on_cycle) {
+  enum class Mark { kOnPath, kDone };
+  std::unordered_map<const PickleValue*, Mark> marks;
+  struct Frame {
+    PickleValue* node;
+    std::vector<PickleRef*> slots;
+    size_t next = 0;
+  };
+  for (PickleValue* root : roots) {
+    if (!root || marks.count(root)) continue;
+    std::vector<Frame> path;
+    marks[root] = Mark::kOnPath;
+    path.push_back({root, child_slots(*root)});
+    while (!path.empty()) {
+      Frame& top = path.back();
+      if (top.next == top.slots.size()) {
+        marks[top.node] = Mark::kDone;
+        path.pop_back();
+        continue;
+      }
+      PickleRef& slot = *top.slots[top.next++];
+      PickleValue* child = slot.get();
+      if (!child) continue;
+      const auto it = marks.find(child);
+      if (it == marks.end()) {
+        marks[child] = Mark::kOnPath;
+        path.push_back({child, child_slots(*child)});
+      } else if (it->second == Mark::kOnPath) {
+        on_cycle(slot);
+      }
+    }
+  }
+}
+
 class Machine {
  public:
   Machine(const uint8_t* data, uint64_t size, uint64_t offset, const PickleOptions& options)
       : data_(data), size_(size), pos_(offset), options_(options) {}
+  Machine(const Machine&) = delete;
+  Machine& operator=(const Machine&) = delete;
+  // A pickle can make a value contain itself (a list appended to itself through the memo). Such
+  // cycles would keep their values alive forever, so every edge closing one among the values
+  // built here is cleared; run() has already refused a result that contained one.
+  ~Machine() {
+    std::vector<PickleRef> alive;
+    for (const auto& weak : built_)
+      if (auto node = weak.lock()) alive.push_back(std::move(node));
+    std::vector<PickleValue*> roots;
+    for (const auto& node : alive) roots.push_back(node.get());
+    for_each_cycle_edge(roots, [](PickleRef& slot) { slot.reset(); });
+  }
 
   PickleResult run() {
     for (;;) {
@@ -62,6 +125,9 @@ class Machine {
         PickleResult result;
         result.value = pop();
         result.end = pos_;
+        bool cyclic = false;
+        for_each_cycle_edge({result.value.get()}, [&cyclic](PickleRef&) { cyclic = true; });
+        if (cyclic) throw fail("the value contains itself (a cyclic pickle; checkpoints hold none)");
         return result;
       }
       step(op);
@@ -104,7 +170,10 @@ class Machine {
   }
 
   // --- the stack ---
-  void push(PickleRef value) { stack_.push_back(std::move(value)); }
+  void push(PickleRef value) {
+    built_.push_back(value);
+    stack_.push_back(std::move(value));
+  }
   PickleRef pop() {
     if (stack_.size() <= floor()) throw fail("pops an empty stack");
     PickleRef v = std::move(stack_.back());
@@ -579,6 +648,7 @@ class Machine {
   std::vector<PickleRef> stack_;
   std::vector<size_t> marks_;
   std::unordered_map<uint64_t, PickleRef> memo_;
+  std::vector<std::weak_ptr<PickleValue>> built_;  // every value pushed, for the destructor
 };
 
 }  // namespace
