@@ -207,6 +207,19 @@ ImportReport import_dit(const fs::path& source, const fs::path& destination, con
   return report;
 }
 
+// A loaded module's checkpoint in --dtype, with where it came from, written to `destination`.
+ImportReport save_converted(CheckpointData data, const fs::path& source, const fs::path& destination,
+                            const ImportOptions& options, ImportReport report) {
+  cast_floating(data.model, options.dtype);
+  data.model_metadata["converted_from"] = source.string();
+  data.model_metadata["source_format"] = report.source_format;
+  save_checkpoint(destination, data);
+  report.tensors = static_cast<int64_t>(data.model.size());
+  report.parameters = count_parameters(data.model);
+  report.config = data.config;
+  return report;
+}
+
 // --- the latent action model --------------------------------------------------------------------
 
 LamConfig lam_config_from_weights(const std::map<std::string, std::vector<int64_t>>& shapes,
@@ -266,15 +279,7 @@ ImportReport import_lam(const fs::path& source, const fs::path& destination, con
   LoadOptions load;
   load.prefix = "lam.";
   load_state_dict(*model, tensors, load);  // strict: names the tensors that do not fit
-  CheckpointData data = lam_checkpoint(*model);
-  cast_floating(data.model, options.dtype);
-  data.model_metadata["converted_from"] = source.string();
-  data.model_metadata["source_format"] = report.source_format;
-  save_checkpoint(destination, data);
-  report.tensors = static_cast<int64_t>(data.model.size());
-  report.parameters = count_parameters(data.model);
-  report.config = data.config;
-  return report;
+  return save_converted(lam_checkpoint(*model), source, destination, options, std::move(report));
 }
 
 // --- the Wan2.1 VAE ---------------------------------------------------------------------------
@@ -326,15 +331,7 @@ ImportReport import_wan_vae(const fs::path& source, const fs::path& destination,
       with_overrides(wan_config_from_weights(shapes, source.string()).to_json(), options.config_overrides));
   WanVae vae(config);
   load_state_dict(*vae, tensors);  // strict: names the tensors that do not fit
-  CheckpointData data = tokenizer_checkpoint(*vae);
-  cast_floating(data.model, options.dtype);
-  data.model_metadata["converted_from"] = source.string();
-  data.model_metadata["source_format"] = report.source_format;
-  save_checkpoint(destination, data);
-  report.tensors = static_cast<int64_t>(data.model.size());
-  report.parameters = count_parameters(data.model);
-  report.config = data.config;
-  return report;
+  return save_converted(tokenizer_checkpoint(*vae), source, destination, options, std::move(report));
 }
 
 }  // namespace
