@@ -28,6 +28,7 @@ struct ServeArgs {
   serve::ServeOptions server;
   std::string demo, student, teacher, tokenizer, fast_decoder, data, split = "val";  // demo "": dojo_demo
   std::string text_context;  // every model's prompt embedding (empty: zeros)
+  data::OpenOptions open;    // --embodiment, --camera for LeRobot data
   std::string device = "cpu", precision = "fp32";
   bool no_teacher = false, no_cuda_graphs = false;
   int teacher_steps = 0;
@@ -40,6 +41,7 @@ fs::path pick(const std::string& given, const fs::path& fallback) {
 void set_runtime(const ServeArgs& a, serve::ModelHost::Options& o) {
   for (auto& model : o.models) model.text_context = a.text_context;
   o.split = a.split;
+  o.open = a.open;
   o.device = parse_device(a.device);
   o.precision = parse_precision(a.precision);
   o.cuda_graphs = !a.no_cuda_graphs;
@@ -220,6 +222,12 @@ void register_serve(CLI::App& app) {
                   "Dataset whose episodes sessions start from (default: with the reference set, 8 held-out "
                   "DojoSim episodes made on the spot; else the demo's robot data)");
   add_split_option(cmd, a->split);
+  cmd->add_option(
+         "--embodiment", a->open.embodiment,
+         "LeRobot data: the robot whose raw commands sessions send (gr1, g1, yam, agibot); auto reads "
+         "info.json's robot_type, never the path")
+      ->capture_default_str();
+  cmd->add_option("--camera", a->open.camera, "LeRobot data: video key (default: the robot's camera)");
   cmd->add_option("--host", a->server.host, "Address to bind (0.0.0.0 exposes the server)")
       ->capture_default_str();
   cmd->add_option("--port", a->server.port, "Port (0: any free one)")->capture_default_str();
@@ -227,7 +235,7 @@ void register_serve(CLI::App& app) {
   cmd->add_option("--max-sessions", a->server.max_sessions, "Concurrent sessions and rollout jobs")
       ->check(CLI::Range(1, 256))
       ->capture_default_str();
-  cmd->add_option("--fps", a->server.fps, "Live frame rate (0: the data's, 10 for DojoSim)")
+  cmd->add_option("--fps", a->server.fps, "Live frame rate (0: 10 frames/s, the released rate)")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option(
       "--tls-cert", a->server.tls_cert,

@@ -15,8 +15,11 @@
 #include "core/atomic_file.h"
 #include "core/autocast.h"
 #include "core/error.h"
+#include "core/json_file.h"
 #include "core/log.h"
 #include "core/runtime.h"
+#include "data/action_rows.h"
+#include "data/episode_clip.h"
 #include "eval/lpips.h"
 #include "eval/wm_eval.h"
 #include "infer/streaming.h"
@@ -32,7 +35,7 @@ namespace {
 
 struct WmTrainArgs {
   std::string stage = "pretrain", actions, split = "train", tokenizer, lam, init, out, model = "small",
-              temporal_axis = "time", device = "cpu", precision = "fp32";
+              temporal_axis = "time", device = "cpu", precision = "fp32", embodiment = "auto";
   std::vector<std::string> data;
   int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100;
   int batch = 8;
@@ -63,6 +66,7 @@ int run_wm_train(const WmTrainArgs& a) {
     train::LatentCacheSpec spec;
     spec.dataset = parsed.dir;
     spec.split = a.split;
+    spec.embodiment = a.embodiment;
     spec.tokenizer = a.tokenizer;
     spec.lam = a.lam;
     spec.mode = mode;
@@ -118,12 +122,28 @@ int run_rollout(RolloutArgs a) {
       infer::WorldModel::load(a.model.checkpoint, a.model.tokenizer, device, parse_precision(a.precision));
   if (!a.model.text_context.empty())
     model.set_text_context(infer::load_text_context(a.model.text_context), a.model.text_context);
-  const auto clip =
-      eval::read_episode_clip(a.model.data, a.split, a.episode, a.chunks, model.action_ranges());
-  // Counterfactual: the episode's first frame with actions from a file.
+  const data::RolloutData rollout_data(
+      a.model.data, a.chunks,
+      data::parse_action_ranges(model.action_ranges(), a.model.checkpoint + ": actions"),
+      a.model.data_options());
+  LOG_INFO("wm rollout: ", rollout_data.describe());
+  const auto clip = rollout_data.read(rollout_data.find(a.split, a.episode));
+  // Counterfactual: the episode's first frame with actions from a file: rows of the model's layout
+  // (safetensors 'actions' [12 K, 384]) or raw commands in the robot's units (JSON rows).
   const bool counterfactual = !a.actions_file.empty();
-  const auto actions =
-      counterfactual ? eval::read_rollout_actions(a.actions_file) : clip.actions;  // [12 K, 384]
+  torch::Tensor actions = clip.actions;  // [12 K, 384]
+  if (counterfactual && fs::path(a.actions_file).extension() == ".json") {
+    const auto file = read_json_file(a.actions_file);
+    const auto raw =
+        data::action_rows_from_json(file.is_object() && file.contains("actions") ? file["actions"] : file,
+                                    a.actions_file + ": actions");  // [12 K, w]
+    actions = rollout_data.raw_to_rows(raw, clip.raw_baseline);
+    DOJO_CHECK(actions.size(0) == clip.actions.size(0),
+               a.actions_file + ": " + std::to_string(actions.size(0)) + " rows, --chunks " +
+                   std::to_string(a.chunks) + " takes " + std::to_string(clip.actions.size(0)));
+  } else if (counterfactual) {
+    actions = eval::read_rollout_actions(a.actions_file);
+  }
   const auto pred = model.rollout(clip.video.select(0, 0).unsqueeze(0), actions.unsqueeze(0), a.seed,
                                   a.model.sampler(model), infer::parse_concat_mode(a.model.concat))[0];
   if (counterfactual)
@@ -163,6 +183,7 @@ int run_eval(EvalArgs a) {
     model.set_text_context(infer::load_text_context(a.model.text_context), a.model.text_context);
   eval::WmEvalOptions o;
   o.chunks = a.chunks;
+  o.data = a.model.data_options();
   o.max_episodes = a.episodes;
   o.batch = a.batch;
   o.sampler = a.model.sampler(model);
@@ -246,6 +267,11 @@ void register_wm(CLI::App& app) {
                   "with no weight anywhere every cached clip is drawn alike")
       ->required();
   add_split_option(train_cmd, t->split);
+  train_cmd
+      ->add_option("--embodiment", t->embodiment,
+                   "LeRobot data: the robot (gr1, g1, yam, agibot, human, none); auto reads info.json's "
+                   "robot_type, never the path")
+      ->capture_default_str();
   train_cmd->add_option("--tokenizer", t->tokenizer, "Tokenizer checkpoint (dojo tokenizer train)")
       ->required();
   train_cmd->add_option("--lam", t->lam, "LAM checkpoint, for --actions latent");
@@ -314,7 +340,9 @@ void register_wm(CLI::App& app) {
   add_split_option(roll, r->split);
   roll->add_option("--episode", r->episode, "Episode id (default: the first episode of --split)");
   roll->add_option("--actions", r->actions_file,
-                   "safetensors file with 'actions' [12 K, 384] (counterfactual)");
+                   "Counterfactual actions: a JSON file of 12 K rows of raw commands in the robot's units "
+                   "([[...], ...] or {\"actions\": [...]}), or a safetensors file with 'actions' [12 K, 384] "
+                   "already in the model's layout");
   roll->add_option("--chunks", r->chunks, "Chunks of 12 actions")->capture_default_str();
   r->model.add_sampler_options(roll);
   add_seed_option(roll, r->seed);

@@ -20,7 +20,7 @@
 #include "core/runtime.h"
 #include "data/action_rows.h"
 #include "data/actions.h"
-#include "eval/wm_eval.h"
+#include "data/episode_clip.h"
 #include "infer/stream_stats.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
@@ -120,19 +120,28 @@ int run_stream(StreamArgs a) {
       });
   const auto student = engine.options().student;
 
-  // The start frame and, without --actions, the recorded actions (looped past their end).
+  // The start frame and, without --actions, the recorded actions (looped past their end). Raw
+  // command lines are read in the dataset robot's units (its slot, the model's range for it or the
+  // dataset's statistics), else in the units of the one slot the model records.
   torch::Tensor first, recorded;
+  auto chunker = data::single_slot_chunker(engine.action_ranges(), "world model actions");
   if (!a.image.empty()) {
     first = io::resize_center_crop(io::VideoReader(a.image).read_frame(0).unsqueeze(0), a.size, a.size);
   } else {
     // With an actions file only the first frame is needed, so any episode of 13+ frames will do.
     const int chunks = a.actions.empty() ? 4 : 1;
-    const auto clip =
-        eval::read_episode_clip(a.model.data, a.split, a.episode, chunks, engine.action_ranges());
+    const data::RolloutData rollout_data(
+        a.model.data, chunks, data::parse_action_ranges(engine.action_ranges(), "world model actions"),
+        a.model.data_options());
+    LOG_INFO("wm stream: ", rollout_data.describe());
+    const auto clip = rollout_data.read(rollout_data.find(a.split, a.episode));
     first = clip.video.narrow(0, 0, 1);  // [1, H, W, 3]
     recorded = clip.actions;             // [48, 384]
+    if (rollout_data.normalization() != "none") {
+      chunker.emplace(data::slot_by_name(rollout_data.action_slot()), rollout_data.action_range());
+      chunker->set_baseline(clip.raw_baseline);
+    }
   }
-  const auto chunker = data::single_slot_chunker(engine.action_ranges(), "world model actions");
   std::ifstream file;
   std::unique_ptr<ActionLines> lines;
   if (a.actions == "-") {

@@ -8,6 +8,7 @@
 #include "cli/options.h"
 #include "core/error.h"
 #include "core/log.h"
+#include "data/episode_clip.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
 #include "models/dit.h"
@@ -76,7 +77,45 @@ void ModelArgs::add_options(CLI::App* cmd, const std::string& what) {
       "The prompt embedding the model cross-attends to: a .pt file holding the tensor or a safetensors file "
       "with one tensor 'context', [L, C] (default: zeros, as DojoSim models are trained; "
       "docs/checkpoints.md)");
+  cmd->add_option("--embodiment", embodiment,
+                  "LeRobot data: the robot (gr1, g1, yam, agibot; human or none for video alone); auto reads "
+                  "info.json's robot_type, never the path")
+      ->capture_default_str();
+  cmd->add_option("--camera", camera,
+                  "LeRobot data: video key (default: the robot's camera, else the first)");
+  cmd->add_option("--frame-stride", frame_stride,
+                  "Take every Nth frame and action (default 0: the robot's released rate: GR-1 and G1 2, "
+                  "YAM and AgiBot 4, else 1)")
+      ->capture_default_str();
+  cmd->add_option("--action-norm", action_norm,
+                  "Raw actions normalised with the model's recorded range (model), the dataset's statistics "
+                  "(dataset), or auto: the model's where it records one for the robot's slot")
+      ->capture_default_str();
+  cmd->add_option("--frame-size", frame_size, "Centre-crop and resize frames to HxW (default: as stored)");
 }
+
+#ifndef DOJO_ENGINE_ONLY  // the engine-only build has no data layer and no command reading datasets
+data::RolloutDataOptions ModelArgs::data_options() const {
+  data::RolloutDataOptions o;
+  o.open.embodiment = embodiment;
+  o.open.camera = camera;
+  if (frame_stride < 0) throw UsageError("--frame-stride must be positive (0: the robot's released rate)");
+  o.frame_stride = frame_stride;
+  try {
+    o.normalization = data::parse_action_normalization(action_norm);
+  } catch (const Error& e) {
+    throw UsageError(std::string("--action-norm: ") + e.what());
+  }
+  if (!frame_size.empty()) {
+    const auto [h, w] = parse_size(frame_size);
+    if (h % 16 != 0 || w % 16 != 0)
+      throw UsageError("--frame-size must be a multiple of 16, got " + frame_size);
+    o.height = static_cast<int>(h);
+    o.width = static_cast<int>(w);
+  }
+  return o;
+}
+#endif
 
 void ModelArgs::add_sampler_options(CLI::App* cmd) {
   cmd->add_option("--steps", steps, "Sampler steps")->capture_default_str();

@@ -11,6 +11,9 @@ class App;
 namespace dojo::models {
 struct DitConfig;
 }
+namespace dojo::data {
+struct RolloutDataOptions;
+}
 namespace dojo::infer {
 class WorldModel;
 struct SamplerOptions;
@@ -39,6 +42,10 @@ std::string default_eval_data();
 struct ModelArgs {
   std::string checkpoint, tokenizer, data;
   std::string text_context;  // --text-context: a safetensors file with the prompt embedding
+  // How --data is read (data/episode_clip.h): --embodiment, --camera, --frame-stride, --action-norm,
+  // --frame-size.
+  std::string embodiment = "auto", camera, action_norm = "auto", frame_size;
+  int frame_stride = 0;
   int steps = 35;
   std::string solver = "unipc", concat = "aligned";
   double shift = 0;  // 0: the checkpoint's
@@ -46,6 +53,8 @@ struct ModelArgs {
 
   void add_options(CLI::App* cmd, const std::string& what = "the world model");
   void add_sampler_options(CLI::App* cmd);
+  // The options above as the data layer takes them; throws UsageError on a bad value.
+  data::RolloutDataOptions data_options() const;
   // The defaults filled in.
   void resolve(std::string* probe);
   // As resolve(), for a model that is streamed: without --checkpoint the reference student where

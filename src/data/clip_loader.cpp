@@ -36,7 +36,10 @@ ClipDataset::ClipDataset(std::shared_ptr<const EpisodeSource> source, ClipConfig
       DOJO_CHECK(config_.action_stats->dim() == info.action_dim,
                  root + ": the given action statistics have " + std::to_string(config_.action_stats->dim()) +
                      " dimensions, the dataset's actions " + std::to_string(info.action_dim));
-    DOJO_CHECK(!info.action_slot.empty(), root + ": robot dataset names no action_slot");
+    DOJO_CHECK(!info.action_slot.empty(),
+               root +
+                   ": a robot dataset whose actions fill no slot of the 384-d layout; name the robot with "
+                   "--embodiment gr1|g1|yam|agibot (or human / none for its video alone)");
   }
   int64_t total = 0;
   for (size_t index : source_->split_indices(split)) {

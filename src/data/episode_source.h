@@ -68,8 +68,8 @@ std::string dataset_name(const std::filesystem::path& root);
 
 // Options for opening any dataset format.
 struct OpenOptions {
-  // LeRobot: "auto" (from robot_type and the path, as DreamDojo does), "gr1", "g1", "yam",
-  // "agibot", "human" (read as action-free video) or "none" (actions not mapped to a slot).
+  // LeRobot: "auto" (info.json's robot_type; never the path, unlike the release), "gr1", "g1",
+  // "yam", "agibot", "human" (read as action-free video) or "none" (actions not mapped to a slot).
   std::string embodiment = "auto";
   std::string camera;                 // LeRobot video key; default: the embodiment's camera, else the first
   bool skip_dreamdojo_names = false;  // video folders: skip names with left/right/resize/pad

@@ -132,8 +132,8 @@ const RobotLayout* find_robot_layout(const std::string& name) {
   return nullptr;
 }
 
-std::string detect_robot(const std::string& path, const std::string& robot_type) {
-  const std::string text = lower(path + " " + robot_type);
+std::string detect_robot(const std::string& robot_type) {
+  const std::string text = lower(robot_type);
   if (text.find("gr1") != std::string::npos || text.find("gr-1") != std::string::npos ||
       text.find("fourier") != std::string::npos)
     return "gr1";

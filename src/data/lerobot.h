@@ -62,9 +62,11 @@ struct RobotLayout {
 const std::vector<RobotLayout>& robot_layouts();
 // nullptr when unknown.
 const RobotLayout* find_robot_layout(const std::string& name);
-// DreamDojo's rule: the first of gr1, g1, yam, agibot found in the lower-cased path or
-// robot_type ("gr1" also matches "gr-1" and "fourier"); "" when none.
-std::string detect_robot(const std::string& path, const std::string& robot_type);
+// The robot info.json's robot_type names: the first of gr1, g1, yam, agibot found in it, lower-
+// cased ("gr1" also matches "gr-1" and "fourier"); "" when none. Unlike the release, which
+// searches the dataset's path as well (and so reads a GR-1 set copied to a path without "gr1" with
+// meaningless actions), the path is never consulted: --embodiment names the robot otherwise.
+std::string detect_robot(const std::string& robot_type);
 
 // Expands Python format templates such as
 // "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet".

@@ -148,8 +148,7 @@ void LeRobotDataset::choose_robot(const OpenOptions& options) {
   // Robot and modality.
   const auto& ij = info_json_;
   const std::string robot_type = ij.value("robot_type", "");
-  robot_ = options.embodiment == "auto" ? detect_robot(fs::absolute(root_).string(), robot_type)
-                                        : options.embodiment;
+  robot_ = options.embodiment == "auto" ? detect_robot(robot_type) : options.embodiment;
   if (robot_ != "human" && robot_ != "none" && !robot_.empty()) {
     layout_ = find_robot_layout(robot_);
     if (layout_ == nullptr)

@@ -43,6 +43,7 @@ nlohmann::json WmEvalResult::to_json() const {
   }
   nlohmann::json out = {{"dataset", dataset},
                         {"split", split},
+                        {"data", data},
                         {"videos", static_cast<int>(videos.size())},
                         {"frames_per_video", frames},
                         {"scored_frames",
@@ -72,50 +73,6 @@ nlohmann::json WmEvalResult::to_json() const {
   // The world model's scores also at the top level, as before the per-source layout.
   out["psnr"] = model().psnr;
   out["ssim"] = model().ssim;
-  return out;
-}
-
-namespace {
-
-// The model's range for the dataset's action slot, when it has one.
-std::optional<data::ArrayStats> model_range(const nlohmann::json& ranges, const data::DatasetInfo& info) {
-  if (info.action_slot.empty() || !ranges.contains(info.action_slot)) return std::nullopt;
-  return data::ArrayStats::from_json(ranges[info.action_slot], "world model actions." + info.action_slot);
-}
-
-}  // namespace
-
-EpisodeClip read_episode_clip(const fs::path& dataset, const std::string& split, const std::string& episode,
-                              int chunks, const nlohmann::json& action_ranges) {
-  DOJO_CHECK(chunks > 0, "rollout: --chunks must be positive");
-  const auto source = data::open_dataset(dataset);
-  const auto& info = source->info();
-  const auto indices = source->split_indices(split);
-  DOJO_CHECK(!indices.empty(), dataset.string() + ": no episodes in split '" + split + "'");
-  size_t ep = indices.front();
-  if (!episode.empty()) {
-    const auto it = std::find_if(info.episodes.begin(), info.episodes.end(),
-                                 [&](const data::EpisodeEntry& e) { return e.id == episode; });
-    DOJO_CHECK(it != info.episodes.end(), dataset.string() + ": no episode '" + episode + "'");
-    ep = static_cast<size_t>(it - info.episodes.begin());
-  }
-  data::ClipConfig clip;
-  clip.num_frames = 1 + 12 * chunks;
-  clip.strides = {1};
-  clip.height = info.height;
-  clip.width = info.width;
-  clip.action_stats = model_range(action_ranges, info);
-  EpisodeClip out;
-  out.episode = info.episodes[ep].id;
-  out.fps = info.fps;
-  DOJO_CHECK(data::window_fits(info.episodes[ep].frames, 1, clip.num_frames),
-             dataset.string() + ": episode " + out.episode + " is shorter than " +
-                 std::to_string(clip.num_frames) + " frames");
-  const auto c = data::ClipDataset(source, clip, "all").read(ep, data::make_window(0, 1, clip.num_frames));
-  out.video = c.video;
-  out.actions = c.actions;
-  out.keypoints = c.keypoints;
-  out.embodiment = data::to_string(info.embodiment);
   return out;
 }
 
@@ -234,20 +191,15 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
                                   const WmEvalOptions& o) {
   DOJO_CHECK(o.chunks > 0, "eval: --chunks must be positive");
   DOJO_CHECK(o.video_scale >= 1, "eval: the video scale must be >= 1");
-  const auto source = data::open_dataset(dataset);
-  const auto& info = source->info();
-  data::ClipConfig clip;
-  clip.num_frames = 1 + 12 * o.chunks;
-  clip.strides = {1};
-  clip.height = info.height;
-  clip.width = info.width;
-  clip.action_stats = model_range(model.action_ranges(), info);
-  data::ClipDataset ds(source, clip, split);
-  std::vector<size_t> episodes;
-  for (size_t ep : ds.episodes())
-    if (data::window_fits(info.episodes[ep].frames, 1, clip.num_frames)) episodes.push_back(ep);
+  const data::RolloutData rollout_data(
+      dataset, o.chunks, data::parse_action_ranges(model.action_ranges(), "world model actions"), o.data);
+  const auto& info = rollout_data.source().info();
+  const auto& clip = rollout_data.clip();
+  auto episodes = rollout_data.episodes(split);
   DOJO_CHECK(!episodes.empty(), dataset.string() + ": no episode of split '" + split +
-                                    "' is long enough for " + std::to_string(clip.num_frames) + " frames");
+                                    "' is long enough for " + std::to_string(clip.num_frames) +
+                                    " frames at frame stride " + std::to_string(rollout_data.stride()));
+  LOG_INFO("eval: ", rollout_data.describe());
   if (o.max_episodes > 0 && static_cast<int>(episodes.size()) > o.max_episodes)
     episodes.resize(o.max_episodes);
   DOJO_CHECK(!o.action_sensitivity || episodes.size() >= 2,
@@ -257,8 +209,8 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
                              ? models::keypoint_offset((*o.probe)->config(), data::to_string(info.embodiment))
                              : 0;
 
-  std::vector<data::Clip> clips;
-  for (size_t ep : episodes) clips.push_back(ds.read(ep, data::make_window(0, 1, clip.num_frames)));
+  std::vector<data::EpisodeClip> clips;
+  for (size_t ep : episodes) clips.push_back(rollout_data.read(ep));
   if (o.probe != nullptr && !clips.front().keypoints.defined())
     LOG_WARN("eval: ", dataset.string(), " has no simulator keypoints; keypoint scores are left out");
   const size_t n = clips.size();
@@ -266,6 +218,7 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
   WmEvalResult r;
   r.dataset = dataset.string();
   r.split = split;
+  r.data = rollout_data.describe();
   r.frames = clip.num_frames;
   r.detection_radius = detection_radius_px(info.height, info.width);
   const int runs = o.action_sensitivity ? 3 : 1;
@@ -315,7 +268,7 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
             s.video,
             {video_panel(gt[k], o, kp, true), video_panel(pred[k], o, kp, false),
              video_panel(copy, o, kp, false), video_panel(rollouts["tokenizer"][k], o, kp, false)},
-            {"ground truth", "world model", "copy frame 0", "tokenizer"}, info.fps);
+            {"ground truth", "world model", "copy frame 0", "tokenizer"}, clips[i].fps);
       }
       r.videos.push_back(std::move(s));
     }

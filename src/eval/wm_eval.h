@@ -28,6 +28,7 @@
 #include <string>
 #include <vector>
 
+#include "data/episode_clip.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
 #include "models/keypoint_probe.h"
@@ -37,9 +38,10 @@ namespace dojo::eval {
 class Lpips;
 
 struct WmEvalOptions {
-  int chunks = 4;         // 4 x 12 actions: the paper's 49-frame protocol
-  int max_episodes = 16;  // evaluate at most this many episodes of the split (0: all)
-  int batch = 4;          // episodes rolled out together
+  int chunks = 4;                 // 4 x 12 actions: the paper's 49-frame protocol
+  data::RolloutDataOptions data;  // robot, frame stride, action normalisation, frame size
+  int max_episodes = 16;          // evaluate at most this many episodes of the split (0: all)
+  int batch = 4;                  // episodes rolled out together
   infer::SamplerOptions sampler;
   infer::ConcatMode concat = infer::ConcatMode::kAligned;
   uint64_t seed = 0;
@@ -77,6 +79,7 @@ struct VideoScore {
 
 struct WmEvalResult {
   std::string dataset, split;
+  std::string data;  // how the dataset was read (data::RolloutData::describe())
   std::vector<VideoScore> videos;
   std::map<std::string, SourceScore> sources;  // world_model, copy_frame, tokenizer, ...
   // Tokenizer round-trip PSNR by a frame's latent index within its chunk: [0] the conditioning
@@ -91,20 +94,6 @@ struct WmEvalResult {
   nlohmann::json to_json() const;
 };
 
-// The first 1 + 12 K frames of one episode with its actions, as a rollout replays them.
-struct EpisodeClip {
-  std::string episode;
-  torch::Tensor video;      // [1 + 12 K, H, W, 3] uint8
-  torch::Tensor actions;    // [12 K, 384]
-  torch::Tensor keypoints;  // [1 + 12 K, 3, 3] simulator keypoints, or undefined
-  std::string embodiment;   // robot | human
-  double fps = 10;
-};
-// `episode` names the episode by id; empty: the first episode of `split`. Throws dojo::Error
-// naming the dataset when there is no such episode or it is too short.
-EpisodeClip read_episode_clip(const std::filesystem::path& dataset, const std::string& split,
-                              const std::string& episode, int chunks,
-                              const nlohmann::json& action_ranges = nlohmann::json::object());
 // Actions from a safetensors file holding "actions" [12 K, 384] (counterfactual rollouts).
 torch::Tensor read_rollout_actions(const std::filesystem::path& file);
 

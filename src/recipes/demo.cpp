@@ -236,7 +236,8 @@ nlohmann::json time_streaming(const fs::path& out, const fs::path& tokenizer, to
   so.precision = precision;
   so.fast_decoder = models::load_fast_decoder(out / "fast_decoder" / "checkpoint");
   auto engine = infer::StreamingEngine::load(out / "student" / "checkpoint", tokenizer, so);
-  const auto clip = eval::read_episode_clip(out / "robot", "val", "", 4, engine.action_ranges());
+  const auto clip = data::read_episode_clip(
+      out / "robot", "val", "", 4, data::parse_action_ranges(engine.action_ranges(), "student actions"));
   io::VideoWriterOptions vo;
   vo.fps = 10;
   io::VideoWriter video((out / "student_600_frames.mp4").string(), vo);  // the long rollout, for the report

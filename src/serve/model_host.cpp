@@ -34,7 +34,7 @@ ModelHost::~ModelHost() = default;
 
 void ModelHost::load() {
   if (!options_.data.empty()) {
-    source_ = data::open_dataset(options_.data);
+    source_ = data::open_dataset(options_.data, options_.open);
     split_ = source_->split_indices(options_.split);
     DOJO_CHECK(!split_.empty(), options_.data.string() + ": no episodes in split '" + options_.split + "'");
   }
@@ -75,10 +75,11 @@ const ModelHost::Hosted& ModelHost::find(const std::string& model) const {
 
 std::string ModelHost::resolve(const std::string& model) const { return find(model).spec.name; }
 
-int ModelHost::frame_size(const std::string& model) const {
+std::pair<int, int> ModelHost::frame_shape(const std::string& model) const {
   find(model);
   // The tokenizer and DiT accept any multiple of 16; sessions use the data's size, as trained.
-  return source_ ? source_->info().height : 64;
+  if (!source_) return {64, 64};
+  return {source_->info().height, source_->info().width};
 }
 
 std::unique_ptr<Generator> ModelHost::make_generator(const std::string& model) const {
@@ -91,16 +92,32 @@ std::unique_ptr<Generator> ModelHost::make_generator(const std::string& model) c
   return infer::make_teacher_generator(*h.teacher, &h.turn, h.spec.teacher_steps);
 }
 
+std::optional<std::pair<data::ActionSlot, data::ArrayStats>> ModelHost::commands(const Hosted& h) const {
+  const auto& info = source_ ? source_->info() : data::DatasetInfo{};
+  if (!info.action_slot.empty()) {
+    const auto slot = data::slot_by_name(info.action_slot);
+    if (h.action_ranges.contains(info.action_slot))
+      return std::make_pair(slot, data::ArrayStats::from_json(h.action_ranges[info.action_slot],
+                                                              "model actions." + info.action_slot));
+    if (info.action_stats) return std::make_pair(slot, *info.action_stats);
+  }
+  if (h.action_ranges.size() != 1) return std::nullopt;
+  const auto range = h.action_ranges.begin();  // not *items().begin(): that iterator is a temporary
+  return std::make_pair(data::slot_by_name(range.key()),
+                        data::ArrayStats::from_json(range.value(), "model actions." + range.key()));
+}
+
 std::optional<data::ActionChunker> ModelHost::chunker(const std::string& model) const {
   const auto& h = find(model);
-  return data::single_slot_chunker(h.action_ranges, "model actions", h.spec.streaming ? 4 : 12);
+  const auto c = commands(h);
+  if (!c) return std::nullopt;
+  return data::ActionChunker(c->first, c->second, h.spec.streaming ? 4 : 12);
 }
 
 std::optional<data::ArrayStats> ModelHost::command_stats(const std::string& model) const {
-  const auto& h = find(model);
-  if (h.action_ranges.size() != 1) return std::nullopt;
-  const auto range = h.action_ranges.begin();
-  return data::ArrayStats::from_json(range.value(), "model actions." + range.key());
+  const auto c = commands(find(model));
+  if (!c) return std::nullopt;
+  return c->second;
 }
 
 std::vector<std::string> ModelHost::episode_ids() const {
@@ -129,10 +146,10 @@ StartFrame ModelHost::start_frame(const std::string& model, const std::string& e
 }
 
 torch::Tensor ModelHost::fit_image(const std::string& model, const torch::Tensor& image) const {
-  const int size = frame_size(model);
+  const auto [height, width] = frame_shape(model);
   DOJO_CHECK(image.dim() == 3 && image.size(2) == 3, "serve: an image must be [H, W, 3]");
-  if (image.size(0) == size && image.size(1) == size) return image.contiguous();
-  return io::resize_center_crop(image, size, size).contiguous();
+  if (image.size(0) == height && image.size(1) == width) return image.contiguous();
+  return io::resize_center_crop(image, height, width).contiguous();
 }
 
 nlohmann::json ModelHost::capabilities() const {
@@ -148,6 +165,11 @@ nlohmann::json ModelHost::capabilities() const {
       slots.push_back({{"slot", slot}, {"begin", s.begin}, {"width", stats.at("min").size()}});
       embodiments.insert(slot);
     }
+    // A model that records no range for the dataset's robot is driven in its units all the same.
+    if (const auto c = commands(*h); c && !h->action_ranges.contains(c->first.name)) {
+      slots.push_back({{"slot", c->first.name}, {"begin", c->first.begin}, {"width", c->second.dim()}});
+      embodiments.insert(c->first.name);
+    }
     const int64_t per_step =
         h->spec.streaming ? infer::StreamingEngine::kActionsPerStep : infer::WorldModel::kChunkActions;
     models.push_back({{"name", h->spec.name},
@@ -161,7 +183,9 @@ nlohmann::json ModelHost::capabilities() const {
           {"models", models},
           {"embodiments", std::vector<std::string>(embodiments.begin(), embodiments.end())},
           {"action_layout", {{"width", data::kUnifiedActionDim}, {"actions_per_latent_frame", 4}}},
-          {"frame_size", source_ ? source_->info().height : 64},
+          {"frame_size", source_ ? source_->info().height : 64},  // the height (clients before frame_width)
+          {"frame_height", source_ ? source_->info().height : 64},
+          {"frame_width", source_ ? source_->info().width : 64},
           {"split", options_.split},
           {"episodes", episode_ids()}};
 }

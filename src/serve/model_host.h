@@ -19,11 +19,8 @@
 
 #include "core/autocast.h"
 #include "data/actions.h"
+#include "data/episode_source.h"
 #include "infer/generator.h"
-
-namespace dojo::data {
-class EpisodeSource;
-}
 
 namespace dojo::serve {
 
@@ -53,6 +50,7 @@ class ModelHost {
     std::vector<ModelSpec> models;
     std::filesystem::path data;  // start frames; may be empty (then clients upload images)
     std::string split = "val";
+    data::OpenOptions open;  // how `data` is opened (LeRobot: the robot, never from the path; camera)
     torch::Device device = torch::kCPU;
     Precision precision = Precision::kFloat32;
     bool cuda_graphs = true;  // streaming models on CUDA replay their hops as CUDA graphs
@@ -74,18 +72,24 @@ class ModelHost {
   StartFrame start_frame(const std::string& model, const std::string& episode) const;
   // An uploaded image, centre-cropped and resized to the model's frame size.
   torch::Tensor fit_image(const std::string& model, const torch::Tensor& image) const;
-  // Turns raw commands of the model's embodiment into its layout (empty when it records none).
+  // Turns raw commands into the model's layout: commands of the dataset's robot (normalised with
+  // the model's range for its slot, else the dataset's statistics, so a converted released model,
+  // which records no range, is driven in the robot's units), else of the one slot the model
+  // records; empty when neither says what a command is.
   std::optional<data::ActionChunker> chunker(const std::string& model) const;
   // The range of those raw commands (live commands are clamped to it), when known.
   std::optional<data::ArrayStats> command_stats(const std::string& model) const;
   std::vector<std::string> episode_ids() const;
   const std::filesystem::path& data_dir() const { return options_.data; }
   const std::string& split() const { return options_.split; }
-  int frame_size(const std::string& model) const;
+  // {H, W} of the model's frames: the dataset's, else 64x64.
+  std::pair<int, int> frame_shape(const std::string& model) const;
 
  private:
   struct Hosted;
   const Hosted& find(const std::string& model) const;
+  // The slot raw commands drive and their range (see chunker()).
+  std::optional<std::pair<data::ActionSlot, data::ArrayStats>> commands(const Hosted& h) const;
 
   Options options_;
   std::vector<std::shared_ptr<Hosted>> hosted_;

@@ -9,7 +9,7 @@
 #include "core/error.h"
 #include "core/json_file.h"
 #include "core/log.h"
-#include "eval/wm_eval.h"
+#include "data/episode_clip.h"
 #include "io/video.h"
 #include "serve/model_host.h"
 
@@ -97,8 +97,10 @@ Study create_study_from_models(const StudyFromModels& o) {
       // Each model reads the clip with its own action ranges (pretrained and post-trained models
       // may normalise the same commands differently).
       const auto config = Checkpoint::open(resolve_checkpoint_dir(m.checkpoint)).config();
-      const auto clip = eval::read_episode_clip(o.data, o.split, episode, o.chunks,
-                                                config.value("actions", nlohmann::json::object()));
+      const auto clip =
+          data::read_episode_clip(o.data, o.split, episode, o.chunks,
+                                  data::parse_action_ranges(config.value("actions", nlohmann::json::object()),
+                                                            m.checkpoint.string()));
       if (item.truth.empty()) {
         item.truth = (folder / "truth.mp4").string();
         if (!fs::exists(o.dir / item.truth)) write_clip(o.dir / item.truth, clip.video, clip.fps);

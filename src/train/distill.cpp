@@ -251,7 +251,7 @@ TeacherData teacher_data(const DistillJob& job, int frames, const std::string& p
   for (size_t i = 0; i < job.data.size(); ++i) {
     auto spec = job.data[i];
     spec.frames = frames;
-    const auto slot = data::open_dataset(spec.dataset)->info().action_slot;
+    const auto slot = data::open_dataset(spec.dataset, spec.open_options())->info().action_slot;
     if (!slot.empty() && t.action_ranges.contains(slot))
       spec.action_stats =
           data::ArrayStats::from_json(t.action_ranges[slot], job.teacher.string() + ": actions." + slot);

@@ -75,7 +75,14 @@ nlohmann::json LatentCacheSpec::to_json() const {
       {"relative_actions", relative_actions},
       {"action_stats", action_stats ? action_stats->to_json() : nlohmann::json(nullptr)}};
   if (frames != 13) j["frames"] = frames;  // older caches (all 13 frames) keep their fingerprint
+  if (embodiment != "auto") j["embodiment"] = embodiment;  // and caches of unnamed robots theirs
   return j;
+}
+
+data::OpenOptions LatentCacheSpec::open_options() const {
+  data::OpenOptions o;
+  o.embodiment = embodiment;
+  return o;
 }
 
 LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::path& cache_file) {
@@ -105,7 +112,7 @@ LatentClips load_or_build_latent_clips(const LatentCacheSpec& spec, const fs::pa
                    "-wide latent slot");
   }
   // Any format the readers know (our episodes, LeRobot, EgoDex, video folders).
-  const auto source = data::open_dataset(spec.dataset);
+  const auto source = data::open_dataset(spec.dataset, spec.open_options());
   const auto& info = source->info();
   data::ClipConfig clip;
   DOJO_CHECK(spec.frames >= 5 && (spec.frames - 1) % 4 == 0,

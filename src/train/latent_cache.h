@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "data/actions.h"
+#include "data/episode_source.h"
 
 namespace dojo::train {
 
@@ -34,6 +35,7 @@ nlohmann::json checkpoint_fingerprint(const std::filesystem::path& dir);
 struct LatentCacheSpec {
   std::filesystem::path dataset;
   std::string split = "train";
+  std::string embodiment = "auto";  // LeRobot: the robot (data::OpenOptions::embodiment)
   std::filesystem::path tokenizer;  // checkpoint directory
   std::filesystem::path lam;        // checkpoint directory (ActionMode::kLatent only)
   ActionMode mode = ActionMode::kDataset;
@@ -47,6 +49,8 @@ struct LatentCacheSpec {
   // own, shared by all its robot datasets); unset: the dataset's.
   std::optional<data::ArrayStats> action_stats;
   nlohmann::json to_json() const;
+  // How the dataset is opened (the robot named).
+  data::OpenOptions open_options() const;
 };
 
 struct LatentClips {

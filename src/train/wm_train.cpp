@@ -268,7 +268,7 @@ std::vector<double> robot_action_scale(const WmTrainJob& job, const LatentClips&
       c.action_scale.empty() ? std::vector<double>(static_cast<size_t>(c.action_dim), 1.0) : c.action_scale;
   const auto rows = clips.actions.reshape({-1, clips.actions.size(-1)}).to(torch::kFloat64);  // [N * 12, 384]
   for (const auto& spec : job.data) {
-    const auto source = data::open_dataset(spec.dataset);
+    const auto source = data::open_dataset(spec.dataset, spec.open_options());
     const auto& slot_name = source->info().action_slot;
     if (slot_name.empty()) continue;  // action-free video
     const auto slot = data::slot_by_name(slot_name);
@@ -302,7 +302,8 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   // same numbers whichever dataset it comes from, in training and in every later rollout.
   const bool resuming = checkpoint_exists(ckpt_dir);
   std::vector<data::DatasetInfo> infos;  // each dataset opened once
-  for (const auto& spec : job.data) infos.push_back(data::open_dataset(spec.dataset)->info());
+  for (const auto& spec : job.data)
+    infos.push_back(data::open_dataset(spec.dataset, spec.open_options())->info());
   // Post-training from a model already post-trained on every robot slot of these datasets continues
   // it (more or other robot data): its action layer and its action ranges stay, since new ranges
   // would move every action it has learned to read.

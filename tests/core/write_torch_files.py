@@ -14,6 +14,8 @@ OUT_DIR receives
   wan_vae.pth                         the golden tiny Wan2.1 VAE as a flat dict (legacy format)
   dit_lora.pt                         the golden tiny DiT with PEFT adapters (rank 4, alpha 8) on
                                       q/k/v/output_proj and mlp.layer1/2, unmerged
+  dit_action384_ema_bf16.pt           the tiny DiT with action MLPs reading the 384-d action layout,
+                                      net.* in bf16 (a model_ema_bf16.pt as the release converts)
   prompt_embedding.pt                 a bare bf16 tensor [3, 4] (arange), as a prompt-embedding asset
   evil_*.pt                           files whose unpickling runs `touch MARKER_PATH`
 """
@@ -160,6 +162,16 @@ for name, w in dit.items():
     else:
         lora[key] = w
 torch.save(lora, os.path.join(out, "dit_lora.pt"))
+
+# --- the tiny DiT reading the released 384-d action vector (4 rows per latent frame), as the
+# official converter writes model_ema_bf16.pt: net.* in bf16. Rolls out on robot data. ---
+dit384 = collections.OrderedDict()
+for name, w in dit.items():
+    key = name if name.startswith("net.") else "net." + name
+    if key.endswith("fc1.weight") and "action_embedder" in key:
+        w = torch.randn(w.shape[0], 384 * 4) / (384 * 4) ** 0.5
+    dit384[key] = w.bfloat16() if w.is_floating_point() else w
+torch.save(dit384, os.path.join(out, "dit_action384_ema_bf16.pt"))
 
 
 # --- a prompt embedding saved as a bare tensor (as the released empty-prompt asset is) ---

@@ -75,10 +75,10 @@ TEST(WmEval, ScoresEverySourceWithKeypointsAndActionSensitivity) {
   EXPECT_NE(r.model().psnr, shuffled.psnr);
   EXPECT_NE(r.model().psnr, zero.psnr);
   for (size_t i = 0; i < r.videos.size(); ++i) {
-    const auto clip =
-        read_episode_clip(tmp / "robot", "all", r.videos[i].episode, o.chunks, model.action_ranges());
-    const auto next = read_episode_clip(tmp / "robot", "all", r.videos[(i + 1) % r.videos.size()].episode,
-                                        o.chunks, model.action_ranges());
+    const auto ranges = data::parse_action_ranges(model.action_ranges(), "model");
+    const auto clip = data::read_episode_clip(tmp / "robot", "all", r.videos[i].episode, o.chunks, ranges);
+    const auto next = data::read_episode_clip(tmp / "robot", "all",
+                                              r.videos[(i + 1) % r.videos.size()].episode, o.chunks, ranges);
     const auto first = clip.video.select(0, 0).unsqueeze(0);
     const auto gt = clip.video.unsqueeze(0);
     auto psnr_of = [&](const torch::Tensor& actions) {
