@@ -9,6 +9,7 @@
 
 #include "core/error.h"
 #include "data/clip_loader.h"
+#include "data/episode_clip.h"
 #include "io/video.h"
 #include "test_util.h"
 
@@ -153,6 +154,28 @@ TEST(EgoDex, ClipsAreActionFreeAndCarryHiddenMotion) {
   ASSERT_EQ(clip.hidden_motion.sizes(), (std::vector<int64_t>{13, 6}));
   EXPECT_NEAR(clip.hidden_motion[0][0].item<float>(), 1.04f, 1e-5);  // frame 4 (even)
   EXPECT_NEAR(clip.video[12].to(torch::kFloat32).mean().item<float>(), 10 + 4 * 16, 2.0);
+}
+
+// A rollout on an EgoDex folder as it is: every frame (no robot stride), resized as asked, the
+// latent-action mask for actions, no raw commands.
+TEST(EgoDex, RollsOutAsActionFreeVideoAtEveryFrame) {
+  test::TempDir tmp;
+  make_episode(tmp / "egodex" / "part1" / "pour" / "0.hdf5", 20, 20, "Pour water.");
+  RolloutDataOptions options;
+  options.height = options.width = 16;
+  const RolloutData data(tmp / "egodex", 1, {}, options);
+  EXPECT_EQ(data.stride(), 1);
+  EXPECT_EQ(data.normalization(), "none");
+  const auto clip = data.read(data.find("", "part1/pour/0"));
+  ASSERT_EQ(clip.video.sizes(), (std::vector<int64_t>{13, 16, 16, 3}));
+  EXPECT_NEAR(clip.video[12].to(torch::kFloat32).mean().item<float>(), 10 + 4 * 13, 2.0);  // frame 13
+  EXPECT_TRUE(torch::equal(clip.actions, human_action_placeholder(12)));
+  EXPECT_FALSE(clip.raw_baseline.defined());
+  EXPECT_DOUBLE_EQ(clip.fps, 30);
+  EXPECT_NE(test::error_message([&] {
+              data.raw_to_rows(torch::zeros({12, 6}), {});
+            }).find("action-free"),
+            std::string::npos);
 }
 
 TEST(EgoDex, MissingVideoAndBadFilesNameTheFile) {
