@@ -143,24 +143,43 @@ std::shared_ptr<torch::nn::Module> load_any_model(const fs::path& dir) {
               "' (expected lam, wan21_vae, action_dit or keypoint_probe)");
 }
 
+// A world model's checkpoint with its LoRA adapters folded into the base weights (W + alpha/r ·
+// B A): plain weights, the config's other entries (action ranges, sampler, student) kept.
+CheckpointData merged_world_model(const fs::path& src) {
+  const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(src));
+  DOJO_CHECK(ckpt.config().value("model", "") == "action_dit",
+             (ckpt.dir() / "config.json").string() + ": LoRA adapters are merged into world models only");
+  DOJO_CHECK(ckpt.has_adapter(), src.string() + ": no adapter_model.safetensors (no LoRA adapters to merge)");
+  const auto net = models::load_world_model(src);  // folds the adapters in
+  CheckpointData data = models::world_model_checkpoint(*net);
+  auto config = ckpt.config();
+  config["config"] = data.config["config"];
+  data.config = config;
+  return data;
+}
+
 // A checkpoint for inference: the same config and weights with no trainer state, the learned
 // parameters stored in `dtype` (buffers such as RoPE tables keep theirs, so a bf16 export
-// changes only what bf16 weights change).
+// changes only what bf16 weights change). LoRA adapters are merged in.
 void export_checkpoint(const fs::path& src, const fs::path& dst, torch::ScalarType dtype) {
   const auto module = load_any_model(src);
   const auto ckpt = Checkpoint::open(resolve_checkpoint_dir(src));
   std::set<std::string> params;  // module names of the learned parameters
   for (const auto& p : module->named_parameters()) params.insert(p.key());
   CheckpointData data;
-  data.config = ckpt.config();
-  for (const auto& name : ckpt.model().keys()) {
-    auto t = ckpt.model().tensor(name, /*copy=*/true);
+  if (ckpt.has_adapter()) {
+    data = merged_world_model(src);
+  } else {
+    data.config = ckpt.config();
+    for (const auto& name : ckpt.model().keys())
+      data.model.emplace_back(name, ckpt.model().tensor(name, true));
+  }
+  for (auto& [name, t] : data.model) {
     // File names are the module's, possibly behind one prefix ("net.", "lam.", "probe.").
     const auto dot = name.find('.');
     const bool is_param =
         params.count(name) || (dot != std::string::npos && params.count(name.substr(dot + 1)));
     if (is_param && at::isFloatingType(t.scalar_type())) t = t.to(dtype);
-    data.model.emplace_back(name, t);
   }
   save_checkpoint(dst, data);
 }
@@ -192,6 +211,20 @@ void register_ckpt(CLI::App& app) {
       const auto type = *dtype == "bf16" ? torch::kBFloat16 : *dtype == "fp16" ? torch::kHalf : torch::kFloat;
       export_checkpoint(*src, *dst, type);
       std::printf("%s -> %s (%s parameters, no trainer state)\n", src->c_str(), dst->c_str(), dtype->c_str());
+      return 0;
+    });
+  });
+  auto* merge = ckpt->add_subcommand(
+      "merge", "Fold a world model's LoRA adapters into its weights (W + alpha/r · B A): a plain checkpoint");
+  auto merge_src = std::make_shared<std::string>(), merge_dst = std::make_shared<std::string>();
+  merge->add_option("SRC", *merge_src, "World-model checkpoint with adapter_model.safetensors")->required();
+  merge->add_option("DST", *merge_dst, "Output checkpoint directory")->required();
+  merge->callback([merge_src, merge_dst] {
+    set_action([merge_src, merge_dst] {
+      const auto data = merged_world_model(*merge_src);
+      save_checkpoint(*merge_dst, data);
+      std::printf("%s -> %s (LoRA adapters merged, %zu tensors)\n", merge_src->c_str(), merge_dst->c_str(),
+                  data.model.size());
       return 0;
     });
   });

@@ -37,8 +37,10 @@ struct WmTrainArgs {
   std::string stage = "pretrain", actions, split = "train", tokenizer, lam, init, out, model = "small",
               temporal_axis = "time", device = "cpu", precision = "fp32", embodiment = "auto";
   std::vector<std::string> data;
-  int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100;
+  int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100, lora_rank = 0;
   int batch = 8;
+  double lora_alpha = 32;
+  std::string lora_targets = "q,k,v,o,mlp1,mlp2";
   double minutes = 0, lr = 1.6e-4, weight_decay = 0.1, grad_clip = 0.1, temporal_weight = 0.1, shift = 5.0,
          action_scale = 1.0, condition_noise = 0, motion_weight = 0, action_dropout = 0;
   uint64_t seed = 0;
@@ -90,6 +92,17 @@ int run_wm_train(const WmTrainArgs& a) {
   job.options.action_dropout = a.action_dropout;
   job.action_scale = a.action_scale;
   job.standardize_actions = a.standardize_actions;
+  if (a.lora_rank > 0) {
+    if (job.stage != train::WmStage::kPosttrain)
+      throw UsageError("--lora adapts a pretrained network: use it with --stage posttrain and --init");
+    job.lora.rank = a.lora_rank;
+    job.lora.alpha = a.lora_alpha;
+    try {
+      job.lora.targets = models::LoraConfig::parse_targets(a.lora_targets);
+    } catch (const Error& e) {
+      throw UsageError(std::string("--lora-targets: ") + e.what());
+    }
+  }
   job.options.flow.temporal_axis =
       a.temporal_axis == "channel" ? diffusion::TemporalAxis::kChannel : diffusion::TemporalAxis::kTime;
   job.batch_size = a.batch;
@@ -320,6 +333,19 @@ void register_wm(CLI::App& app) {
       ->add_option("--action-dropout", t->action_dropout,
                    "Probability per clip of training without actions (enables --action-guidance)")
       ->check(CLI::Range(0.0, 1.0))
+      ->capture_default_str();
+  train_cmd
+      ->add_option(
+          "--lora", t->lora_rank,
+          "Post-train LoRA adapters of this rank instead of every weight (the action MLPs still train "
+          "in full; the rest stays frozen); 0 = full post-training")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  train_cmd->add_option("--lora-alpha", t->lora_alpha, "LoRA alpha: the adapters' scale is alpha / rank")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  train_cmd
+      ->add_option("--lora-targets", t->lora_targets, "Adapted layers: q, k, v, o (attention), mlp1, mlp2")
       ->capture_default_str();
   train_cmd->add_flag("--standardize-actions", t->standardize_actions,
                       "Scale each robot action dimension to unit standard deviation over the cached clips");

@@ -20,6 +20,7 @@ namespace {
 
 constexpr const char* kConfigFile = "config.json";
 constexpr const char* kModelFile = "model.safetensors";
+constexpr const char* kAdapterFile = "adapter_model.safetensors";
 constexpr const char* kTrainerJsonFile = "trainer_state.json";
 constexpr const char* kTrainerTensorsFile = "trainer_state.safetensors";
 constexpr const char* kOldSuffix = ".dojo-old";
@@ -116,6 +117,7 @@ void save_checkpoint(const fs::path& dir_in, const CheckpointData& data) {
       save_safetensors(temp / kModelFile, *data.model_stream, metadata);
     else
       save_safetensors(temp / kModelFile, data.model, metadata);
+    if (!data.adapter.empty()) save_safetensors(temp / kAdapterFile, data.adapter, data.adapter_metadata);
     if (data.trainer) {
       save_safetensors(temp / kTrainerTensorsFile, data.trainer->tensors);
       const nlohmann::json state = {{"step", data.trainer->step}, {"extra", data.trainer->extra}};
@@ -169,6 +171,7 @@ Checkpoint Checkpoint::open(const fs::path& dir_in) {
                (ckpt.dir_ / required).string() + ": missing (not a checkpoint directory?)");
   ckpt.config_ = read_json_file(ckpt.dir_ / kConfigFile);
   ckpt.model_ = SafetensorsFile::open(ckpt.dir_ / kModelFile);
+  if (path_exists(ckpt.dir_ / kAdapterFile)) ckpt.adapter_ = SafetensorsFile::open(ckpt.dir_ / kAdapterFile);
   if (path_exists(ckpt.dir_ / kTrainerJsonFile)) {
     const fs::path json_path = ckpt.dir_ / kTrainerJsonFile;
     nlohmann::json state = read_json_file(json_path);
@@ -189,6 +192,11 @@ int64_t Checkpoint::step() const {
 const nlohmann::json& Checkpoint::trainer_extra() const {
   DOJO_CHECK(trainer_json_, dir_.string() + ": no trainer state (an inference-only checkpoint)");
   return (*trainer_json_)["extra"];
+}
+
+const SafetensorsFile& Checkpoint::adapter() const {
+  DOJO_CHECK(adapter_, dir_.string() + ": no adapter_model.safetensors (no LoRA adapters)");
+  return *adapter_;
 }
 
 const SafetensorsFile& Checkpoint::trainer_tensors() const {

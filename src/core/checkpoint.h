@@ -41,7 +41,11 @@ struct CheckpointData {
   // When set, model.safetensors is written from this stream instead of `model` (a converted
   // checkpoint larger than memory: each tensor is read, written and dropped in turn).
   std::optional<TensorStream> model_stream;
-  Metadata model_metadata;              // extra __metadata__ entries for model.safetensors
+  Metadata model_metadata;  // extra __metadata__ entries for model.safetensors
+  // LoRA adapters kept apart from the base weights (PEFT's layout): adapter_model.safetensors,
+  // written with the rest of the directory. Empty: no such file.
+  NamedTensors adapter;
+  Metadata adapter_metadata;
   std::optional<TrainerState> trainer;  // absent: an inference-only checkpoint
 };
 
@@ -64,6 +68,10 @@ class Checkpoint {
   const std::filesystem::path& dir() const { return dir_; }  // as resolved
   const nlohmann::json& config() const { return config_; }
   const SafetensorsFile& model() const { return *model_; }
+  // adapter_model.safetensors: LoRA adapters beside the base weights (`dojo convert --lora keep`,
+  // `wm train --lora`); absent in plain checkpoints.
+  bool has_adapter() const { return adapter_.has_value(); }
+  const SafetensorsFile& adapter() const;
 
   bool has_trainer_state() const { return trainer_json_.has_value(); }
   // The following throw dojo::Error when there is no trainer state.
@@ -77,6 +85,7 @@ class Checkpoint {
   std::filesystem::path dir_;
   nlohmann::json config_;
   std::optional<SafetensorsFile> model_;
+  std::optional<SafetensorsFile> adapter_;
   std::optional<nlohmann::json> trainer_json_;
   std::optional<SafetensorsFile> trainer_tensors_;
 };

@@ -241,7 +241,8 @@ torch::Tensor DitRmsNormImpl::forward(const torch::Tensor& x) {
       .to(x.scalar_type());
 }
 
-DitAttentionImpl::DitAttentionImpl(int64_t query_dim, int64_t context_dim, int64_t heads_, int64_t head_dim_)
+DitAttentionImpl::DitAttentionImpl(int64_t query_dim, int64_t context_dim, int64_t heads_, int64_t head_dim_,
+                                   const LoraConfig& lora)
     : heads(heads_), head_dim(head_dim_) {
   const int64_t inner = heads * head_dim;
   q_proj = register_module("q_proj", nn::Linear(nn::LinearOptions(query_dim, inner).bias(false)));
@@ -250,6 +251,10 @@ DitAttentionImpl::DitAttentionImpl(int64_t query_dim, int64_t context_dim, int64
   k_norm = register_module("k_norm", DitRmsNorm(head_dim));
   v_proj = register_module("v_proj", nn::Linear(nn::LinearOptions(context_dim, inner).bias(false)));
   output_proj = register_module("output_proj", nn::Linear(nn::LinearOptions(inner, query_dim).bias(false)));
+  q_lora = attach_lora(q_proj, "q", lora);
+  k_lora = attach_lora(k_proj, "k", lora);
+  v_lora = attach_lora(v_proj, "v", lora);
+  output_lora = attach_lora(output_proj, "o", lora);
 }
 
 torch::Tensor DitAttentionImpl::self_attention(const torch::Tensor& x, const torch::Tensor& cos,
@@ -258,32 +263,40 @@ torch::Tensor DitAttentionImpl::self_attention(const torch::Tensor& x, const tor
   const int64_t B = x.size(0), L = x.size(1);
   // Norm and RoPE act per head on the [B, L, h, d] layout the projections produce; the
   // transposes to [B, h, L, d] are views (the attention matmuls take them as they are).
-  const auto q = apply_rope(q_norm(q_proj(x).view({B, L, heads, head_dim})), cos, sin).transpose(1, 2);
-  auto k = apply_rope(k_norm(k_proj(x).view({B, L, heads, head_dim})), cos, sin).transpose(1, 2);
-  auto v = v_proj(x).view({B, L, heads, head_dim}).transpose(1, 2);  // [B, h, L, d]
-  torch::Tensor k_all = k, v_all = v;                                // [B, h, cached + L, d]
+  const auto q = apply_rope(q_norm(lora_forward(q_proj, q_lora, x).view({B, L, heads, head_dim})), cos, sin)
+                     .transpose(1, 2);
+  auto k = apply_rope(k_norm(lora_forward(k_proj, k_lora, x).view({B, L, heads, head_dim})), cos, sin)
+               .transpose(1, 2);
+  auto v = lora_forward(v_proj, v_lora, x).view({B, L, heads, head_dim}).transpose(1, 2);  // [B, h, L, d]
+  torch::Tensor k_all = k, v_all = v;  // [B, h, cached + L, d]
   if (cache != nullptr) std::tie(k_all, v_all) = cache->attend(k, v, store_kv);
   std::optional<torch::Tensor> m;
   if (mask.defined()) m = mask;
-  const auto o = attention(q, k_all, v_all, m);                             // [B, h, L, d]
-  return output_proj(o.transpose(1, 2).reshape({B, L, heads * head_dim}));  // [B, L, D]
+  const auto o = attention(q, k_all, v_all, m);  // [B, h, L, d]
+  return lora_forward(output_proj, output_lora,
+                      o.transpose(1, 2).reshape({B, L, heads * head_dim}));  // [B, L, D]
 }
 
 torch::Tensor DitAttentionImpl::cross_attention(const torch::Tensor& x, const torch::Tensor& context) {
   const int64_t B = x.size(0), L = x.size(1), Lc = context.size(1);
-  const auto q = q_norm(q_proj(x).view({B, L, heads, head_dim})).transpose(1, 2);         // [B, h, L, d]
-  const auto k = k_norm(k_proj(context).view({B, Lc, heads, head_dim})).transpose(1, 2);  // [B, h, Lc, d]
-  const auto v = v_proj(context).view({B, Lc, heads, head_dim}).transpose(1, 2);
-  const auto o = attention(q, k, v);                                        // [B, h, L, d]
-  return output_proj(o.transpose(1, 2).reshape({B, L, heads * head_dim}));  // [B, L, D]
+  const auto q = q_norm(lora_forward(q_proj, q_lora, x).view({B, L, heads, head_dim})).transpose(1, 2);
+  const auto k = k_norm(lora_forward(k_proj, k_lora, context).view({B, Lc, heads, head_dim})).transpose(1, 2);
+  const auto v = lora_forward(v_proj, v_lora, context).view({B, Lc, heads, head_dim}).transpose(1, 2);
+  const auto o = attention(q, k, v);  // [B, h, L, d]
+  return lora_forward(output_proj, output_lora,
+                      o.transpose(1, 2).reshape({B, L, heads * head_dim}));  // [B, L, D]
 }
 
-DitMlpImpl::DitMlpImpl(int64_t dim, int64_t hidden) {
+DitMlpImpl::DitMlpImpl(int64_t dim, int64_t hidden, const LoraConfig& lora) {
   layer1 = register_module("layer1", nn::Linear(nn::LinearOptions(dim, hidden).bias(false)));
   layer2 = register_module("layer2", nn::Linear(nn::LinearOptions(hidden, dim).bias(false)));
+  layer1_lora = attach_lora(layer1, "mlp1", lora);
+  layer2_lora = attach_lora(layer2, "mlp2", lora);
 }
 
-torch::Tensor DitMlpImpl::forward(const torch::Tensor& x) { return layer2(torch::gelu(layer1(x))); }
+torch::Tensor DitMlpImpl::forward(const torch::Tensor& x) {
+  return lora_forward(layer2, layer2_lora, torch::gelu(lora_forward(layer1, layer1_lora, x)));
+}
 
 DitModulation::DitModulation(int64_t dim, int64_t lora_dim, int64_t out)
     : down(nn::LinearOptions(dim, lora_dim).bias(false)), up(nn::LinearOptions(lora_dim, out).bias(false)) {
@@ -300,9 +313,10 @@ torch::Tensor modulate(const torch::Tensor& x, const torch::Tensor& shift, const
 
 DitBlockImpl::DitBlockImpl(const DitConfig& c) {
   const int64_t D = c.model_channels;
-  self_attn = register_module("self_attn", DitAttention(D, D, c.num_heads, c.head_dim()));
-  cross_attn = register_module("cross_attn", DitAttention(D, c.crossattn_dim(), c.num_heads, c.head_dim()));
-  mlp = register_module("mlp", DitMlp(D, c.mlp_hidden()));
+  self_attn = register_module("self_attn", DitAttention(D, D, c.num_heads, c.head_dim(), c.lora));
+  cross_attn =
+      register_module("cross_attn", DitAttention(D, c.crossattn_dim(), c.num_heads, c.head_dim(), c.lora));
+  mlp = register_module("mlp", DitMlp(D, c.mlp_hidden(), c.lora));
   adaln_modulation_self_attn = DitModulation(D, c.adaln_lora_dim, 3 * D);
   adaln_modulation_cross_attn = DitModulation(D, c.adaln_lora_dim, 3 * D);
   adaln_modulation_mlp = DitModulation(D, c.adaln_lora_dim, 3 * D);

@@ -23,6 +23,8 @@
 #include <utility>
 #include <vector>
 
+#include "models/lora.h"
+
 namespace dojo {
 class SafetensorsFile;
 struct CheckpointData;
@@ -70,6 +72,8 @@ struct DitConfig {
   int64_t whole_clip_actions = 0;
   bool concat_padding_mask = true;
   double mlp_ratio = 4.0;
+  // LoRA adapters on the blocks' attention and MLP layers (models/lora.h); rank 0: none.
+  LoraConfig lora;
 
   static DitConfig released_2b();   // DreamDojo 2B teacher (Cosmos-Predict2.5-2B dims)
   static DitConfig released_14b();  // DreamDojo 14B teacher
@@ -236,7 +240,8 @@ TORCH_MODULE(DitRmsNorm);
 // Self- or cross-attention with per-head q/k RMSNorm; RoPE on q, k only in self-attention.
 class DitAttentionImpl : public torch::nn::Module {
  public:
-  DitAttentionImpl(int64_t query_dim, int64_t context_dim, int64_t heads, int64_t head_dim);
+  DitAttentionImpl(int64_t query_dim, int64_t context_dim, int64_t heads, int64_t head_dim,
+                   const LoraConfig& lora = {});
   // Self-attention: x [B, L, D], cos/sin [L, 1, d]; mask broadcastable to [B, h, L, cached + L];
   // cache: keys/values of earlier tokens are attended first, this call's are appended when
   // store_kv. -> [B, L, D]
@@ -248,15 +253,17 @@ class DitAttentionImpl : public torch::nn::Module {
   int64_t heads, head_dim;
   torch::nn::Linear q_proj{nullptr}, k_proj{nullptr}, v_proj{nullptr}, output_proj{nullptr};
   DitRmsNorm q_norm{nullptr}, k_norm{nullptr};
+  LoraAdapter q_lora, k_lora, v_lora, output_lora;  // inactive unless the config asks for them
 };
 TORCH_MODULE(DitAttention);
 
 // layer1 (D -> 4D) -> exact GELU -> layer2, no biases.
 class DitMlpImpl : public torch::nn::Module {
  public:
-  DitMlpImpl(int64_t dim, int64_t hidden);
+  DitMlpImpl(int64_t dim, int64_t hidden, const LoraConfig& lora = {});
   torch::Tensor forward(const torch::Tensor& x);
   torch::nn::Linear layer1{nullptr}, layer2{nullptr};
+  LoraAdapter layer1_lora, layer2_lora;
 };
 TORCH_MODULE(DitMlp);
 
@@ -427,10 +434,13 @@ torch::Tensor denoise_velocity(ActionDitImpl& net, const DitInputs& base, const 
 // --- checkpoints ---------------------------------------------------------------------------------
 
 // Checkpoint directory (core/checkpoint.h): config.json holds {"model": "action_dit", "config":
-// DitConfig}, model.safetensors the weights as "net.<name>" (the released names), CPU float32.
+// DitConfig}, model.safetensors the weights as "net.<name>" (the released names), CPU float32; a
+// network with LoRA adapters keeps them in adapter_model.safetensors ("net.<layer>.lora_A.default.
+// weight", ...), the base weights staying in model.safetensors.
 CheckpointData world_model_checkpoint(const ActionDitImpl& net);
 // A world-model checkpoint (with or without trainer state) -> the network in eval mode on `device`.
-// Trainers store their EMA weights as the model, so this is the EMA network.
+// Trainers store their EMA weights as the model, so this is the EMA network. LoRA adapters beside
+// the base weights are folded in (W + alpha/r · B A): the network returned has none.
 ActionDit load_world_model(const std::filesystem::path& dir, torch::Device device = torch::kCPU);
 
 }  // namespace dojo::models

@@ -75,34 +75,36 @@ int64_t DitConfig::rope_seq_len() const {
 }
 
 nlohmann::json DitConfig::to_json() const {
-  return {{"model", "dit"},
-          {"model_channels", model_channels},
-          {"num_blocks", num_blocks},
-          {"num_heads", num_heads},
-          {"adaln_lora_dim", adaln_lora_dim},
-          {"in_channels", in_channels},
-          {"out_channels", out_channels},
-          {"patch_spatial", patch_spatial},
-          {"patch_temporal", patch_temporal},
-          {"crossattn_emb_channels", crossattn_emb_channels},
-          {"crossattn_proj_dim", crossattn_proj_dim},
-          {"use_crossattn_projection", use_crossattn_projection},
-          {"max_img_h", max_img_h},
-          {"max_img_w", max_img_w},
-          {"max_frames", max_frames},
-          {"rope_h_extrapolation_ratio", rope_h_extrapolation_ratio},
-          {"rope_w_extrapolation_ratio", rope_w_extrapolation_ratio},
-          {"rope_t_extrapolation_ratio", rope_t_extrapolation_ratio},
-          {"rope_bf16_ranges", rope_bf16_ranges},
-          {"timestep_scale", timestep_scale},
-          {"action_dim", action_dim},
-          {"actions_per_latent_frame", actions_per_latent_frame},
-          {"action_hidden_dim", action_hidden_dim},
-          {"zero_init_action_fc2", zero_init_action_fc2},
-          {"action_scale", action_scale},
-          {"whole_clip_actions", whole_clip_actions},
-          {"concat_padding_mask", concat_padding_mask},
-          {"mlp_ratio", mlp_ratio}};
+  nlohmann::json j = {{"model", "dit"},
+                      {"model_channels", model_channels},
+                      {"num_blocks", num_blocks},
+                      {"num_heads", num_heads},
+                      {"adaln_lora_dim", adaln_lora_dim},
+                      {"in_channels", in_channels},
+                      {"out_channels", out_channels},
+                      {"patch_spatial", patch_spatial},
+                      {"patch_temporal", patch_temporal},
+                      {"crossattn_emb_channels", crossattn_emb_channels},
+                      {"crossattn_proj_dim", crossattn_proj_dim},
+                      {"use_crossattn_projection", use_crossattn_projection},
+                      {"max_img_h", max_img_h},
+                      {"max_img_w", max_img_w},
+                      {"max_frames", max_frames},
+                      {"rope_h_extrapolation_ratio", rope_h_extrapolation_ratio},
+                      {"rope_w_extrapolation_ratio", rope_w_extrapolation_ratio},
+                      {"rope_t_extrapolation_ratio", rope_t_extrapolation_ratio},
+                      {"rope_bf16_ranges", rope_bf16_ranges},
+                      {"timestep_scale", timestep_scale},
+                      {"action_dim", action_dim},
+                      {"actions_per_latent_frame", actions_per_latent_frame},
+                      {"action_hidden_dim", action_hidden_dim},
+                      {"zero_init_action_fc2", zero_init_action_fc2},
+                      {"action_scale", action_scale},
+                      {"whole_clip_actions", whole_clip_actions},
+                      {"concat_padding_mask", concat_padding_mask},
+                      {"mlp_ratio", mlp_ratio}};
+  if (lora.enabled()) j["lora"] = lora.to_json();  // configs without adapters keep their fingerprint
+  return j;
 }
 
 DitConfig DitConfig::from_json(const nlohmann::json& j) {
@@ -142,6 +144,7 @@ DitConfig DitConfig::from_json(const nlohmann::json& j) {
   f.get("whole_clip_actions", c.whole_clip_actions);
   f.get("concat_padding_mask", c.concat_padding_mask);
   f.get("mlp_ratio", c.mlp_ratio);
+  if (j.contains("lora")) c.lora = LoraConfig::from_json(j["lora"], "DiT config");
   c.validate();
   return c;
 }
@@ -426,7 +429,12 @@ CheckpointData world_model_checkpoint(const ActionDitImpl& net) {
   data.config = {{"model", "action_dit"}, {"config", net.config.to_json()}};
   // .to(kCPU) of a CPU tensor is the tensor itself, so CPU checkpoints stay bit-exact.
   for (const auto& [name, t] : state_dict(net))
-    data.model.emplace_back("net." + name, t.detach().to(torch::kCPU));
+    (is_lora_name(name) ? data.adapter : data.model).emplace_back("net." + name, t.detach().to(torch::kCPU));
+  // LoRA adapters apart, as PEFT keeps them; the rank is in A's shape, alpha also in the metadata.
+  if (!data.adapter.empty()) {
+    data.adapter_metadata["lora_alpha"] = std::to_string(net.config.lora.alpha);
+    data.adapter_metadata["lora_rank"] = std::to_string(net.config.lora.rank);
+  }
   return data;
 }
 
@@ -435,10 +443,31 @@ ActionDit load_world_model(const std::filesystem::path& dir, torch::Device devic
   const auto& cfg = ckpt.config();
   DOJO_CHECK(cfg.value("model", std::string()) == "action_dit" && cfg.contains("config"),
              (ckpt.dir() / "config.json").string() + ": not a world-model checkpoint (model != action_dit)");
-  ActionDit net(DitConfig::from_json(cfg["config"]));
+  auto config = DitConfig::from_json(cfg["config"]);
   LoadOptions opts;
   opts.prefix = "net.";
-  load_state_dict(*net, ckpt.model(), opts);  // strict: a mismatch throws, naming the tensors
+  if (!ckpt.has_adapter()) {
+    ActionDit net(config);
+    load_state_dict(*net, ckpt.model(), opts);  // strict: a mismatch throws, naming the tensors
+    net->to(device);
+    net->eval();
+    return net;
+  }
+  // LoRA adapters beside the base weights (wm train --lora, convert --lora keep) are folded in:
+  // W + alpha/r · B A, so inference runs plain weights at full speed.
+  const std::string adapter_file = (ckpt.dir() / "adapter_model.safetensors").string();
+  double alpha = config.lora.alpha;
+  if (!config.lora.enabled()) {
+    const auto& meta = ckpt.adapter().metadata();
+    DOJO_CHECK(meta.count("lora_alpha"),
+               adapter_file + ": no lora_alpha in its metadata and no lora in config.json");
+    alpha = std::stod(meta.at("lora_alpha"));
+  }
+  auto weights = ckpt.model().tensors(/*copy=*/false);
+  fold_lora(weights, ckpt.adapter().tensors(/*copy=*/false), alpha, adapter_file);
+  config.lora = {};
+  ActionDit net(config);
+  load_state_dict(*net, weights, opts);
   net->to(device);
   net->eval();
   return net;

@@ -197,12 +197,12 @@ ImportReport import_dit(const fs::path& source, const fs::path& destination, con
   data.model_metadata["converted_from"] = source.string();
   data.model_metadata["source_format"] = report.source_format;
   data.model_metadata["weights"] = report.selection;
-  save_checkpoint(destination, data);
-  if (!adapters.empty()) {
+  if (!adapters.empty()) {  // written with the rest of the directory, crash-safe alike
     cast_floating(adapters, options.dtype);
-    save_safetensors(destination / "adapter_model.safetensors", adapters,
-                     {{"lora_alpha", std::to_string(options.lora_alpha)}});
+    data.adapter = std::move(adapters);
+    data.adapter_metadata["lora_alpha"] = std::to_string(options.lora_alpha);
   }
+  save_checkpoint(destination, data);
   report.config = data.config;
   return report;
 }

@@ -232,7 +232,12 @@ void WmTrainer::resume(const fs::path& dir) {
   auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
   LoadOptions net_opts;
   net_opts.prefix = "net.";
-  load_state_dict(*ema_, ckpt.model(), net_opts);
+  auto ema_weights = ckpt.model().tensors(/*copy=*/false);
+  if (ckpt.has_adapter()) {  // LoRA: the adapters are kept apart from the base weights
+    auto adapters = ckpt.adapter().tensors(/*copy=*/false);
+    ema_weights.insert(ema_weights.end(), adapters.begin(), adapters.end());
+  }
+  load_state_dict(*ema_, ema_weights, net_opts);
   steps_ = ckpt.has_trainer_state() ? ckpt.step() : 0;
   DOJO_CHECK(ckpt.has_trainer_tensors(), dir.string() + ": no trainer_state.safetensors to resume from");
   const auto tensors = ckpt.trainer_tensors().tensors(/*copy=*/true);
@@ -285,6 +290,38 @@ std::vector<double> robot_action_scale(const WmTrainJob& job, const LatentClips&
              job.standardize_actions ? "1 / their standard deviation" : std::to_string(job.action_scale));
   }
   return scale;
+}
+
+}  // namespace
+
+namespace {
+
+// The same network with fresh LoRA adapters (A: PyTorch's Linear init, B: zeros, so its output is
+// unchanged) on the layers `lora` names.
+models::ActionDit with_lora_adapters(const models::ActionDit& base, const models::LoraConfig& lora) {
+  auto config = base->config;
+  config.lora = lora;
+  models::ActionDit adapted(config);
+  LoadOptions opts;
+  opts.strict = false;  // the adapters are new; every base tensor must still be copied
+  const auto report = load_state_dict(*adapted, state_dict(*base), opts);
+  for (const auto& name : report.missing)
+    DOJO_CHECK(models::is_lora_name(name),
+               "wm train --lora: '" + name + "' was not copied from the base network");
+  return adapted;
+}
+
+// LoRA post-training trains the adapters and the action MLPs (re-initialised for the new action
+// space, as the release does); the rest keeps the pretrained weights.
+void freeze_all_but_adapters_and_actions(models::ActionDitImpl& net) {
+  int64_t trainable = 0, frozen = 0;
+  for (auto& item : net.named_parameters()) {
+    const bool train = models::is_lora_name(item.key()) || item.key().rfind("action_embedder", 0) == 0;
+    item.value().set_requires_grad(train);
+    (train ? trainable : frozen) += item.value().numel();
+  }
+  LOG_INFO("wm train --lora: ", trainable, " trainable parameters (adapters and action MLPs), ", frozen,
+           " frozen");
 }
 
 }  // namespace
@@ -370,11 +407,15 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
       LOG_INFO("wm train: ", job.init.string(), " is post-trained on these action slots; continuing it");
     else
       (*net)->reinit_action_input_layer();
+    if (job.lora.enabled()) *net = with_lora_adapters(*net, job.lora);
+  } else if (job.lora.enabled()) {
+    throw Error("wm train: LoRA adapts a pretrained network: use it with --stage posttrain");
   } else {
     net.emplace(job.model);
   }
   if (!resuming && (job.action_scale != 1.0 || job.standardize_actions))
     (*net)->config.action_scale = robot_action_scale(job, clips, (*net)->config);
+  if ((*net)->config.lora.enabled()) freeze_all_but_adapters_and_actions(**net);
   WmTrainer trainer(*net, job.options, job.device, job.precision);
   if (!action_ranges.empty()) trainer.set_config_extras({{"actions", action_ranges}});
   if (resuming) {

@@ -126,6 +126,10 @@ struct WmTrainJob {
   // chunk-relative deltas unit standard deviation. 1 / false: the released behaviour.
   double action_scale = 1.0;
   bool standardize_actions = false;
+  // Post-training with LoRA (rank > 0): adapters on the blocks' attention and MLP layers train with
+  // the action MLPs (re-initialised, trained in full); every other weight is frozen: no gradient,
+  // no optimiser state, bit for bit the init's in every checkpoint.
+  models::LoraConfig lora;
   torch::Device device = torch::kCPU;         // where the network trains (latent caching stays on CPU)
   Precision precision = Precision::kFloat32;  // bf16: autocast forward, float32 master weights
   // > 0: intra-op threads for the training steps, set once the latent caches are ready. Encoding
