@@ -93,8 +93,10 @@ std::unique_ptr<Generator> ModelHost::make_generator(const std::string& model) c
 }
 
 std::optional<std::pair<data::ActionSlot, data::ArrayStats>> ModelHost::commands(const Hosted& h) const {
-  const auto& info = source_ ? source_->info() : data::DatasetInfo{};
-  if (!info.action_slot.empty()) {
+  // The dataset's own robot first (not a copy of its info: this runs for every session and request).
+  const data::DatasetInfo* data_info = source_ ? &source_->info() : nullptr;
+  if (data_info != nullptr && !data_info->action_slot.empty()) {
+    const auto& info = *data_info;
     const auto slot = data::slot_by_name(info.action_slot);
     if (h.action_ranges.contains(info.action_slot))
       return std::make_pair(slot, data::ArrayStats::from_json(h.action_ranges[info.action_slot],

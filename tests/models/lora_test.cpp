@@ -13,22 +13,13 @@
 #include "core/state_dict.h"
 #include "models/dit.h"
 #include "test_util.h"
+#include "train/wm_test_fixtures.h"
 
 namespace dojo::models {
 namespace {
 
-DitConfig tiny_config() {
-  auto c = DitConfig::small();
-  c.model_channels = 64;
-  c.num_blocks = 2;
-  c.num_heads = 2;
-  c.adaln_lora_dim = 16;
-  c.action_hidden_dim = 64;
-  c.crossattn_emb_channels = 16;
-  c.crossattn_proj_dim = 16;
-  c.zero_init_action_fc2 = false;
-  return c;
-}
+// The training tests' tiny DiT (64 wide, 2 blocks) with live action MLPs.
+DitConfig tiny_config() { return train::test_fixtures::tiny_dit(/*live_actions=*/true, 64); }
 
 DitInputs inputs() {
   auto g = at::make_generator<at::CPUGeneratorImpl>(11);
