@@ -42,6 +42,7 @@ void write_synthetic_dataset(const std::filesystem::path& dir, const SyntheticOp
     data::EpisodeData ep;
     ep.frames = (frames * 255).round().to(torch::kUInt8);
     ep.keypoints = keypoints.view({T, 9});
+    if (o.side_camera) ep.views.push_back({"side", ep.frames.flip({2}).contiguous()});
     // Commands: action[t] moves the block to frame t + 1's position (the LeRobot convention).
     const auto next = torch::cat({path.slice(0, 1), path.slice(0, T - 1)}, 0);  // [T, 2]
     const auto command = torch::cat({next, torch::zeros({T, 4})}, 1);           // [T, 6]
@@ -62,6 +63,7 @@ void write_synthetic_dataset(const std::filesystem::path& dir, const SyntheticOp
     info.episodes.push_back({id, T, split, ep.meta["task"]});
   }
   info.keypoint_names = {"centre", "top_left", "bottom_right"};
+  if (o.side_camera) info.cameras = {"ego", "side"};
   if (robot) {
     info.action_stats = action_stats.finish();
     info.state_stats = state_stats.finish();

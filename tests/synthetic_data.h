@@ -19,6 +19,8 @@ struct SyntheticOptions {
   int size = 32;  // square frames
   uint64_t seed = 0;
   int val_episodes = 0;  // the last ones are split "val"
+  // A second camera, "side": the same scene mirrored left to right (info.json cameras ego, side).
+  bool side_camera = false;
 };
 
 // Writes DIR/info.json and DIR/episodes/NNNNNN like `dojo sim generate` does.

@@ -6,8 +6,10 @@
 #include "cli/options.h"
 #include "core/error.h"
 #include "core/progress.h"
+#include "data/embodiments.h"
 #include "data/episode_source.h"
 #include "data/episode_store.h"
+#include "data/lerobot_export.h"
 
 namespace dojo::cli {
 
@@ -19,11 +21,13 @@ void register_data(CLI::App& app) {
   // Options every reading command shares: how to open a non-native format.
   auto add_open_options = [](CLI::App* cmd, std::shared_ptr<data::OpenOptions> o) {
     cmd->add_option("--embodiment", o->embodiment,
-                    "LeRobot robot: auto (from robot_type/path), gr1, g1, yam, agibot, human, none")
+                    "LeRobot robot: auto (info.json's robot_type, never the path), gr1, g1, yam, agibot, a "
+                    "robot of --embodiments, human, none")
         ->capture_default_str();
     cmd->add_option("--camera", o->camera, "LeRobot video key (default: the robot's camera, else the first)");
     cmd->add_flag("--skip-dreamdojo-names", o->skip_dreamdojo_names,
                   "Video folders: skip names with left/right/resize/pad, as DreamDojo's raw-video loader");
+    add_views_options(cmd, o->views, o->view_layout, "read as one canvas, as multi-view training does");
   };
 
   auto* info_cmd = data->add_subcommand(
@@ -63,36 +67,78 @@ void register_data(CLI::App& app) {
 
   auto* convert_cmd = data->add_subcommand(
       "convert",
-      "Write any dataset in our episode format (frames decoded once, actions in slot order); resumable");
+      "Write any dataset in our episode format (frames decoded once, actions in slot order) or, with --to "
+      "lerobot, as a LeRobot v2.1 dataset; resumable");
   auto convert_src = std::make_shared<std::string>();
   auto convert_dst = std::make_shared<std::string>();
   auto convert_size = std::make_shared<std::string>();
+  auto convert_to = std::make_shared<std::string>("episodes");
   auto convert_limit = std::make_shared<int64_t>(-1);
   auto convert_open = std::make_shared<data::OpenOptions>();
+  auto lerobot = std::make_shared<data::LeRobotExportOptions>();
   convert_cmd->add_option("SRC", *convert_src, "Source dataset directory")->required();
-  convert_cmd->add_option("DST", *convert_dst, "Output directory (episode format)")->required();
+  convert_cmd->add_option("DST", *convert_dst, "Output directory")->required();
+  convert_cmd->add_option("--to", *convert_to, "episodes (our format) or lerobot (LeRobot v2.1)")
+      ->check(CLI::IsMember({"episodes", "lerobot"}))
+      ->capture_default_str();
   convert_cmd->add_option("--size", *convert_size, "Centre-crop and resize frames to HxW (default: keep)");
   convert_cmd->add_option("--limit", *convert_limit, "Convert only the first N episodes");
+  convert_cmd->add_option("--robot-type", lerobot->robot_type,
+                          "--to lerobot: info.json's robot_type (required)");
+  convert_cmd
+      ->add_option("--video-name", lerobot->camera,
+                   "--to lerobot: the camera's name (observation.images.NAME)")
+      ->capture_default_str();
   add_open_options(convert_cmd, convert_open);
   convert_cmd->callback([=] {
     set_action([=] {
-      data::ConvertOptions options;
+      int height = 0, width = 0;
       if (!convert_size->empty()) {
         const auto [h, w] = parse_size(*convert_size);
-        options.height = static_cast<int>(h);
-        options.width = static_cast<int>(w);
+        height = static_cast<int>(h);
+        width = static_cast<int>(w);
       }
-      options.limit = *convert_limit;
+      if (*convert_to == "lerobot" && lerobot->robot_type.empty())
+        throw UsageError(
+            "data convert --to lerobot needs --robot-type NAME (LeRobot readers find the robot there)");
       const auto source = data::open_dataset(*convert_src, *convert_open);
-      const int64_t total = options.limit < 0
+      const int64_t total = *convert_limit < 0
                                 ? static_cast<int64_t>(source->size())
-                                : std::min<int64_t>(options.limit, static_cast<int64_t>(source->size()));
+                                : std::min<int64_t>(*convert_limit, static_cast<int64_t>(source->size()));
       Progress progress("convert", total, "episodes");
-      const auto result = data::convert_dataset(*source, *convert_dst, options, [&] { progress.advance(); });
+      data::ConvertResult result;
+      if (*convert_to == "lerobot") {
+        auto options = *lerobot;
+        options.height = height;
+        options.width = width;
+        options.limit = *convert_limit;
+        result = data::export_lerobot(*source, *convert_dst, options, [&] { progress.advance(); });
+      } else {
+        data::ConvertOptions options;
+        options.height = height;
+        options.width = width;
+        options.limit = *convert_limit;
+        result = data::convert_dataset(*source, *convert_dst, options, [&] { progress.advance(); });
+      }
       progress.finish();
-      std::printf("%s: %lld episodes converted, %lld kept from an earlier run (%s)\n", convert_dst->c_str(),
-                  static_cast<long long>(result.converted), static_cast<long long>(result.kept),
-                  source->format().c_str());
+      std::printf("%s: %lld episodes converted, %lld kept from an earlier run (%s -> %s)\n",
+                  convert_dst->c_str(), static_cast<long long>(result.converted),
+                  static_cast<long long>(result.kept), source->format().c_str(), convert_to->c_str());
+      return 0;
+    });
+  });
+
+  auto* embodiments_cmd = data->add_subcommand("embodiments",
+                                               "Print the embodiment table (built-in robots and those of "
+                                               "--embodiments FILE) in the file's JSON format");
+  embodiments_cmd->callback([] {
+    set_action([] {
+      // One robot a line: the file's format, readable and ready to copy into a table.
+      const auto list = data::embodiment_table().at("embodiments");
+      std::printf("{\"embodiments\": [\n");
+      for (size_t i = 0; i < list.size(); ++i)
+        std::printf("  %s%s\n", list[i].dump().c_str(), i + 1 < list.size() ? "," : "");
+      std::printf("]}\n");
       return 0;
     });
   });

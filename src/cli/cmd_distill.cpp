@@ -38,9 +38,12 @@ int run_distill(DistillArgs a) {
   job.stage = train::parse_distill_stage(a.stage);
   job.init = a.init;
   job.self_forcing = a.self_forcing;
-  for (const auto& d : a.data) {
+  std::vector<WeightedData> data;
+  for (const auto& d : a.data) data.push_back(parse_weighted_data(d));
+  job.weights = mixture_weights(data);
+  for (const auto& d : data) {
     train::LatentCacheSpec spec;
-    spec.dataset = d;
+    spec.dataset = d.dir;
     spec.split = a.split;
     spec.tokenizer = a.tokenizer;
     spec.hop = a.hop;
@@ -102,7 +105,10 @@ void register_distill(CLI::App& app) {
   cmd->add_option("--init", a->init, "self-forcing: the warmed-up student checkpoint");
   cmd->add_option("--teacher", a->teacher, "Post-trained world model (default: the reference set's)");
   cmd->add_option("--tokenizer", a->tokenizer, "Its tokenizer (default with the reference set: its own)");
-  add_data_option(cmd, a->data)->required();
+  add_data_option(cmd, a->data,
+                  "DIR:WEIGHT draws that dataset's clips in proportion to WEIGHT (a dataset without one "
+                  "weighs 1); with no weight anywhere every clip is drawn alike")
+      ->required();
   add_split_option(cmd, a->split);
   add_out_option(cmd, a->out, "directory: checkpoint/, trajectories/, loss.csv")->required();
   cmd->add_option("--steps", a->steps, "Warm-up steps (a resumed run continues up to this)")

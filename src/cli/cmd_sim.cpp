@@ -69,6 +69,11 @@ void add_generate(CLI::App& sim) {
                   "Robot train split: the episodes run the policies of this policy-set file in turn (as "
                   "`policy eval --policies`; scripted policies only), or 'default' for the built-in set "
                   "of 13, instead of the expert/good/medium mix");
+  cmd->add_option("--cameras", o->cameras,
+                  "Cameras recorded beside the egocentric one, each as CAMERA.mp4 (side: a fixed view from "
+                  "the table's right); multi-view training tiles them (--views ego,side)")
+      ->check(CLI::IsMember({"side"}))
+      ->delimiter(',');
   add_json_option(cmd, *json);
   cmd->callback([=] {
     set_action([=] {

@@ -70,7 +70,15 @@ int run_train(const TrainArgs& a) {
   clip.strides = {1, 2};
   clip.height = clip.width = a.size;
   std::vector<train::TokenizerDataset> datasets;
-  for (const auto& d : a.data) datasets.push_back({d, a.split});
+  std::vector<WeightedData> data;
+  for (const auto& d : a.data) data.push_back(parse_weighted_data(d));
+  const auto weights = mixture_weights(data);
+  nlohmann::json mixture = nlohmann::json::array();
+  for (size_t i = 0; i < data.size(); ++i) {
+    // Without weights each dataset is drawn alike (the tokenizer's mixture has always been so).
+    datasets.push_back({data[i].dir, a.split, weights.empty() ? 1.0 : weights[i]});
+    mixture.push_back({{"data", data[i].dir}, {"weight", datasets.back().weight}});
+  }
   const auto batches = train::tokenizer_batches(datasets, clip, a.batch, a.image_batch, a.workers, a.seed);
   auto o = train::recommended_tokenizer_options();
   o.steps = a.steps;
@@ -89,6 +97,7 @@ int run_train(const TrainArgs& a) {
   o.next_image_batch = batches.images;
   o.time_budget_s = a.minutes * 60;
   o.checkpoint_dir = a.out;
+  o.trainer_extra = {{"mixture", mixture}};
   o.stats_batches = 8;
   torch::manual_seed(a.seed);
   const auto r = train::train_tokenizer(vae, batches.clips, o);
@@ -208,7 +217,10 @@ void register_tokenizer(CLI::App& app) {
   auto* train_cmd =
       tok->add_subcommand("train", "Train a small VAE on DojoSim datasets (resumes from --out)");
   auto ta = std::make_shared<TrainArgs>();
-  add_data_option(train_cmd, ta->data)->required();
+  add_data_option(train_cmd, ta->data,
+                  "DIR:WEIGHT draws that dataset in proportion to WEIGHT (a dataset without one weighs 1; "
+                  "with none, each dataset alike)")
+      ->required();
   add_out_option(train_cmd, ta->out, "checkpoint directory")->required();
   add_split_option(train_cmd, ta->split);
   train_cmd->add_option("--steps", ta->steps, "Optimisation steps")->capture_default_str();

@@ -35,8 +35,9 @@ namespace {
 
 struct WmTrainArgs {
   std::string stage = "pretrain", actions, split = "train", tokenizer, lam, init, out, model = "small",
-              temporal_axis = "time", device = "cpu", precision = "fp32", embodiment = "auto";
-  std::vector<std::string> data;
+              temporal_axis = "time", device = "cpu", precision = "fp32", embodiment = "auto",
+              view_layout = "side_by_side";
+  std::vector<std::string> data, views;
   int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100, lora_rank = 0;
   int batch = 8;
   double lora_alpha = 32;
@@ -61,14 +62,14 @@ int run_wm_train(const WmTrainArgs& a) {
       !a.actions.empty() ? a.actions : (job.stage == train::WmStage::kPretrain ? "latent" : "dataset"));
   std::vector<WeightedData> data;
   for (const auto& d : a.data) data.push_back(parse_weighted_data(d));
-  // One weight given anywhere weighs every dataset (1 where none is given); none keeps clips alike.
-  if (std::any_of(data.begin(), data.end(), [](const WeightedData& d) { return d.weighted; }))
-    for (const auto& d : data) job.weights.push_back(d.weight);
+  job.weights = mixture_weights(data);
   for (const auto& parsed : data) {
     train::LatentCacheSpec spec;
     spec.dataset = parsed.dir;
     spec.split = a.split;
     spec.embodiment = a.embodiment;
+    spec.views = a.views;
+    spec.view_layout = a.view_layout;
     spec.tokenizer = a.tokenizer;
     spec.lam = a.lam;
     spec.mode = mode;
@@ -285,6 +286,8 @@ void register_wm(CLI::App& app) {
                    "LeRobot data: the robot (gr1, g1, yam, agibot, human, none); auto reads info.json's "
                    "robot_type, never the path")
       ->capture_default_str();
+  add_views_options(train_cmd, t->views, t->view_layout,
+                    "recorded in the checkpoint, so its rollouts, evaluation and server tile the same views");
   train_cmd->add_option("--tokenizer", t->tokenizer, "Tokenizer checkpoint (dojo tokenizer train)")
       ->required();
   train_cmd->add_option("--lam", t->lam, "LAM checkpoint, for --actions latent");

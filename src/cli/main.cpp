@@ -14,6 +14,9 @@
 #include "core/heap.h"
 #include "core/log.h"
 #include "core/runtime.h"
+#ifndef DOJO_ENGINE_ONLY
+#include "data/embodiments.h"
+#endif
 
 namespace dojo::cli {
 namespace {
@@ -132,6 +135,12 @@ int main(int argc, char** argv) {
   app.add_option("--threads", opts.threads, "Intra-op CPU threads (0 = all cores)")
       ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
+  std::string embodiments;  // read after parsing, before the command runs
+#ifndef DOJO_ENGINE_ONLY
+  app.add_option("--embodiments", embodiments,
+                 "JSON table of your own robots (docs/new_robot.md); default: $DOJO_EMBODIMENTS")
+      ->check(CLI::ExistingFile);
+#endif
   app.add_flag("-v,--verbose", opts.verbose, "Log debug messages");
   app.add_flag("-q,--quiet", opts.quiet, "Log warnings and errors only");
 
@@ -182,6 +191,11 @@ int main(int argc, char** argv) {
     if (opts.verbose) set_log_level(LogLevel::kDebug);
     if (opts.quiet) set_log_level(LogLevel::kWarn);
     set_threads(opts.threads);
+#ifndef DOJO_ENGINE_ONLY
+    if (const char* env = std::getenv("DOJO_EMBODIMENTS"); embodiments.empty() && env != nullptr && *env != 0)
+      embodiments = env;
+    if (!embodiments.empty()) data::load_embodiment_table(embodiments);
+#endif
     if (!cli::g_action) return 0;
     return cli::g_action();
   } catch (const UsageError& e) {

@@ -6,9 +6,11 @@
 
 #include "cli/commands.h"
 #include "cli/options.h"
+#include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "data/episode_clip.h"
+#include "data/multi_view.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
 #include "models/dit.h"
@@ -92,6 +94,7 @@ void ModelArgs::add_options(CLI::App* cmd, const std::string& what) {
                   "(dataset), or auto: the model's where it records one for the robot's slot")
       ->capture_default_str();
   cmd->add_option("--frame-size", frame_size, "Centre-crop and resize frames to HxW (default: as stored)");
+  add_views_options(cmd, views, view_layout, "default: the views the checkpoint was trained with");
 }
 
 #ifndef DOJO_ENGINE_ONLY  // the engine-only build has no data layer and no command reading datasets
@@ -99,6 +102,17 @@ data::RolloutDataOptions ModelArgs::data_options() const {
   data::RolloutDataOptions o;
   o.open.embodiment = embodiment;
   o.open.camera = camera;
+  o.open.views = views;
+  o.open.view_layout = view_layout;
+  if (views.empty() && !checkpoint.empty()) {
+    const auto dir = resolve_checkpoint_dir(checkpoint);
+    if (const auto tiling = data::views_of_config(Checkpoint::open(dir).config(), dir.string())) {
+      o.open.views = tiling->cameras;
+      o.open.view_layout = data::to_string(tiling->layout);
+      LOG_INFO(dir.string(), ": trained on views ", tiling->to_json().dump(),
+               "; --data is read the same way");
+    }
+  }
   if (frame_stride < 0) throw UsageError("--frame-stride must be positive (0: the robot's released rate)");
   o.frame_stride = frame_stride;
   try {

@@ -4,6 +4,7 @@
 
 #include <filesystem>
 #include <string>
+#include <vector>
 
 namespace CLI {
 class App;
@@ -46,6 +47,9 @@ struct ModelArgs {
   // --frame-size.
   std::string embodiment = "auto", camera, action_norm = "auto", frame_size;
   int frame_stride = 0;
+  // --views / --view-layout: cameras tiled into one canvas; default: as the checkpoint records.
+  std::vector<std::string> views;
+  std::string view_layout = "side_by_side";
   int steps = 35;
   std::string solver = "unipc", concat = "aligned";
   double shift = 0;  // 0: the checkpoint's
@@ -53,7 +57,8 @@ struct ModelArgs {
 
   void add_options(CLI::App* cmd, const std::string& what = "the world model");
   void add_sampler_options(CLI::App* cmd);
-  // The options above as the data layer takes them; throws UsageError on a bad value.
+  // The options above as the data layer takes them (the views the checkpoint was trained with
+  // unless --views says otherwise); throws UsageError on a bad value.
   data::RolloutDataOptions data_options() const;
   // The defaults filled in.
   void resolve(std::string* probe);

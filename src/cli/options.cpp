@@ -2,6 +2,7 @@
 
 #include <CLI/CLI.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
 
@@ -104,6 +105,25 @@ WeightedData parse_weighted_data(const std::string& text) {
   } catch (const std::exception&) {
     throw UsageError("--data must look like DIR or DIR:WEIGHT with WEIGHT > 0, got '" + text + "'");
   }
+}
+
+void add_views_options(CLI::App* cmd, std::vector<std::string>& views, std::string& layout,
+                       const std::string& what) {
+  cmd->add_option("--views", views,
+                  "Cameras tiled into one canvas, the main one first (e.g. ego,side; LeRobot: video keys or "
+                  "modality names); " +
+                      what)
+      ->delimiter(',');
+  cmd->add_option("--view-layout", layout, "How --views are tiled: side_by_side, stack or grid")
+      ->check(CLI::IsMember({"side_by_side", "stack", "grid"}))
+      ->capture_default_str();
+}
+
+std::vector<double> mixture_weights(const std::vector<WeightedData>& data) {
+  std::vector<double> weights;
+  if (std::any_of(data.begin(), data.end(), [](const WeightedData& d) { return d.weighted; }))
+    for (const auto& d : data) weights.push_back(d.weight);
+  return weights;
 }
 
 }  // namespace dojo::cli

@@ -31,6 +31,13 @@ struct WeightedData {
   bool weighted = false;  // the value gave a weight
 };
 WeightedData parse_weighted_data(const std::string& text);
+// --views CAM,CAM[,...] and --view-layout: several cameras of each dataset tiled into one canvas
+// (data/multi_view.h). `what` says where the default comes from.
+void add_views_options(CLI::App* cmd, std::vector<std::string>& views, std::string& layout,
+                       const std::string& what);
+// The mixture weights of a trainer's --data values: one weight given anywhere weighs every dataset
+// (1 where none is given); none at all gives {} (every clip alike).
+std::vector<double> mixture_weights(const std::vector<WeightedData>& data);
 // --out,-o: `what` says what the command writes there (a checkpoint directory, an mp4, ...).
 CLI::Option* add_out_option(CLI::App* cmd, std::string& out, const std::string& what);
 // --checkpoint,--ckpt,-c: `what` names the model the checkpoint holds.

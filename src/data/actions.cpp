@@ -3,18 +3,29 @@
 #include <torch/torch.h>
 
 #include <cmath>
+#include <deque>
 #include <nlohmann/json.hpp>
 
 #include "core/error.h"
 #include "core/safetensors.h"
+#include "data/embodiments.h"
 
 namespace dojo::data {
 
-const std::vector<ActionSlot>& all_slots() {
-  static const std::vector<ActionSlot> list = {slots::kGr1,  slots::kGr1Retargeted, slots::kG1,
-                                               slots::kYam,  slots::kAgibot,        slots::kDojoSimRobot,
-                                               slots::kMano, slots::kLatent};
+namespace {
+std::vector<ActionSlot>& slot_table() {
+  static std::vector<ActionSlot> list = {slots::kGr1,    slots::kGr1Retargeted, slots::kG1,   slots::kYam,
+                                         slots::kAgibot, slots::kDojoSimRobot,  slots::kMano, slots::kLatent};
   return list;
+}
+}  // namespace
+
+const std::vector<ActionSlot>& all_slots() { return slot_table(); }
+
+void add_action_slot(const std::string& name, int begin, int end) {
+  static std::deque<std::string> names;  // ActionSlot::name points into it; a deque never moves them
+  names.push_back(name);
+  slot_table().push_back({names.back().c_str(), begin, end});
 }
 
 ActionSlot slot_by_name(const std::string& name) {

@@ -7,6 +7,7 @@
 #include "core/error.h"
 #include "core/log.h"
 #include "core/runtime.h"
+#include "data/embodiments.h"
 #include "io/video.h"
 
 namespace dojo::data {
@@ -39,7 +40,9 @@ ClipDataset::ClipDataset(std::shared_ptr<const EpisodeSource> source, ClipConfig
     DOJO_CHECK(!info.action_slot.empty(),
                root +
                    ": a robot dataset whose actions fill no slot of the 384-d layout; name the robot with "
-                   "--embodiment gr1|g1|yam|agibot (or human / none for its video alone)");
+                   "--embodiment (" +
+                   embodiment_names() +
+                   "; human / none for its video alone; a new robot: --embodiments FILE, docs/new_robot.md)");
   }
   int64_t total = 0;
   for (size_t index : source_->split_indices(split)) {

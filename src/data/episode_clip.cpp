@@ -6,6 +6,7 @@
 
 #include "core/error.h"
 #include "data/clip_loader.h"
+#include "data/embodiments.h"
 #include "data/lerobot.h"
 
 namespace fs = std::filesystem;
@@ -31,6 +32,7 @@ ActionNormalization parse_action_normalization(const std::string& text) {
 }
 
 int released_frame_stride(const std::string& robot) {
+  if (const auto* user = find_user_embodiment(robot)) return user->frame_stride;
   if (robot == "gr1" || robot == "g1") return 2;
   if (robot == "yam" || robot == "agibot") return 4;
   return 1;
@@ -51,7 +53,9 @@ RolloutData::RolloutData(const fs::path& dataset, int chunks, const ActionRanges
   DOJO_CHECK(!robot || !info.action_slot.empty(),
              root +
                  ": a robot dataset whose actions fill no slot of the 384-d layout; name the robot "
-                 "with --embodiment gr1|g1|yam|agibot (or human / none for its video alone)");
+                 "with --embodiment (" +
+                 embodiment_names() +
+                 "; human / none for its video alone; a new robot: --embodiments FILE, docs/new_robot.md)");
   // The stride is the layout's: our episode format records DojoSim at its control rate.
   const bool lerobot = source_->format().rfind("lerobot", 0) == 0;
   stride_ = options.frame_stride > 0 ? options.frame_stride

@@ -10,6 +10,7 @@
 #include "core/safetensors.h"
 #include "data/egodex.h"
 #include "data/lerobot.h"
+#include "data/multi_view.h"
 #include "data/video_folder.h"
 #include "io/video.h"
 
@@ -56,10 +57,21 @@ nlohmann::json EpisodeSource::describe() const {
   return j;
 }
 
+EpisodeStoreSource::EpisodeStoreSource(EpisodeStore store, std::string camera)
+    : store_(std::move(store)), camera_(std::move(camera)) {
+  if (!camera_.empty() && store_.size() > 0) (void)store_.video_path(0, camera_);  // a camera it records
+}
+
+nlohmann::json EpisodeStoreSource::describe() const {
+  auto j = EpisodeSource::describe();
+  j["cameras"] = store_.info().cameras;
+  return j;
+}
+
 at::Tensor EpisodeStoreSource::read_frames(size_t index, const std::vector<int64_t>& frames) const {
   io::VideoReaderOptions options;
   options.threads = 1;  // the loader's parallelism comes from its workers
-  io::VideoReader reader(store_.video_path(index).string(), options);
+  io::VideoReader reader(store_.video_path(index, camera_).string(), options);
   return reader.read_frames(frames);  // [N, H, W, 3] u8
 }
 
@@ -67,7 +79,28 @@ std::shared_ptr<const EpisodeSource> open_dataset(const fs::path& path, const Op
   std::error_code ec;
   if (!fs::exists(path, ec)) throw Error(path.string() + ": no such dataset directory");
   if (!fs::is_directory(path, ec)) throw Error(path.string() + ": a dataset is a directory");
-  if (fs::exists(path / "info.json")) return std::make_shared<EpisodeStoreSource>(EpisodeStore::open(path));
+  if (options.views.size() >= 2) {  // each camera opened as a source, tiled into one canvas
+    std::vector<std::shared_ptr<const EpisodeSource>> views;
+    for (const auto& camera : options.views) {
+      OpenOptions one = options;
+      one.views.clear();
+      one.camera = camera;
+      views.push_back(open_dataset(path, one));
+    }
+    ViewTiling tiling;
+    tiling.cameras = options.views;
+    tiling.layout = parse_view_layout(options.view_layout);
+    return std::make_shared<MultiViewSource>(std::move(views), std::move(tiling));
+  }
+  const std::string camera = options.views.size() == 1 ? options.views.front() : options.camera;
+  if (fs::exists(path / "info.json"))
+    return std::make_shared<EpisodeStoreSource>(EpisodeStore::open(path), camera);
+  if (options.views.size() == 1) {
+    OpenOptions one = options;
+    one.views.clear();
+    one.camera = camera;
+    return open_dataset(path, one);
+  }
   if (fs::exists(path / "meta" / "info.json")) return LeRobotDataset::open(path, options);
   if (looks_like_egodex(path)) return EgoDexDataset::open(path);
   if (looks_like_video_folder(path)) {

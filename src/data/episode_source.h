@@ -49,7 +49,9 @@ class EpisodeSource {
 // The episode format as an EpisodeSource.
 class EpisodeStoreSource : public EpisodeSource {
  public:
-  explicit EpisodeStoreSource(EpisodeStore store) : store_(std::move(store)) {}
+  // `camera`: one of info.json's cameras ("" or the first: video.mp4); throws dojo::Error naming
+  // the dataset's cameras for another.
+  explicit EpisodeStoreSource(EpisodeStore store, std::string camera = "");
   const EpisodeStore& store() const { return store_; }
 
   std::string format() const override { return "dojo-episodes"; }
@@ -58,9 +60,11 @@ class EpisodeStoreSource : public EpisodeSource {
   std::string episode_location(size_t index) const override { return store_.episode_dir(index).string(); }
   at::Tensor read_frames(size_t index, const std::vector<int64_t>& frames) const override;
   EpisodeData read_arrays(size_t index) const override { return store_.load_arrays(index); }
+  nlohmann::json describe() const override;
 
  private:
   EpisodeStore store_;
+  std::string camera_;
 };
 
 // A dataset's display name: the last component of its directory ("a/b/" -> "b").
@@ -71,8 +75,14 @@ struct OpenOptions {
   // LeRobot: "auto" (info.json's robot_type; never the path, unlike the release), "gr1", "g1",
   // "yam", "agibot", "human" (read as action-free video) or "none" (actions not mapped to a slot).
   std::string embodiment = "auto";
-  std::string camera;                 // LeRobot video key; default: the embodiment's camera, else the first
+  // LeRobot: video key or modality name (default: the embodiment's camera, else the first); our
+  // format: one of info.json's cameras (default: the first).
+  std::string camera;
   bool skip_dreamdojo_names = false;  // video folders: skip names with left/right/resize/pad
+  // Two or more cameras tiled into one canvas, the first the main one (data/multi_view.h); one
+  // name is the same as `camera`; empty: one camera.
+  std::vector<std::string> views;
+  std::string view_layout = "side_by_side";  // side_by_side | stack | grid
 };
 
 // Detects the format of `path` and opens it: info.json (our episode format), meta/info.json

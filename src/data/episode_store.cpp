@@ -3,7 +3,9 @@
 #include "data/episode_source.h"
 
 #include <torch/torch.h>
+
 #include <unistd.h>
+#include <algorithm>
 
 #include <fstream>
 
@@ -63,6 +65,14 @@ void write_episode(const fs::path& dir, const EpisodeData& episode, double fps) 
     options.keyframe_interval = 8;
     options.crf = 15;
     io::write_video((tmp / "video.mp4").string(), episode.frames, options);
+    for (const auto& [camera, frames] : episode.views) {
+      DOJO_CHECK(
+          frames.dim() == 4 && frames.size(0) == t && frames.scalar_type() == torch::kUInt8,
+          dir.string() + ": camera '" + camera + "' needs [T, H, W, 3] uint8 frames, T as the main video");
+      DOJO_CHECK(!camera.empty() && camera != "video" && camera.find('/') == std::string::npos,
+                 dir.string() + ": bad camera name '" + camera + "'");
+      io::write_video((tmp / (camera + ".mp4")).string(), frames, options);
+    }
   }
   NamedTensors arrays;
   if (episode.actions.defined())
@@ -114,6 +124,7 @@ nlohmann::json DatasetInfo::to_json() const {
   j["action_names"] = action_names;
   j["state_names"] = state_names;
   if (!keypoint_names.empty()) j["keypoint_names"] = keypoint_names;
+  if (!cameras.empty()) j["cameras"] = cameras;
   j["num_episodes"] = episodes.size();
   j["num_frames"] = total_frames();
   j["splits"] = split_counts();
@@ -146,6 +157,7 @@ DatasetInfo DatasetInfo::from_json(const nlohmann::json& j, const std::string& w
     info.action_names = j.value("action_names", std::vector<std::string>{});
     info.state_names = j.value("state_names", std::vector<std::string>{});
     info.keypoint_names = j.value("keypoint_names", std::vector<std::string>{});
+    info.cameras = j.value("cameras", std::vector<std::string>{});
     if (j.contains("stats")) {
       const auto& stats = j.at("stats");
       if (stats.contains("action"))
@@ -193,7 +205,18 @@ fs::path EpisodeStore::episode_dir(size_t index) const {
   return dir_ / "episodes" / info_.episodes[index].id;
 }
 
-fs::path EpisodeStore::video_path(size_t index) const { return episode_dir(index) / "video.mp4"; }
+fs::path EpisodeStore::video_path(size_t index, const std::string& camera) const {
+  const auto& cameras = info_.cameras;
+  if (camera.empty() || (!cameras.empty() && camera == cameras.front()))
+    return episode_dir(index) / "video.mp4";
+  if (std::find(cameras.begin() + (cameras.empty() ? 0 : 1), cameras.end(), camera) == cameras.end()) {
+    std::string known;
+    for (const auto& c : cameras) known += (known.empty() ? "" : ", ") + c;
+    throw Error(dir_.string() + ": no camera '" + camera + "' (" +
+                (known.empty() ? std::string("one camera recorded") : "cameras: " + known) + ")");
+  }
+  return episode_dir(index) / (camera + ".mp4");
+}
 
 std::vector<size_t> EpisodeStore::split_indices(const std::string& split) const {
   std::vector<size_t> out;

@@ -1,7 +1,8 @@
 // The episode dataset format of DojoSim (and of any data converted to it):
 //
 //   DIR/info.json                     dataset description, per-dimension statistics, splits
-//   DIR/episodes/000042/video.mp4     H.264 frames
+//   DIR/episodes/000042/video.mp4     H.264 frames (the first camera of info.json's "cameras")
+//   DIR/episodes/000042/<camera>.mp4  the other cameras' frames, when the dataset records several
 //   DIR/episodes/000042/data.safetensors  "action" [T, A] f32, "state" [T, S] f32,
 //                                     "hidden_motion" [T, M] f32 (optional; evaluation only),
 //                                     "keypoints" [T, 3K] f32 (optional; simulator ground truth:
@@ -19,6 +20,7 @@
 #include <map>
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -42,6 +44,8 @@ struct EpisodeData {
   // image; evaluation and pose probes only, never a world-model input. Undefined when unknown.
   at::Tensor keypoints;
   nlohmann::json meta = nlohmann::json::object();
+  // Other cameras' frames [T, H, W, 3] u8, written as <camera>.mp4 beside video.mp4.
+  std::vector<std::pair<std::string, at::Tensor>> views;
 };
 
 // Writes one episode directory atomically. `fps` goes into the video container.
@@ -64,6 +68,9 @@ struct DatasetInfo {
   int action_dim = 0, state_dim = 0;
   std::vector<std::string> action_names, state_names;
   std::vector<std::string> keypoint_names;  // the K keypoints of EpisodeData::keypoints, if any
+  // Cameras recorded, the main one (video.mp4) first; empty: one camera. Keypoints are the
+  // main camera's.
+  std::vector<std::string> cameras;
   std::optional<ArrayStats> action_stats, state_stats;
   std::vector<EpisodeEntry> episodes;
   nlohmann::json generator = nlohmann::json::object();  // how the data was made (seed, options)
@@ -84,7 +91,9 @@ class EpisodeStore {
   const DatasetInfo& info() const { return info_; }
   size_t size() const { return info_.episodes.size(); }
   std::filesystem::path episode_dir(size_t index) const;
-  std::filesystem::path video_path(size_t index) const;
+  // The video of `camera` (one of info().cameras; "" or the first: video.mp4). Throws dojo::Error
+  // naming the dataset and its cameras for another name.
+  std::filesystem::path video_path(size_t index, const std::string& camera = "") const;
 
   // Episode indices whose split is `split` ("" or "all" = every episode).
   std::vector<size_t> split_indices(const std::string& split) const;

@@ -8,8 +8,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <deque>
 
 #include "core/error.h"
+#include "data/embodiments.h"
 #include "io/parquet.h"
 #include "io/video.h"
 
@@ -121,10 +123,19 @@ Modality Modality::from_json(const nlohmann::json& j, const std::string& where) 
   return m;
 }
 
-const std::vector<RobotLayout>& robot_layouts() {
-  static const std::vector<RobotLayout> layouts = make_layouts();
+namespace {
+std::deque<RobotLayout>& layout_table() {  // a deque: find_robot_layout's pointers stay valid
+  static std::deque<RobotLayout> layouts = [] {
+    const auto built_in = make_layouts();
+    return std::deque<RobotLayout>(built_in.begin(), built_in.end());
+  }();
   return layouts;
 }
+}  // namespace
+
+const std::deque<RobotLayout>& robot_layouts() { return layout_table(); }
+
+void add_robot_layout(RobotLayout layout) { layout_table().push_back(std::move(layout)); }
 
 const RobotLayout* find_robot_layout(const std::string& name) {
   for (const auto& l : robot_layouts())
@@ -133,6 +144,8 @@ const RobotLayout* find_robot_layout(const std::string& name) {
 }
 
 std::string detect_robot(const std::string& robot_type) {
+  // A robot of the user's table is named exactly, ahead of the built-in robots' substrings.
+  if (auto user = user_robot_for(robot_type); !user.empty()) return user;
   const std::string text = lower(robot_type);
   if (text.find("gr1") != std::string::npos || text.find("gr-1") != std::string::npos ||
       text.find("fourier") != std::string::npos)

@@ -21,6 +21,7 @@
 // dims in slot [0, 29). Statistics (meta/stats.json) are sliced the same way.
 #pragma once
 
+#include <deque>
 #include <filesystem>
 #include <map>
 #include <memory>
@@ -59,11 +60,13 @@ struct RobotLayout {
   std::vector<std::pair<std::string, int>> action_order;  // keys and widths, slot order
   Modality default_modality;                              // when the dataset ships none
 };
-const std::vector<RobotLayout>& robot_layouts();
+// The built-in robots, then those of the user's embodiment table (data/embodiments.h).
+const std::deque<RobotLayout>& robot_layouts();
 // nullptr when unknown.
 const RobotLayout* find_robot_layout(const std::string& name);
-// The robot info.json's robot_type names: the first of gr1, g1, yam, agibot found in it, lower-
-// cased ("gr1" also matches "gr-1" and "fourier"); "" when none. Unlike the release, which
+// The robot info.json's robot_type names: a user robot listing it (any case), else the first of
+// gr1, g1, yam, agibot found in it, lower-cased ("gr1" also matches "gr-1" and "fourier"); ""
+// when none. Unlike the release, which
 // searches the dataset's path as well (and so reads a GR-1 set copied to a path without "gr1" with
 // meaningless actions), the path is never consulted: --embodiment names the robot otherwise.
 std::string detect_robot(const std::string& robot_type);

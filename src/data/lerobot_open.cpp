@@ -12,6 +12,7 @@
 
 #include "core/error.h"
 #include "core/json_file.h"
+#include "data/embodiments.h"
 #include "data/lerobot_internal.h"
 
 namespace fs = std::filesystem;
@@ -152,8 +153,8 @@ void LeRobotDataset::choose_robot(const OpenOptions& options) {
   if (robot_ != "human" && robot_ != "none" && !robot_.empty()) {
     layout_ = find_robot_layout(robot_);
     if (layout_ == nullptr)
-      throw Error(root_.string() + ": unknown embodiment '" + robot_ +
-                  "' (gr1, g1, yam, agibot, human, none)");
+      throw Error(root_.string() + ": unknown embodiment '" + robot_ + "' (" + embodiment_names() +
+                  ", human, none; a new robot: --embodiments FILE, docs/new_robot.md)");
   }
   const fs::path modality_path = root_ / "meta" / "modality.json";
   std::string modality_where = modality_path.string();

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <functional>
 #include <optional>
 
 #include "core/error.h"
@@ -12,6 +13,7 @@
 #include "core/safetensors.h"
 #include "data/clip_loader.h"
 #include "data/episode_source.h"
+#include "data/multi_view.h"
 #include "eval/keypoint_metrics.h"
 #include "eval/lpips.h"
 #include "eval/metrics.h"
@@ -38,6 +40,8 @@ nlohmann::json WmEvalResult::to_json() const {
   for (const auto& v : videos) {
     nlohmann::json j = {{"episode", v.episode}};
     for (const auto& [name, s] : v.sources) j[name] = s.to_json();
+    for (const auto& [camera, sources] : v.views)
+      for (const auto& [name, s] : sources) j["views"][camera][name] = s.to_json();
     if (!v.video.empty()) j["video"] = v.video;
     per.push_back(j);
   }
@@ -70,6 +74,8 @@ nlohmann::json WmEvalResult::to_json() const {
     }
   }
   out["per_frame"] = curves;
+  for (const auto& [camera, view_sources] : views)
+    for (const auto& [name, s] : view_sources) out["views"][camera][name] = s.to_json();
   // The world model's scores also at the top level, as before the per-source layout.
   out["psnr"] = model().psnr;
   out["ssim"] = model().ssim;
@@ -209,6 +215,11 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
                              ? models::keypoint_offset((*o.probe)->config(), data::to_string(info.embodiment))
                              : 0;
 
+  // Several cameras in one canvas: each is scored on its own part too; simulator keypoints belong
+  // to the main camera, so they score that part alone.
+  const auto* tiled = dynamic_cast<const data::MultiViewSource*>(&rollout_data.source());
+  const data::ViewTiling* tiling = tiled != nullptr ? &tiled->tiling() : nullptr;
+
   std::vector<data::EpisodeClip> clips;
   for (size_t ep : episodes) clips.push_back(rollout_data.read(ep));
   if (o.probe != nullptr && !clips.front().keypoints.defined())
@@ -253,15 +264,27 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
     }
     for (size_t i = b; i < e; ++i) {
       const int64_t k = static_cast<int64_t>(i - b);
-      KeypointTruth kp{o.probe, offset, clips[i].keypoints};
+      const KeypointTruth kp = tiling == nullptr ? KeypointTruth{o.probe, offset, clips[i].keypoints}
+                                                 : KeypointTruth{};  // the canvas: no keypoints
       VideoScore s;
       s.episode = info.episodes[episodes[i]].id;
       const auto copy = gt[k].select(0, 0).unsqueeze(0).expand_as(gt[k]).contiguous();
-      for (const auto& [name, video] : rollouts)
-        s.sources[name] = score_video(video[k], gt[k], name == "tokenizer" ? nullptr : o.lpips, kp);
-      s.sources["copy_frame"] = score_video(copy, gt[k], o.lpips, kp);
-      if (o.probe != nullptr && kp.truth.defined())
-        s.sources["ground_truth"] = score_video(gt[k], gt[k], nullptr, kp);
+      // Every source on frames [T, H, W, 3] cut by `cut` (the whole canvas, or one view of it).
+      auto score_all = [&](const std::function<torch::Tensor(const torch::Tensor&)>& cut,
+                           const KeypointTruth& truth, std::map<std::string, SourceScore>& out) {
+        const auto target = cut(gt[k]);
+        for (const auto& [name, video] : rollouts)
+          out[name] = score_video(cut(video[k]), target, name == "tokenizer" ? nullptr : o.lpips, truth);
+        out["copy_frame"] = score_video(cut(copy), target, o.lpips, truth);
+        if (o.probe != nullptr && truth.truth.defined())
+          out["ground_truth"] = score_video(target, target, nullptr, truth);
+      };
+      score_all([](const torch::Tensor& v) { return v; }, kp, s.sources);
+      if (tiling != nullptr)
+        for (int v = 0; v < tiling->count(); ++v)
+          score_all([&](const torch::Tensor& frames) { return tiling->crop(frames, v, 1, 2).contiguous(); },
+                    v == 0 ? KeypointTruth{o.probe, offset, clips[i].keypoints} : KeypointTruth{},
+                    s.views[tiling->cameras[v]]);
       if (!o.video_dir.empty() && static_cast<int>(r.videos.size()) < o.videos) {
         s.video = (o.video_dir / (split + "_" + s.episode + ".mp4")).string();
         io::write_comparison_video(
@@ -279,6 +302,12 @@ WmEvalResult evaluate_world_model(infer::WorldModel& model, const fs::path& data
     for (const auto& v : r.videos) per_video.push_back(&v.sources.at(name));
     r.sources[name] = mean_over_videos(per_video);
   }
+  for (const auto& [camera, view_sources] : r.videos.front().views)
+    for (const auto& [name, unused] : view_sources) {
+      std::vector<const SourceScore*> per_video;
+      for (const auto& v : r.videos) per_video.push_back(&v.views.at(camera).at(name));
+      r.views[camera][name] = mean_over_videos(per_video);
+    }
   // Tokenizer PSNR by latent index within a chunk: frame 0 alone, then 4 frames per latent.
   const auto& tok = r.tokenizer().psnr_per_frame;
   r.tokenizer_psnr_by_latent.assign(4, 0.0);
@@ -350,6 +379,17 @@ std::string markdown_table(const std::vector<WmEvalResult>& results) {
            fmt(r.model().keypoint_error) + " | " + fmt(sh.keypoint_error) + " | " + fmt(z.keypoint_error) +
            " |\n";
     }
+  }
+  if (!results[0].views.empty()) {
+    s += "\nPer camera (each camera's part of the multi-view canvas; keypoints on the main camera's):\n\n"
+         "| split | camera | PSNR: world model | copy frame | tokenizer | keypoint error: world model | copy "
+         "frame |\n|---|---|---|---|---|---|---|\n";
+    for (const auto& r : results)
+      for (const auto& [camera, v] : r.views)
+        s += "| " + r.split + " | " + camera + " | " + fmt(v.at("world_model").psnr) + " | " +
+             fmt(v.at("copy_frame").psnr) + " | " + fmt(v.at("tokenizer").psnr) + " | " +
+             fmt(v.at("world_model").keypoint_error) + " | " + fmt(v.at("copy_frame").keypoint_error) +
+             " |\n";
   }
   return s;
 }

@@ -74,7 +74,10 @@ struct SourceScore {
 struct VideoScore {
   std::string episode;
   std::map<std::string, SourceScore> sources;  // per-frame vectors hold this video's frames
-  std::string video;                           // side-by-side file, when written
+  // A multi-view canvas: every source scored on each camera's part of it (keypoints on the main
+  // camera's, where its simulator keypoints lie), by camera.
+  std::map<std::string, std::map<std::string, SourceScore>> views;
+  std::string video;  // side-by-side file, when written
 };
 
 struct WmEvalResult {
@@ -82,6 +85,9 @@ struct WmEvalResult {
   std::string data;  // how the dataset was read (data::RolloutData::describe())
   std::vector<VideoScore> videos;
   std::map<std::string, SourceScore> sources;  // world_model, copy_frame, tokenizer, ...
+  // Multi-view: the sources' scores on each camera's part of the canvas (means over videos), by
+  // camera; `sources` then scores the whole canvas, without keypoints.
+  std::map<std::string, std::map<std::string, SourceScore>> views;
   // Tokenizer round-trip PSNR by a frame's latent index within its chunk: [0] the conditioning
   // frame, [i] frames 4(i-1)+1 .. 4i of each chunk. Later latents merge more motion.
   std::vector<double> tokenizer_psnr_by_latent;

@@ -7,6 +7,7 @@
 #include "core/error.h"
 #include "core/log.h"
 #include "data/episode_source.h"
+#include "data/multi_view.h"
 #include "infer/generator.h"
 #include "infer/streaming.h"
 #include "infer/world_model.h"
@@ -34,7 +35,15 @@ ModelHost::~ModelHost() = default;
 
 void ModelHost::load() {
   if (!options_.data.empty()) {
-    source_ = data::open_dataset(options_.data, options_.open);
+    auto open = options_.open;
+    if (open.views.empty() && !hosted_.empty()) {  // the views the (first) model was trained on
+      const auto dir = resolve_checkpoint_dir(hosted_.front()->spec.checkpoint);
+      if (const auto tiling = data::views_of_config(Checkpoint::open(dir).config(), dir.string())) {
+        open.views = tiling->cameras;
+        open.view_layout = data::to_string(tiling->layout);
+      }
+    }
+    source_ = data::open_dataset(options_.data, open);
     split_ = source_->split_indices(options_.split);
     DOJO_CHECK(!split_.empty(), options_.data.string() + ": no episodes in split '" + options_.split + "'");
   }
@@ -181,8 +190,11 @@ nlohmann::json ModelHost::capabilities() const {
                       {"decoder", h->spec.fast_decoder.empty() ? "wan" : "fast"},
                       {"action_slots", slots}});
   }
+  const auto* tiled = dynamic_cast<const data::MultiViewSource*>(source_.get());
   return {{"ready", ready_.load()},
           {"models", models},
+          // Several cameras in one canvas: the page shows them apart (data/multi_view.h).
+          {"views", tiled != nullptr ? tiled->tiling().to_json() : nlohmann::json(nullptr)},
           {"embodiments", std::vector<std::string>(embodiments.begin(), embodiments.end())},
           {"action_layout", {{"width", data::kUnifiedActionDim}, {"actions_per_latent_frame", 4}}},
           {"frame_size", source_ ? source_->info().height : 64},  // the height (clients before frame_width)

@@ -21,6 +21,7 @@
 
 #include "core/error.h"
 #include "core/log.h"
+#include "data/embodiments.h"
 #include "serve/model_host.h"
 #include "serve/pages.h"
 #include "serve/rollout_api.h"
@@ -103,6 +104,15 @@ bool is_embedded_page(const std::string& path) {
   for (const auto& page : embedded_pages())
     if (path == page.path) return true;
   return false;
+}
+
+// "/NAME.mapping.json" of a robot of the user's embodiment table: its teleoperation controls.
+const data::EmbodimentSpec* user_robot_mapping(const std::string& path) {
+  const std::string suffix = ".mapping.json";
+  if (path.size() <= suffix.size() + 1 ||
+      path.compare(path.size() - suffix.size(), suffix.size(), suffix) != 0)
+    return nullptr;
+  return data::find_user_embodiment(path.substr(1, path.size() - suffix.size() - 1));
 }
 
 std::string path_of(beast::string_view target) {
@@ -330,7 +340,8 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
     const auto path = path_of(req.target());
     // The embedded pages and scripts hold no secrets and a browser fetches scripts without the
     // token; everything they call (the API, the WebSocket, the clips) needs it.
-    const bool public_page = path == "/health" || path == "/study" || is_embedded_page(path);
+    const bool public_page = path == "/health" || path == "/study" || is_embedded_page(path) ||
+                             user_robot_mapping(path) != nullptr;
     if (!public_page && !server_.authorised(req)) {
       server_.metrics.error();
       return write(json_error(req, http::status::unauthorized, "missing or wrong token"));
@@ -369,6 +380,8 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
     for (const auto& page : embedded_pages())
       if (page_path == page.path && get)
         return write(reply(req, http::status::ok, page.content_type, page.content));
+    if (const auto* robot = user_robot_mapping(path); robot != nullptr && get)
+      return write(reply(req, http::status::ok, "application/json", data::teleop_mapping(*robot).dump()));
     if (path == "/v1/rollout") {
       if (req.method() != http::verb::post)
         return write(json_error(req, http::status::method_not_allowed, "use POST"));

@@ -46,8 +46,12 @@ EpisodeRecord run_episode(const EpisodeSpec& spec, Renderer* renderer) {
   rec.height = spec.scene.height;
   const int T = spec.num_steps;
   if (spec.render) rec.frames.reserve(T);
+  for (const auto& camera : spec.extra_cameras) rec.views.push_back({camera, {}});
   for (int t = 0; t < T; ++t) {
-    if (spec.render) rec.frames.push_back(renderer->render(world));
+    if (spec.render) {
+      rec.frames.push_back(renderer->render(world));
+      for (auto& [camera, frames] : rec.views) frames.push_back(renderer->render(world, camera.c_str()));
+    }
     std::vector<float> points;
     for (const auto& p : world.keypoints())
       points.insert(points.end(), {static_cast<float>(p.u), static_cast<float>(p.v), p.in_view ? 1.f : 0.f});

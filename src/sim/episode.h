@@ -15,6 +15,7 @@
 #include <cstdint>
 #include <limits>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -40,17 +41,20 @@ struct ControllerSpec {
 struct EpisodeSpec {
   SceneSpec scene;
   ControllerSpec controller;
-  int num_steps = 64;           // T, the number of recorded frames
-  uint64_t seed = 0;            // controller randomness (the scene has its own seed)
-  bool render = true;           // false: frames stay empty (fast policy evaluation)
-  int settle_steps = 5;         // control steps before frame 0
-  int final_settle_steps = 20;  // steps after the last action before measuring success
+  int num_steps = 64;                      // T, the number of recorded frames
+  uint64_t seed = 0;                       // controller randomness (the scene has its own seed)
+  bool render = true;                      // false: frames stay empty (fast policy evaluation)
+  std::vector<std::string> extra_cameras;  // rendered beside "ego" each step (e.g. "side")
+  int settle_steps = 5;                    // control steps before frame 0
+  int final_settle_steps = 20;             // steps after the last action before measuring success
 };
 
 struct EpisodeRecord {
   int width = 0;
   int height = 0;
-  std::vector<std::vector<uint8_t>> frames;       // T x [H, W, 3] uint8, top row first
+  std::vector<std::vector<uint8_t>> frames;  // T x [H, W, 3] uint8, top row first
+  // Per extra camera, in EpisodeSpec::extra_cameras' order: its T frames as `frames`.
+  std::vector<std::pair<std::string, std::vector<std::vector<uint8_t>>>> views;
   std::vector<std::vector<float>> actions;        // robot: T x 6; human: empty
   std::vector<std::vector<float>> states;         // robot: T x 6; human: empty
   std::vector<std::vector<float>> hidden_motion;  // T x 6 (human) / T x 5 (robot); never train on it

@@ -49,6 +49,7 @@ nlohmann::json GenerateOptions::to_json() const {
       {"skills", skills},         {"quality", quality}};
   // Recorded only when used, so runs from before the option still resume.
   if (play_fraction > 0) j["play_fraction"] = play_fraction;
+  if (!cameras.empty()) j["cameras"] = cameras;
   if (!play_behaviors.empty()) j["play_behaviors"] = play_behaviors;
   if (!policies.empty()) {
     auto& list = j["policies"] = nlohmann::json::array();
@@ -133,6 +134,7 @@ PlannedEpisode plan_episode(const GenerateOptions& o, int index) {
   plan.spec.controller = controller;
   plan.spec.num_steps = o.frames > 0 ? o.frames : default_frames(o);
   plan.spec.seed = controller_seed;
+  plan.spec.extra_cameras = o.cameras;
   return plan;
 }
 
@@ -149,17 +151,24 @@ at::Tensor rows_to_tensor(const std::vector<std::vector<float>>& rows) {
   return out;
 }
 
-data::EpisodeData to_episode_data(const EpisodeRecord& record) {
-  data::EpisodeData episode;
-  const int64_t t = static_cast<int64_t>(record.frames.size());
-  episode.frames = torch::empty({t, record.height, record.width, 3}, torch::kUInt8);  // [T, H, W, 3]
-  uint8_t* dst = episode.frames.data_ptr<uint8_t>();
+at::Tensor frames_to_tensor(const EpisodeRecord& record, const std::vector<std::vector<uint8_t>>& frames) {
+  const int64_t t = static_cast<int64_t>(frames.size());
+  auto out = torch::empty({t, record.height, record.width, 3}, torch::kUInt8);  // [T, H, W, 3]
+  uint8_t* dst = out.data_ptr<uint8_t>();
   const size_t frame_bytes = static_cast<size_t>(record.height) * record.width * 3;
-  for (const auto& frame : record.frames) {
+  for (const auto& frame : frames) {
     DOJO_CHECK(frame.size() == frame_bytes, "rendered frame has the wrong size");
     std::memcpy(dst, frame.data(), frame_bytes);
     dst += frame_bytes;
   }
+  return out;
+}
+
+data::EpisodeData to_episode_data(const EpisodeRecord& record) {
+  data::EpisodeData episode;
+  episode.frames = frames_to_tensor(record, record.frames);
+  for (const auto& [camera, frames] : record.views)
+    episode.views.push_back({camera, frames_to_tensor(record, frames)});
   episode.actions = rows_to_tensor(record.actions);
   episode.states = rows_to_tensor(record.states);
   episode.hidden_motion = rows_to_tensor(record.hidden_motion);
@@ -213,6 +222,10 @@ data::DatasetInfo build_info(const fs::path& out, const GenerateOptions& options
   info.width = options.width;
   info.generator = options.to_json();
   info.generator["engine"] = "dojosim";
+  if (!options.cameras.empty()) {
+    info.cameras = {"ego"};
+    info.cameras.insert(info.cameras.end(), options.cameras.begin(), options.cameras.end());
+  }
   data::StatsAccumulator action_stats, state_stats;
   for (size_t i = 0; i < plans.size(); ++i) {
     const fs::path dir = out / "episodes" / episode_id(static_cast<int>(i));

@@ -57,6 +57,9 @@ struct GenerateOptions {
     RobotPolicyOptions options;
   };
   std::vector<NamedPolicy> policies;
+  // Cameras recorded beside "ego", each as <camera>.mp4 in every episode ("side": a fixed view
+  // from the table's right). Multi-view training tiles them (data/multi_view.h).
+  std::vector<std::string> cameras;
 
   nlohmann::json to_json() const;
 };

@@ -18,6 +18,7 @@ struct Renderer::Impl {
   bool has_gl = false;
   mjvScene scene;
   mjvCamera camera;
+  int ego_camera = -1;
   mjvOption option;
   mjrContext gl;
   std::vector<uint8_t> flipped;
@@ -84,7 +85,7 @@ struct Renderer::Impl {
     scene.flags[mjRND_REFLECTION] = 0;
     scene.flags[mjRND_SKYBOX] = 1;
     camera.type = mjCAMERA_FIXED;
-    camera.fixedcamid = mj_name2id(m, mjOBJ_CAMERA, "ego");
+    camera.fixedcamid = ego_camera = mj_name2id(m, mjOBJ_CAMERA, "ego");
     if (camera.fixedcamid < 0) throw Error("renderer: model has no camera named 'ego'");
     // Only geom groups 0-2 are shown; sites (the grasp marker) stay hidden.
     for (int i = 0; i < mjNGROUP; ++i) option.sitegroup[i] = 0;
@@ -94,15 +95,22 @@ struct Renderer::Impl {
 Renderer::Renderer() : impl_(std::make_unique<Impl>()) {}
 Renderer::~Renderer() = default;
 
-std::vector<uint8_t> Renderer::render(const World& world) {
+std::vector<uint8_t> Renderer::render(const World& world, const char* camera) {
   std::vector<uint8_t> rgb(static_cast<size_t>(world.spec().width) * world.spec().height * 3);
-  render_into(world, rgb.data());
+  render_into(world, rgb.data(), camera);
   return rgb;
 }
 
-void Renderer::render_into(const World& world, uint8_t* rgb) {
+void Renderer::render_into(const World& world, uint8_t* rgb, const char* camera) {
   Impl& s = *impl_;
   s.prepare(world);
+  if (std::strcmp(camera, "ego") != 0) {
+    s.camera.fixedcamid = mj_name2id(world.model(), mjOBJ_CAMERA, camera);
+    if (s.camera.fixedcamid < 0)
+      throw Error(std::string("renderer: the scene has no camera named '") + camera + "'");
+  } else {
+    s.camera.fixedcamid = s.ego_camera;
+  }
   const int w = world.spec().width, h = world.spec().height;
   mjrRect viewport = {0, 0, w, h};
   // mjv_updateScene only reads the data (it takes a non-const pointer for historical reasons).

@@ -382,7 +382,15 @@ std::string build_mjcf(const SceneSpec& spec) {
   const Vec3 right = normalized(cross(f, {0, 0, 1}));
   const Vec3 up = cross(right, f);
   x << "    <camera name=\"ego\" pos=\"" << vec(p) << "\" xyaxes=\"" << vec(right) << " " << vec(up)
-    << "\" fovy=\"" << num(spec.camera.fovy) << "\"/>\n"
+    << "\" fovy=\"" << num(spec.camera.fovy) << "\"/>\n";
+  // A second, fixed view from the table's right (multi-view datasets, `sim generate --cameras
+  // ego,side`): it sees the arm's reach along y, which the ego view sees foreshortened.
+  const Vec3 side_pos{0.62, 0.10, 0.30}, side_lookat{0.0, 0.10, 0.04};
+  const Vec3 sf =
+      normalized({side_lookat[0] - side_pos[0], side_lookat[1] - side_pos[1], side_lookat[2] - side_pos[2]});
+  const Vec3 side_right = normalized(cross(sf, {0, 0, 1}));
+  x << "    <camera name=\"side\" pos=\"" << vec(side_pos) << "\" xyaxes=\"" << vec(side_right) << " "
+    << vec(cross(side_right, sf)) << "\" fovy=\"55\"/>\n"
     << "  </worldbody>\n";
 
   if (spec.embodiment == Embodiment::kHuman && !spec.objects.empty()) {

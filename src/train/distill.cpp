@@ -17,6 +17,7 @@
 #include "core/runtime.h"
 #include "core/safetensors.h"
 #include "data/episode_source.h"
+#include "data/multi_view.h"
 #include "diffusion/samplers.h"
 #include "train/train_loop.h"
 #include "train/train_util.h"
@@ -199,6 +200,13 @@ torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& p
   return (x0 - target).narrow(2, 1, T - 1).pow(2).mean();
 }
 
+torch::Tensor draw_trajectories(const MixtureIndex& mixture, int64_t copies, int64_t count,
+                                torch::Generator& generator) {
+  if (!mixture.weighted()) return torch::randint(mixture.size() * copies, {count}, generator, torch::kLong);
+  return mixture.draw(count, generator) +
+         mixture.size() * torch::randint(copies, {count}, generator, torch::kLong);
+}
+
 DistillStage parse_distill_stage(const std::string& text) {
   if (text == "warmup") return DistillStage::kWarmup;
   if (text == "self-forcing") return DistillStage::kSelfForcing;
@@ -235,7 +243,18 @@ struct TeacherData {
   nlohmann::json config, action_ranges, fingerprint;
   double shift = 5;
   LatentClips clips;
+  std::vector<int64_t> set_sizes;  // clips of each dataset, in the order of `clips`
 };
+
+// The job's mixture over the teacher data's datasets (logged when weighted) and its record.
+std::pair<MixtureIndex, nlohmann::json> distill_mixture(const DistillJob& job, const TeacherData& data) {
+  MixtureIndex mixture(data.set_sizes, job.weights);
+  std::vector<std::string> names;
+  for (const auto& spec : job.data) names.push_back(spec.dataset.string());
+  auto record = mixture.record(names);
+  if (mixture.weighted()) LOG_INFO("distill: mixture ", record.dump());
+  return {std::move(mixture), std::move(record)};
+}
 
 // The teacher's config and the job's clips (frames each), normalised with the teacher's own action
 // ranges as its rollouts are; cached as out/<prefix>-<i>.safetensors.
@@ -246,17 +265,24 @@ TeacherData teacher_data(const DistillJob& job, int frames, const std::string& p
   t.config = Checkpoint::open(resolve_checkpoint_dir(job.teacher)).config();
   t.shift = t.config.contains("sampler") ? t.config["sampler"].value("shift", 5.0) : 5.0;
   t.action_ranges = t.config.value("actions", nlohmann::json::object());
+  // A multi-view teacher's clips are its canvas: the student sees the same views.
+  const auto views = data::views_of_config(t.config, job.teacher.string());
   std::vector<LatentClips> sets;
   nlohmann::json data_json = nlohmann::json::array();
   for (size_t i = 0; i < job.data.size(); ++i) {
     auto spec = job.data[i];
     spec.frames = frames;
+    if (views && spec.views.empty()) {
+      spec.views = views->cameras;
+      spec.view_layout = data::to_string(views->layout);
+    }
     const auto slot = data::open_dataset(spec.dataset, spec.open_options())->info().action_slot;
     if (!slot.empty() && t.action_ranges.contains(slot))
       spec.action_stats =
           data::ArrayStats::from_json(t.action_ranges[slot], job.teacher.string() + ": actions." + slot);
     sets.push_back(
         load_or_build_latent_clips(spec, job.out / (prefix + "-" + std::to_string(i) + ".safetensors")));
+    t.set_sizes.push_back(sets.back().size());
     data_json.push_back(spec.to_json());
   }
   t.clips = concat_latent_clips(sets);
@@ -293,6 +319,14 @@ DistillResult run_warmup(const DistillJob& job) {
   const auto trajectories = load_or_build_trajectories(*teacher, shift, clips, job.trajectories, fingerprint,
                                                        job.out / "trajectories");
   const int64_t n = trajectories.size();
+  // Trajectory j is clip j % N under copy j / N's actions (N clips; copy 0 its own).
+  const int64_t clip_count = clips.size();
+  DOJO_CHECK(n % clip_count == 0,
+             "distill: " + std::to_string(n) + " trajectories for " + std::to_string(clip_count) + " clips");
+  const int64_t copies = n / clip_count;
+  const auto drawn = distill_mixture(job, data);
+  const auto& mixture = drawn.first;
+  const auto& mixture_record = drawn.second;
 
   // The student starts as the teacher (its weights, its architecture); a resumed run from its own.
   const bool resuming = checkpoint_exists(ckpt_dir);
@@ -318,8 +352,10 @@ DistillResult run_warmup(const DistillJob& job) {
   models::ActionDit student =
       resuming ? models::ActionDit(models::DitConfig::from_json(saved.at("config"))) : teacher;
   WmTrainer trainer(student, job.options);
-  trainer.set_config_extras(
-      {{"actions", action_ranges}, {"student", settings.to_json()}, {"teacher", fingerprint["teacher"]}});
+  nlohmann::json extras = {
+      {"actions", action_ranges}, {"student", settings.to_json()}, {"teacher", fingerprint["teacher"]}};
+  if (data.config.contains("views")) extras["views"] = data.config["views"];  // a multi-view teacher's canvas
+  trainer.set_config_extras(extras);
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("distill: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
@@ -358,7 +394,7 @@ DistillResult run_warmup(const DistillJob& job) {
       loop, start_step,
       [&](const LoopStep& info) {
         auto gen = step_generator(job.seed, info.index);
-        const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
+        const auto idx = draw_trajectories(mixture, copies, job.batch_size, gen);
         const auto pts = trajectories.points.index_select(0, idx),
                    acts = trajectories.actions.index_select(0, idx);
         const auto s = trainer.step_loss([&](models::ActionDitImpl& net) {
@@ -376,10 +412,16 @@ DistillResult run_warmup(const DistillJob& job) {
                           note.str()};
       },
       [&](int64_t, bool) {
-        trainer.save(ckpt_dir, {{"stage", "warmup"}, {"clips", n}, {"trajectories", trajectory_settings}});
+        trainer.save(ckpt_dir, {{"stage", "warmup"},
+                                {"clips", n},
+                                {"trajectories", trajectory_settings},
+                                {"mixture", mixture_record}});
       });
   if (run.end_step == run.start_step && !resuming)
-    trainer.save(ckpt_dir, {{"stage", "warmup"}, {"clips", n}, {"trajectories", trajectory_settings}});
+    trainer.save(ckpt_dir, {{"stage", "warmup"},
+                            {"clips", n},
+                            {"trajectories", trajectory_settings},
+                            {"mixture", mixture_record}});
   result.steps = trainer.steps_done();
   result.last_loss = recent_mean();
   if (result.first_loss == 0) result.first_loss = result.last_loss;
@@ -388,6 +430,7 @@ DistillResult run_warmup(const DistillJob& job) {
   const nlohmann::json summary = {{"stage", "warmup"},
                                   {"steps", result.steps},
                                   {"clips", n},
+                                  {"mixture", mixture_record},
                                   {"first_loss", result.first_loss},
                                   {"last_loss", result.last_loss},
                                   {"fixed_batch_loss_start", result.fixed_batch_loss_start},
@@ -418,6 +461,9 @@ DistillResult run_self_forcing(const DistillJob& job) {
              "self-forcing: --counterfactual-share drives rollouts with another clip's actions: it needs at "
              "least 2 clips, got " +
                  std::to_string(n));
+  const auto drawn = distill_mixture(job, data);
+  const auto& mixture = drawn.first;
+  const auto& mixture_record = drawn.second;
 
   const bool resuming = checkpoint_exists(ckpt_dir) && checkpoint_exists(critic_dir);
   DOJO_CHECK(resuming || !job.init.empty(),
@@ -444,10 +490,14 @@ DistillResult run_self_forcing(const DistillJob& job) {
   WmTrainer generator(fresh_copy(student_source), gen_options);
   // The critic starts as the teacher (the fake score equals the real one before any student sample).
   WmTrainer critic(fresh_copy(resuming ? critic_dir : job.teacher), critic_options);
-  generator.set_config_extras({{"actions", data.action_ranges},
-                               {"student", student.to_json()},
-                               {"teacher", data.fingerprint["teacher"]}});
-  critic.set_config_extras({{"actions", data.action_ranges}});
+  nlohmann::json generator_extras = {{"actions", data.action_ranges},
+                                     {"student", student.to_json()},
+                                     {"teacher", data.fingerprint["teacher"]}},
+                 critic_extras = {{"actions", data.action_ranges}};
+  if (data.config.contains("views"))
+    generator_extras["views"] = critic_extras["views"] = data.config["views"];
+  generator.set_config_extras(generator_extras);
+  critic.set_config_extras(critic_extras);
   if (resuming) {
     // Both are saved at the same iterations; a crash between the two saves leaves them apart.
     const auto iterations = [](const fs::path& dir) {
@@ -494,7 +544,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
       loop, start,
       [&](const LoopStep& info) {
         auto g = step_generator(job.seed, info.index);
-        const auto idx = torch::randint(n, {job.batch_size}, g, torch::kLong);
+        const auto idx = mixture.draw(job.batch_size, g);  // unweighted: randint(n), as before weights
         const int exit_hop = static_cast<int>(torch::randint(student.steps, {1}, g).item<int64_t>());
         const int64_t frames = torch::randint(sf.min_frames, sf.max_frames + 1, {1}, g).item<int64_t>();
         const auto x = clips.latents.index_select(0, idx).narrow(2, 0, frames);  // [B, 16, frames, h, w]
@@ -546,7 +596,10 @@ DistillResult run_self_forcing(const DistillJob& job) {
       },
       [&](int64_t iterations, bool) {
         critic.save(critic_dir, {{"stage", "self-forcing critic"}, {"iterations", iterations}});
-        generator.save(ckpt_dir, {{"stage", "self-forcing"}, {"iterations", iterations}, {"clips", n}});
+        generator.save(ckpt_dir, {{"stage", "self-forcing"},
+                                  {"iterations", iterations},
+                                  {"clips", n},
+                                  {"mixture", mixture_record}});
       });
   result.steps = generator.steps_done() + critic.steps_done();
   result.first_loss = result.last_loss = mean_of(recent_generator);
@@ -557,6 +610,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
                                   {"generator_updates", generator.steps_done()},
                                   {"critic_updates", critic.steps_done()},
                                   {"clips", n},
+                                  {"mixture", mixture_record},
                                   {"generator_loss", mean_of(recent_generator)},
                                   {"critic_loss", mean_of(recent_critic)},
                                   {"fixed_batch_latent_mse_start", result.fixed_batch_loss_start},

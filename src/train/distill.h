@@ -24,6 +24,7 @@
 #include "models/dit.h"
 #include "train/latent_cache.h"
 #include "train/self_forcing.h"
+#include "train/train_util.h"
 #include "train/wm_train.h"
 
 namespace dojo::train {
@@ -73,16 +74,26 @@ torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& p
                           const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
                           int64_t window_frames, torch::Generator generator, int64_t sink_frames = 0);
 
+// A warm-up batch's trajectory indices: trajectory j is clip j % N under copy j / N's actions
+// (N = the mixture's clips, `copies` per clip). Weighted: the clip from `mixture`, the copy
+// uniformly; unweighted: every trajectory alike (the stream drawn before weights existed).
+torch::Tensor draw_trajectories(const MixtureIndex& mixture, int64_t copies, int64_t count,
+                                torch::Generator& generator);  // [count] int64
+
 enum class DistillStage { kWarmup, kSelfForcing };
 DistillStage parse_distill_stage(const std::string& text);  // warmup | self-forcing
 
 struct DistillJob {
   DistillStage stage = DistillStage::kWarmup;
   std::vector<LatentCacheSpec> data;  // robot clips, encoded by the teacher's tokenizer
-  std::filesystem::path teacher;      // the post-trained teacher checkpoint
-  std::filesystem::path out;          // out/latents-<i>, out/trajectories/, out/checkpoint, out/loss.csv
-  std::filesystem::path init;         // self-forcing: the warmed-up student
-  infer::StudentConfig student;       // warm-up: the student made; self-forcing: from init's config
+  // One mixture weight per dataset of `data`, as WmTrainJob::weights: dataset d fills weight[d] /
+  // sum of the batches (warm-up: of its clips' trajectories, every copy alike). Empty: every clip
+  // alike. Recorded in the checkpoint's trainer state ("mixture").
+  std::vector<double> weights;
+  std::filesystem::path teacher;  // the post-trained teacher checkpoint
+  std::filesystem::path out;      // out/latents-<i>, out/trajectories/, out/checkpoint, out/loss.csv
+  std::filesystem::path init;     // self-forcing: the warmed-up student
+  infer::StudentConfig student;   // warm-up: the student made; self-forcing: from init's config
   SelfForcingOptions self_forcing;
   TrajectorySpec trajectories;
   WmTrainOptions options;  // lr, weight decay, clipping, EMA (flow-matching fields unused)

@@ -76,12 +76,15 @@ nlohmann::json LatentCacheSpec::to_json() const {
       {"action_stats", action_stats ? action_stats->to_json() : nlohmann::json(nullptr)}};
   if (frames != 13) j["frames"] = frames;  // older caches (all 13 frames) keep their fingerprint
   if (embodiment != "auto") j["embodiment"] = embodiment;  // and caches of unnamed robots theirs
+  if (!views.empty()) j["views"] = {{"cameras", views}, {"layout", view_layout}};
   return j;
 }
 
 data::OpenOptions LatentCacheSpec::open_options() const {
   data::OpenOptions o;
   o.embodiment = embodiment;
+  o.views = views;
+  o.view_layout = view_layout;
   return o;
 }
 

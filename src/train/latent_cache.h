@@ -36,6 +36,8 @@ struct LatentCacheSpec {
   std::filesystem::path dataset;
   std::string split = "train";
   std::string embodiment = "auto";  // LeRobot: the robot (data::OpenOptions::embodiment)
+  std::vector<std::string> views;   // 2+ cameras tiled into one canvas (data/multi_view.h)
+  std::string view_layout = "side_by_side";
   std::filesystem::path tokenizer;  // checkpoint directory
   std::filesystem::path lam;        // checkpoint directory (ActionMode::kLatent only)
   ActionMode mode = ActionMode::kDataset;

@@ -95,10 +95,11 @@ TokenizerLoss tokenizer_loss(WanVae& vae, const torch::Tensor& video, const Toke
 namespace {
 
 void save_training_checkpoint(const std::filesystem::path& dir, WanVae& vae, const torch::optim::AdamW& opt,
-                              int64_t step) {
+                              int64_t step, const nlohmann::json& extra) {
   CheckpointData data = models::tokenizer_checkpoint(*vae);
   TrainerState t;
   t.step = step;
+  t.extra = extra;
   t.tensors = adamw_state(opt, *vae);
   for (auto& r : capture_rng_state()) t.tensors.push_back(r);
   data.trainer = t;
@@ -181,7 +182,7 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
           for (int64_t i = 0; i < o.stats_batches; ++i) videos.push_back(next_batch(o.steps + i));
           fit_latent_stats(vae, videos);
         }
-        if (checkpoints) save_training_checkpoint(o.checkpoint_dir, vae, opt, steps_done);
+        if (checkpoints) save_training_checkpoint(o.checkpoint_dir, vae, opt, steps_done, o.trainer_extra);
       });
   result.steps_done = run.end_step;
   result.seconds = run.seconds;
@@ -197,7 +198,7 @@ TokenizerBatches tokenizer_batches(const std::vector<TokenizerDataset>& datasets
     data::ClipConfig c = clip;
     c.num_frames = frames;
     for (const auto& d : datasets)
-      m->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(d.dir), c, d.split), 1.0);
+      m->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(d.dir), c, d.split), d.weight);
     return m;
   };
   // One lazily started loader per stream; shared_ptr so the std::function copies share it.

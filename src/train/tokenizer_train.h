@@ -45,6 +45,7 @@ struct TokenizerTrainOptions {
   std::filesystem::path checkpoint_dir;  // empty: no checkpoints
   bool resume = true;                    // continue from checkpoint_dir when it holds trainer state
   bool progress = true;                  // dojo::Progress line
+  nlohmann::json trainer_extra = nlohmann::json::object();  // recorded in the trainer state (e.g. the data)
   // Batches (next_batch(steps + i), i < stats_batches) used after training to fit the latent
   // normalisation constants before the final checkpoint (0: keep the configured constants).
   int64_t stats_batches = 0;
@@ -116,6 +117,7 @@ TokenizerTrainResult train_tokenizer(models::WanVae& vae,
 struct TokenizerDataset {
   std::filesystem::path dir;
   std::string split = "train";
+  double weight = 1.0;  // mixture weight: drawn with probability weight / sum of the weights
 };
 struct TokenizerBatches {
   std::function<torch::Tensor(int64_t)> clips, images;

@@ -261,4 +261,17 @@ std::vector<double> MixtureIndex::shares() const {
   return shares;
 }
 
+nlohmann::json MixtureIndex::record(const std::vector<std::string>& names) const {
+  DOJO_CHECK(names.size() == sizes_.size(), "mixture: " + std::to_string(names.size()) + " names for " +
+                                                std::to_string(sizes_.size()) + " datasets");
+  const auto share = shares();
+  auto out = nlohmann::json::array();
+  for (size_t d = 0; d < sizes_.size(); ++d)
+    out.push_back({{"data", names[d]},
+                   {"clips", sizes_[d]},
+                   {"weight", weights_.empty() ? nlohmann::json(nullptr) : nlohmann::json(weights_[d])},
+                   {"share", share[d]}});
+  return out;
+}
+
 }  // namespace dojo::train

@@ -50,6 +50,10 @@ class MixtureIndex {
   torch::Tensor draw(int64_t count, torch::Generator& gen) const;  // [count] int64
   std::vector<double> shares() const;                              // probability of drawing from each dataset
   bool weighted() const { return !weights_.empty(); }
+  int64_t size() const { return offsets_.back() + sizes_.back(); }  // clips of all datasets
+  // What checkpoints record: per dataset {"data": names[d], "clips", "weight" (null unweighted),
+  // "share"}.
+  nlohmann::json record(const std::vector<std::string>& names) const;
 
  private:
   std::vector<int64_t> sizes_, offsets_;

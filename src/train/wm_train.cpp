@@ -18,6 +18,7 @@
 #include "core/state_dict.h"
 #include "data/actions.h"
 #include "data/episode_source.h"
+#include "data/multi_view.h"
 #include "train/train_loop.h"
 #include "train/train_util.h"
 
@@ -339,8 +340,16 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   // same numbers whichever dataset it comes from, in training and in every later rollout.
   const bool resuming = checkpoint_exists(ckpt_dir);
   std::vector<data::DatasetInfo> infos;  // each dataset opened once
-  for (const auto& spec : job.data)
-    infos.push_back(data::open_dataset(spec.dataset, spec.open_options())->info());
+  nlohmann::json views = nullptr;        // the canvas of a multi-view run, recorded for rollouts
+  for (const auto& spec : job.data) {
+    const auto source = data::open_dataset(spec.dataset, spec.open_options());
+    infos.push_back(source->info());
+    if (const auto* tiled = dynamic_cast<const data::MultiViewSource*>(source.get())) {
+      DOJO_CHECK(views.is_null() || views == tiled->tiling().to_json(),
+                 spec.dataset.string() + ": its views tile another canvas than the first dataset's");
+      views = tiled->tiling().to_json();
+    }
+  }
   // Post-training from a model already post-trained on every robot slot of these datasets continues
   // it (more or other robot data): its action layer and its action ranges stay, since new ranges
   // would move every action it has learned to read.
@@ -379,14 +388,9 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   std::vector<int64_t> set_sizes;
   for (const auto& set : sets) set_sizes.push_back(set.size());
   const MixtureIndex mixture(set_sizes, job.weights);
-  const auto shares = mixture.shares();
-  nlohmann::json mixture_record = nlohmann::json::array();
-  for (size_t i = 0; i < sets.size(); ++i)
-    mixture_record.push_back(
-        {{"data", job.data[i].dataset.string()},
-         {"clips", set_sizes[i]},
-         {"weight", job.weights.empty() ? nlohmann::json(nullptr) : nlohmann::json(job.weights[i])},
-         {"share", shares[i]}});
+  std::vector<std::string> names;
+  for (const auto& spec : job.data) names.push_back(spec.dataset.string());
+  const auto mixture_record = mixture.record(names);
   if (mixture.weighted()) LOG_INFO("wm train: mixture ", mixture_record.dump());
   const nlohmann::json checkpoint_extra = {
       {"stage", to_string(job.stage)}, {"clips", n}, {"mixture", mixture_record}};
@@ -417,7 +421,10 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
     (*net)->config.action_scale = robot_action_scale(job, clips, (*net)->config);
   if ((*net)->config.lora.enabled()) freeze_all_but_adapters_and_actions(**net);
   WmTrainer trainer(*net, job.options, job.device, job.precision);
-  if (!action_ranges.empty()) trainer.set_config_extras({{"actions", action_ranges}});
+  nlohmann::json extras = nlohmann::json::object();
+  if (!action_ranges.empty()) extras["actions"] = action_ranges;
+  if (!views.is_null()) extras["views"] = views;
+  if (!extras.empty()) trainer.set_config_extras(extras);
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("wm train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());

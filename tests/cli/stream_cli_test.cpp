@@ -46,11 +46,15 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_TRUE(config.at("actions").contains("dojosim_robot")) << "the teacher's action ranges travel on";
   EXPECT_TRUE(std::filesystem::exists(out / "trajectories" / "shard-00000.safetensors"));
 
-  // Self-Forcing from the warmed-up student, then resumed for one more iteration.
+  // Self-Forcing from the warmed-up student on a weighted mixture (the second set weighs 1), then
+  // resumed for one more iteration.
+  g.seed = 1;
+  test::write_synthetic_dataset(tmp / "robot2", g);
   const auto sf = tmp / "self_forcing";
-  const auto sf_args =
-      "--threads 1 distill --stage self-forcing --init " + (out / "checkpoint").string() + " --data " + data +
-      " --split all --max-clips 2 --min-frames 4 --max-frames 5 --batch 1 --out " + sf.string();
+  const auto sf_args = "--threads 1 distill --stage self-forcing --init " + (out / "checkpoint").string() +
+                       " --data " + data + ":3 --data " + (tmp / "robot2").string() +
+                       " --split all --max-clips 2 --min-frames 4 --max-frames 5 --batch 1 --out " +
+                       sf.string();
   r = test::run_dojo(sf_args + " --steps 3");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(std::filesystem::exists(sf / "critic" / "config.json"));
@@ -60,6 +64,13 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_EQ(summary.at("iterations"), 4);
   EXPECT_EQ(summary.at("generator_updates"), 1) << "iteration 0 updates the student, 1-3 the critic";
   EXPECT_EQ(summary.at("critic_updates"), 3);
+  const auto mixture = summary.at("mixture");
+  ASSERT_EQ(mixture.size(), 2u) << summary.dump();
+  EXPECT_EQ(mixture[0].at("weight"), 3.0);
+  EXPECT_DOUBLE_EQ(mixture[1].at("share").get<double>(), 0.25);
+  EXPECT_EQ(
+      nlohmann::json::parse(test::read_file(sf / "checkpoint" / "trainer_state.json"))["extra"]["mixture"],
+      mixture);
   r = test::run_dojo("--threads 1 distill --stage self-forcing --data " + data + " --out " +
                      (tmp / "x").string());
   EXPECT_NE(r.exit_code, 0);

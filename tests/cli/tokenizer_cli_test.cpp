@@ -15,10 +15,20 @@ TEST(TokenizerCli, TrainEvalEncodeOnGeneratedData) {
   test::write_synthetic_dataset(tmp / "data", g);
   const auto data = (tmp / "data").string(), ckpt = (tmp / "tok").string();
 
-  auto r = test::run_dojo("--threads 1 tokenizer train --data " + data + " --out " + ckpt +
+  g.seed = 1;
+  test::write_synthetic_dataset(tmp / "data2", g);
+  // A weighted mixture (the second dataset unweighted weighs 1), recorded in the trainer state.
+  auto r = test::run_dojo("--threads 1 tokenizer train --data " + data + ":3 --data " +
+                          (tmp / "data2").string() + " --out " + ckpt +
                           " --steps 3 --batch 1 --frames 5 --size 32 --dim 8 --workers 1 --split all");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_TRUE(std::filesystem::exists(tmp / "tok" / "model.safetensors"));
+  const auto mixture =
+      nlohmann::json::parse(test::read_file(tmp / "tok" / "trainer_state.json"))["extra"]["mixture"];
+  ASSERT_EQ(mixture.size(), 2u) << mixture.dump();
+  EXPECT_EQ(mixture[0].at("data"), data);
+  EXPECT_EQ(mixture[0].at("weight"), 3.0);
+  EXPECT_EQ(mixture[1].at("weight"), 1.0);
 
   r = test::run_dojo("--threads 1 tokenizer eval --ckpt " + ckpt + " --data " + data +
                      " --split all --clips 2 --frames 5 --json" + " --video " + (tmp / "cmp.mp4").string());

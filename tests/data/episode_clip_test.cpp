@@ -2,6 +2,7 @@
 // the user chose (the model's range or the dataset's statistics), raw commands turned into the same
 // rows the clip holds, and one-line errors for a robot nobody named.
 #include "data/episode_clip.h"
+#include "data/embodiments.h"
 
 #include <torch/torch.h>
 
@@ -92,7 +93,9 @@ TEST(RolloutData, AnUnnamedRobotIsRefusedAndStrideAndSizeFollowTheOptions) {
   EXPECT_EQ(test::error_message([&] { RolloutData(root, 1, {}); }),
             root.string() +
                 ": a robot dataset whose actions fill no slot of the 384-d layout; name the robot with "
-                "--embodiment gr1|g1|yam|agibot (or human / none for its video alone)");
+                "--embodiment (" +
+                embodiment_names() +
+                "; human / none for its video alone; a new robot: --embodiments FILE, docs/new_robot.md)");
   RolloutDataOptions options;
   options.open.embodiment = "gr1";
   options.frame_stride = 1;

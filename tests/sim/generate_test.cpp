@@ -3,6 +3,7 @@
 #include <torch/torch.h>
 
 #include "core/error.h"
+#include "data/episode_source.h"
 #include "data/episode_store.h"
 #include "test_util.h"
 
@@ -91,6 +92,38 @@ TEST(Generate, RobotDatasetInfoAndSplits) {
   ASSERT_TRUE(info.action_stats.has_value());
   for (int d = 0; d < info.action_dim; ++d) EXPECT_LE(info.action_stats->min[d], info.action_stats->max[d]);
   for (size_t i = 0; i < store.size(); ++i) EXPECT_EQ(store.check_episode(i), "") << i;
+}
+
+// --cameras side: every episode records the fixed side view beside the ego one, the same frames
+// counted, a different picture; tiled side by side it is the multi-view canvas.
+TEST(Generate, ASecondCameraIsRecordedAndTiles) {
+  test::TempDir tmp;
+  auto o = small("robot", 2);
+  o.cameras = {"side"};
+  generate_dataset(tmp / "r", o);
+  const auto store = data::EpisodeStore::open(tmp / "r");
+  EXPECT_EQ(store.info().cameras, (std::vector<std::string>{"ego", "side"}));
+  EXPECT_TRUE(std::filesystem::exists(store.episode_dir(0) / "side.mp4"));
+  const auto ego = data::open_dataset(tmp / "r");
+  data::OpenOptions side_only;
+  side_only.camera = "side";
+  const auto side = data::open_dataset(tmp / "r", side_only);
+  const auto a = ego->read_frames(0, {0, 5}), b = side->read_frames(0, {0, 5});
+  EXPECT_EQ(a.sizes(), b.sizes());
+  EXPECT_GT((a.to(torch::kFloat) - b.to(torch::kFloat)).abs().mean().item<double>(), 10.0)
+      << "another viewpoint, another picture";
+  data::OpenOptions both;
+  both.views = {"ego", "side"};
+  const auto tiled = data::open_dataset(tmp / "r", both);
+  EXPECT_EQ(tiled->info().width, 2 * ego->info().width);
+  const auto canvas = tiled->read_frames(0, {0, 5});
+  EXPECT_TRUE(torch::equal(canvas.narrow(2, 0, a.size(2)), a));
+  EXPECT_TRUE(torch::equal(canvas.narrow(2, a.size(2), a.size(2)), b));
+  side_only.camera = "wrist";
+  EXPECT_NE(test::error_message([&] {
+              data::open_dataset(tmp / "r", side_only);
+            }).find("no camera 'wrist' (cameras: ego, side)"),
+            std::string::npos);
 }
 
 TEST(Generate, EvaluationSplits) {

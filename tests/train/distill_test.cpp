@@ -20,6 +20,22 @@ LatentClips action_clips(int64_t n, uint64_t seed) {
   return clips;
 }
 
+TEST(Distill, WeightedWarmupDrawsEachDatasetsShareOverEveryCopy) {
+  // Datasets of 30 and 10 clips weighted 1:3, 2 copies per clip (trajectory j = clip j % 40 under
+  // copy j / 40): the small dataset fills three quarters of the draws, both copies alike.
+  const MixtureIndex mixture({30, 10}, {1, 3});
+  auto gen = step_generator(11, 0);
+  const auto idx = draw_trajectories(mixture, 2, 20000, gen);
+  ASSERT_TRUE(idx.min().item<int64_t>() >= 0 && idx.max().item<int64_t>() < 80);
+  const auto clip = idx.remainder(40), copy = idx.div(40, "floor");
+  EXPECT_NEAR(clip.ge(30).to(torch::kDouble).mean().item<double>(), 0.75, 0.01);
+  EXPECT_NEAR(copy.eq(1).to(torch::kDouble).mean().item<double>(), 0.5, 0.01);
+  // Unweighted: the stream the warm-up drew before weights existed.
+  const MixtureIndex alike({30, 10});
+  auto a = step_generator(4, 3), b = step_generator(4, 3);
+  EXPECT_TRUE(torch::equal(draw_trajectories(alike, 2, 16, a), torch::randint(80, {16}, b, torch::kLong)));
+}
+
 TEST(Distill, TrajectoriesAreTheTeachersOdePointsPerClipAndResume) {
   test::OneThread one;
   torch::manual_seed(0);

@@ -123,6 +123,12 @@ TEST(MixtureIndex, WeightsSetEachDatasetsShareWhateverItsSize) {
   EXPECT_NEAR(shares[1], 2.0 / 13, 0.01);
   EXPECT_NEAR(shares[2], 10.0 / 13, 0.01);
   EXPECT_NEAR(mixture.shares()[2], 10.0 / 13, 1e-12);
+  const auto record = mixture.record({"inhouse", "egodex", "hv"});
+  ASSERT_EQ(record.size(), 3u);
+  EXPECT_EQ(record[2].at("data"), "hv");
+  EXPECT_EQ(record[2].at("clips"), 40);
+  EXPECT_EQ(record[2].at("weight"), 10.0);
+  EXPECT_NEAR(record[1].at("share").get<double>(), 2.0 / 13, 1e-12);
   // Every clip of the small dataset is reached.
   auto gen = step_generator(3, 0);
   const auto idx = mixture.draw(4000, gen);
@@ -138,6 +144,7 @@ TEST(MixtureIndex, WithoutWeightsEveryClipIsAlike) {
   const auto shares = drawn_shares(mixture, sizes, 20000);
   EXPECT_NEAR(shares[0], 0.9, 0.01);
   EXPECT_NEAR(mixture.shares()[1], 0.1, 1e-12);
+  EXPECT_TRUE(mixture.record({"a", "b"})[0].at("weight").is_null());
   // The unweighted stream is the one trainers drew before weights existed.
   auto a = step_generator(5, 2), b = step_generator(5, 2);
   EXPECT_TRUE(torch::equal(mixture.draw(8, a), torch::randint(1000, {8}, b, torch::kLong)));

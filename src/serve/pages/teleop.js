@@ -9,6 +9,9 @@ const $ = (id) => document.getElementById(id);
 const view = $("view"), ctx = view.getContext("2d");
 
 let ws = null, mapping = null, width = 0, velocity = [], held = new Set(), mouse = null;
+// A multi-view model's frames are one canvas of several cameras (capabilities.views): the main
+// camera is drawn into #view, the others into their own canvases below it.
+let tiling = null, extraViews = [];
 let frameTimes = [], latencies = [], framesShown = 0, recording = false, xrSession = null;
 // keyLatencies: per key press, ms from the keydown to the first drawn frame whose step saw it.
 window.dojo = { frames: 0, lastSeq: -1, lastLatencyMs: null, keyLatencies: [], ready: null, errors: [], recorded: null };
@@ -29,6 +32,21 @@ async function init() {
   for (const m of caps.models) $("model").add(new Option(`${m.name} (${m.kind})`, m.name));
   for (const e of caps.episodes) $("episode").add(new Option(e, e));
   window.dojo.capabilities = caps;
+  if (caps.views) {
+    tiling = caps.views;
+    const n = tiling.cameras.length;
+    tiling.columns = tiling.layout === "side_by_side" ? n : tiling.layout === "stack" ? 1 : Math.ceil(Math.sqrt(n));
+    tiling.rows = Math.ceil(n / tiling.columns);
+    for (const camera of tiling.cameras.slice(1)) {
+      const figure = document.createElement("figure"), canvas = document.createElement("canvas");
+      canvas.width = tiling.view_width; canvas.height = tiling.view_height;
+      const caption = document.createElement("figcaption");
+      caption.textContent = camera;
+      figure.append(canvas, caption);
+      $("more-views").append(figure);
+      extraViews.push(canvas.getContext("2d"));
+    }
+  }
   const slot = (caps.models[0] && caps.models[0].action_slots[0]) || null;
   if (slot) {
     const r = await fetch(`/${slot.slot}.mapping.json`);
@@ -83,7 +101,8 @@ function onText(m) {
   if (m.type === "ready") {
     width = (m.command || []).length;
     velocity = new Array(width).fill(0);
-    view.width = m.width; view.height = m.height;
+    view.width = tiling ? m.width / tiling.columns : m.width;
+    view.height = tiling ? m.height / tiling.rows : m.height;
     frameIntervalMs = 1000 / (m.fps || 10);
     framesPerStep = m.actions_per_step || 4;
     playout = [];
@@ -122,7 +141,13 @@ function drawNext(now) {
   // Half a step more behind than one step's burst: skip ahead (latency over smoothness).
   while (playout.length > framesPerStep + Math.ceil(framesPerStep / 2)) playout.shift().bitmap.close();
   const { seq, clientT, bitmap } = playout.shift();
-  ctx.drawImage(bitmap, 0, 0, view.width, view.height);
+  if (tiling) {  // each camera's part of the canvas into its own view
+    const w = bitmap.width / tiling.columns, h = bitmap.height / tiling.rows;
+    [ctx, ...extraViews].forEach((c, i) => c.drawImage(bitmap, (i % tiling.columns) * w,
+      Math.floor(i / tiling.columns) * h, w, h, 0, 0, c.canvas.width, c.canvas.height));
+  } else {
+    ctx.drawImage(bitmap, 0, 0, view.width, view.height);
+  }
   bitmap.close();
   frameTimes.push(now);
   while (frameTimes.length && frameTimes[0] < now - 2000) frameTimes.shift();
