@@ -57,7 +57,7 @@ out = sys.argv[1]
 
 def split_of(name):
     text = open(os.path.join(out, name, "eval.json")).read()
-    return json.loads(text[text.index("\n{") + 1:])["splits"][0]
+    return json.loads(text[re.search(r"^\{", text, re.M).start():])["splits"][0]  # after any log line
 
 def step_time(name):
     clips = re.search(r"([0-9.]+) clips/s", open(os.path.join(out, name, "train.log")).read())
