@@ -25,6 +25,9 @@ struct DistillArgs {
   int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 12, sink = -1;
   std::string sink_position = "window_edge";
   int batch = 8, student_steps = 4, teacher_steps = 35, counterfactual_copies = 0, warmup_chunks = 1;
+  int64_t lora_rank = 0;
+  double lora_alpha = 32;
+  std::string lora_targets = "q,k,v,o,mlp1,mlp2";
   double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1;
   bool fp32_times = false;
   train::SelfForcingOptions self_forcing;
@@ -38,6 +41,15 @@ int run_distill(DistillArgs a) {
   job.stage = train::parse_distill_stage(a.stage);
   job.init = a.init;
   job.self_forcing = a.self_forcing;
+  if (a.lora_rank > 0) {
+    job.lora.rank = a.lora_rank;
+    job.lora.alpha = a.lora_alpha;
+    try {
+      job.lora.targets = models::LoraConfig::parse_targets(a.lora_targets);
+    } catch (const Error& e) {
+      throw UsageError(std::string("--lora-targets: ") + e.what());
+    }
+  }
   std::vector<WeightedData> data;
   for (const auto& d : a.data) data.push_back(parse_weighted_data(d));
   job.weights = mixture_weights(data);
@@ -136,6 +148,16 @@ void register_distill(CLI::App& app) {
       ->capture_default_str();
   cmd->add_flag("--fp32-times", a->fp32_times, "Exact student times instead of the released bf16 rounding");
   cmd->add_option("--teacher-steps", a->teacher_steps, "Teacher UniPC steps for the trajectories")
+      ->capture_default_str();
+  cmd->add_option("--lora", a->lora_rank,
+                  "Train LoRA adapters of this rank instead of the student's weights (the rest, action MLPs "
+                  "included, stays frozen; the critic trains in full); 0 = full distillation")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+  cmd->add_option("--lora-alpha", a->lora_alpha, "LoRA alpha: the adapters' scale is alpha / rank")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_option("--lora-targets", a->lora_targets, "Adapted layers: q, k, v, o (attention), mlp1, mlp2")
       ->capture_default_str();
   cmd->add_option("--hop", a->hop, "Clip start stride in frames")->capture_default_str();
   cmd->add_option("--max-clips", a->max_clips, "Clips per dataset (0: all)")->capture_default_str();

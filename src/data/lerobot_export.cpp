@@ -102,6 +102,18 @@ ConvertResult export_lerobot(const EpisodeSource& source, const fs::path& dst,
 
   const size_t count =
       options.limit < 0 ? source.size() : std::min(source.size(), static_cast<size_t>(options.limit));
+  // Every camera the source records: the main one under options.camera, the others (our format's
+  // info.json cameras) under their own names.
+  std::vector<std::pair<std::string, std::shared_ptr<const EpisodeSource>>> cameras = {
+      {options.camera, std::shared_ptr<const EpisodeSource>(&source, [](const EpisodeSource*) {})}};
+  if (source.format() == "dojo-episodes")
+    for (size_t c = 1; c < source.info().cameras.size(); ++c) {
+      OpenOptions one;
+      one.camera = source.info().cameras[c];
+      DOJO_CHECK(one.camera != options.camera, "lerobot export: --video-name '" + options.camera +
+                                                   "' is also the name of another camera of the dataset");
+      cameras.push_back({one.camera, open_dataset(source.root(), one)});
+    }
   const std::string video_key = "observation.images." + options.camera;
   std::vector<std::string> tasks;
   std::ostringstream episodes_jsonl;
@@ -159,14 +171,17 @@ ConvertResult export_lerobot(const EpisodeSource& source, const fs::path& dst,
         w.add_i64("task_index", task_indices);
         std::vector<int64_t> all(static_cast<size_t>(frames));
         for (int64_t f = 0; f < frames; ++f) all[static_cast<size_t>(f)] = f;
-        auto pixels = source.read_frames(i, all);  // [T, H, W, 3] u8
-        if (options.height > 0 && options.width > 0)
-          pixels = io::resize_center_crop(pixels, options.height, options.width);
-        fs::create_directories(video.parent_path());
-        // The video first, the table last: a table on disk means its episode is complete.
-        const fs::path partial = video.parent_path() / ("." + name + ".partial.mp4");
-        io::write_video(partial.string(), pixels, video_options);
-        fs::rename(partial, video);
+        // The videos first, the table last: a table on disk means its episode is complete.
+        for (const auto& [camera, camera_source] : cameras) {
+          auto pixels = camera_source->read_frames(i, all);  // [T, H, W, 3] u8
+          if (options.height > 0 && options.width > 0)
+            pixels = io::resize_center_crop(pixels, options.height, options.width);
+          const fs::path file = dst / "videos" / chunk / ("observation.images." + camera) / (name + ".mp4");
+          fs::create_directories(file.parent_path());
+          const fs::path partial = file.parent_path() / ("." + name + ".partial.mp4");
+          io::write_video(partial.string(), pixels, video_options);
+          fs::rename(partial, file);
+        }
         fs::create_directories(table.parent_path());
         write_file_atomic(table, w.to_bytes());
         ++result.converted;
@@ -188,17 +203,21 @@ ConvertResult export_lerobot(const EpisodeSource& source, const fs::path& dst,
 
   // meta/, last.
   nlohmann::json features = nlohmann::json::object();
-  features[video_key] = {{"dtype", "video"},
-                         {"shape", {height, width, 3}},
-                         {"names", {"height", "width", "channel"}},
-                         {"info",
-                          {{"video.height", height},
-                           {"video.width", width},
-                           {"video.codec", "h264"},
-                           {"video.pix_fmt", "yuv420p"},
-                           {"video.fps", src.fps},
-                           {"video.channels", 3}}}};
-  nlohmann::json modality = {{"video", {{options.camera, {{"original_key", video_key}}}}}};
+  nlohmann::json modality = {{"video", nlohmann::json::object()}};
+  for (const auto& [camera, unused] : cameras) {
+    const std::string key = "observation.images." + camera;
+    modality["video"][camera] = {{"original_key", key}};
+    features[key] = {{"dtype", "video"},
+                     {"shape", {height, width, 3}},
+                     {"names", {"height", "width", "channel"}},
+                     {"info",
+                      {{"video.height", height},
+                       {"video.width", width},
+                       {"video.codec", "h264"},
+                       {"video.pix_fmt", "yuv420p"},
+                       {"video.fps", src.fps},
+                       {"video.channels", 3}}}};
+  }
   nlohmann::json stats = nlohmann::json::object();
   if (state_width > 0) {
     features["observation.state"] = {
@@ -221,7 +240,7 @@ ConvertResult export_lerobot(const EpisodeSource& source, const fs::path& dst,
       {"total_episodes", index},
       {"total_frames", total_frames},
       {"total_tasks", tasks.size()},
-      {"total_videos", index},
+      {"total_videos", index * static_cast<int64_t>(cameras.size())},
       {"total_chunks", (index + kChunkSize - 1) / kChunkSize},
       {"chunks_size", kChunkSize},
       {"splits", splits},

@@ -290,6 +290,14 @@ TeacherData teacher_data(const DistillJob& job, int frames, const std::string& p
   return t;
 }
 
+// A resumed run keeps the LoRA setting it was started with; says so when the command line differs.
+void warn_if_lora_differs(const models::ActionDitImpl& student, const models::LoraConfig& asked,
+                          bool resuming, const std::filesystem::path& ckpt_dir) {
+  if (resuming && student.config.lora.to_json() != asked.to_json())
+    LOG_WARN("distill: ", ckpt_dir.string(), " was started with LoRA ", student.config.lora.to_json().dump(),
+             "; it is kept (the command line asked for ", asked.to_json().dump(), ")");
+}
+
 // A network with its own parameters, initialised from a checkpoint (trainers must not share).
 models::ActionDit fresh_copy(const std::filesystem::path& checkpoint) {
   return models::load_world_model(checkpoint);
@@ -349,8 +357,13 @@ DistillResult run_warmup(const DistillJob& job) {
                             ? resumed_student_settings(saved["student"], job.student, ckpt_dir)
                             : job.student;
   torch::manual_seed(job.seed);
-  models::ActionDit student =
-      resuming ? models::ActionDit(models::DitConfig::from_json(saved.at("config"))) : teacher;
+  models::ActionDit student = resuming ? models::ActionDit(models::DitConfig::from_json(saved.at("config")))
+                              : job.lora.enabled() ? with_lora_adapters(teacher, job.lora)
+                                                   : teacher;
+  warn_if_lora_differs(*student, job.lora, resuming, ckpt_dir);
+  // LoRA distillation trains the adapters alone: the action MLPs already read the actions.
+  if (student->config.lora.enabled())
+    freeze_all_but_adapters(*student, /*train_action_mlps=*/false, "distill");
   WmTrainer trainer(student, job.options);
   nlohmann::json extras = {
       {"actions", action_ranges}, {"student", settings.to_json()}, {"teacher", fingerprint["teacher"]}};
@@ -487,7 +500,17 @@ DistillResult run_self_forcing(const DistillJob& job) {
     o->warmup_steps = 0;  // constant, as released
     o->flow.shift = data.shift;
   }
-  WmTrainer generator(fresh_copy(student_source), gen_options);
+  // A resumed LoRA student is rebuilt from its config (adapters apart) for the trainer to load; a
+  // fresh one gets new adapters on the warmed-up student (whose own adapters, if any, are folded in).
+  const auto saved_config = models::DitConfig::from_json(student_config_json.at("config"));
+  models::ActionDit student_net = resuming && saved_config.lora.enabled() ? models::ActionDit(saved_config)
+                                  : job.lora.enabled()
+                                      ? with_lora_adapters(fresh_copy(student_source), job.lora)
+                                      : fresh_copy(student_source);
+  warn_if_lora_differs(*student_net, job.lora, resuming, ckpt_dir);
+  if (student_net->config.lora.enabled())
+    freeze_all_but_adapters(*student_net, /*train_action_mlps=*/false, "distill");
+  WmTrainer generator(student_net, gen_options);
   // The critic starts as the teacher (the fake score equals the real one before any student sample).
   WmTrainer critic(fresh_copy(resuming ? critic_dir : job.teacher), critic_options);
   nlohmann::json generator_extras = {{"actions", data.action_ranges},

@@ -95,6 +95,10 @@ struct DistillJob {
   std::filesystem::path init;     // self-forcing: the warmed-up student
   infer::StudentConfig student;   // warm-up: the student made; self-forcing: from init's config
   SelfForcingOptions self_forcing;
+  // rank > 0: the student trains LoRA adapters alone (warm-up: on the teacher's weights;
+  // Self-Forcing: fresh adapters on the warmed-up student, its own folded in), every other weight
+  // frozen; the critic trains in full. Adapters kept apart in the checkpoint, folded in at load.
+  models::LoraConfig lora;
   TrajectorySpec trajectories;
   WmTrainOptions options;  // lr, weight decay, clipping, EMA (flow-matching fields unused)
   int batch_size = 8;

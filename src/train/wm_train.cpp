@@ -295,10 +295,6 @@ std::vector<double> robot_action_scale(const WmTrainJob& job, const LatentClips&
 
 }  // namespace
 
-namespace {
-
-// The same network with fresh LoRA adapters (A: PyTorch's Linear init, B: zeros, so its output is
-// unchanged) on the layers `lora` names.
 models::ActionDit with_lora_adapters(const models::ActionDit& base, const models::LoraConfig& lora) {
   auto config = base->config;
   config.lora = lora;
@@ -307,25 +303,21 @@ models::ActionDit with_lora_adapters(const models::ActionDit& base, const models
   opts.strict = false;  // the adapters are new; every base tensor must still be copied
   const auto report = load_state_dict(*adapted, state_dict(*base), opts);
   for (const auto& name : report.missing)
-    DOJO_CHECK(models::is_lora_name(name),
-               "wm train --lora: '" + name + "' was not copied from the base network");
+    DOJO_CHECK(models::is_lora_name(name), "--lora: '" + name + "' was not copied from the base network");
   return adapted;
 }
 
-// LoRA post-training trains the adapters and the action MLPs (re-initialised for the new action
-// space, as the release does); the rest keeps the pretrained weights.
-void freeze_all_but_adapters_and_actions(models::ActionDitImpl& net) {
+void freeze_all_but_adapters(models::ActionDitImpl& net, bool train_action_mlps, const std::string& who) {
   int64_t trainable = 0, frozen = 0;
   for (auto& item : net.named_parameters()) {
-    const bool train = models::is_lora_name(item.key()) || item.key().rfind("action_embedder", 0) == 0;
+    const bool train = models::is_lora_name(item.key()) ||
+                       (train_action_mlps && item.key().rfind("action_embedder", 0) == 0);
     item.value().set_requires_grad(train);
     (train ? trainable : frozen) += item.value().numel();
   }
-  LOG_INFO("wm train --lora: ", trainable, " trainable parameters (adapters and action MLPs), ", frozen,
-           " frozen");
+  LOG_INFO(who, " --lora: ", trainable, " trainable parameters (adapters",
+           train_action_mlps ? " and action MLPs" : "", "), ", frozen, " frozen");
 }
-
-}  // namespace
 
 WmTrainResult run_wm_training(const WmTrainJob& job) {
   DOJO_CHECK(!job.data.empty(), "wm train: no dataset given");
@@ -419,7 +411,9 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   }
   if (!resuming && (job.action_scale != 1.0 || job.standardize_actions))
     (*net)->config.action_scale = robot_action_scale(job, clips, (*net)->config);
-  if ((*net)->config.lora.enabled()) freeze_all_but_adapters_and_actions(**net);
+  // LoRA post-training trains the adapters and the action MLPs (re-initialised for the new action
+  // space, as the release does); the rest keeps the pretrained weights.
+  if ((*net)->config.lora.enabled()) freeze_all_but_adapters(**net, /*train_action_mlps=*/true, "wm train");
   WmTrainer trainer(*net, job.options, job.device, job.precision);
   nlohmann::json extras = nlohmann::json::object();
   if (!action_ranges.empty()) extras["actions"] = action_ranges;

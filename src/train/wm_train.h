@@ -105,6 +105,13 @@ enum class WmStage { kPretrain, kPosttrain, kScratch };
 WmStage parse_wm_stage(const std::string& text);  // pretrain | posttrain | scratch
 std::string to_string(WmStage stage);
 
+// The same network with fresh LoRA adapters (A: PyTorch's Linear init, B: zeros, so its output is
+// unchanged) on the layers `lora` names.
+models::ActionDit with_lora_adapters(const models::ActionDit& base, const models::LoraConfig& lora);
+// Freezes every parameter but the LoRA adapters (and the action MLPs when asked): no gradient, so
+// no optimiser state either. Logs the counts as "<who> --lora: ...".
+void freeze_all_but_adapters(models::ActionDitImpl& net, bool train_action_mlps, const std::string& who);
+
 struct WmTrainJob {
   WmStage stage = WmStage::kPretrain;
   std::vector<LatentCacheSpec> data;

@@ -7,6 +7,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 
+#include "core/safetensors.h"
 #include "synthetic_data.h"
 #include "test_util.h"
 
@@ -71,6 +72,26 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_EQ(
       nlohmann::json::parse(test::read_file(sf / "checkpoint" / "trainer_state.json"))["extra"]["mixture"],
       mixture);
+  // LoRA Self-Forcing: adapters alone train; the warmed-up student's weights stay, bit for bit.
+  // Iteration 0's generator update is zero by construction (the critic starts as the teacher), so
+  // the run goes on to a second generator update after one critic step.
+  r = test::run_dojo("--threads 1 distill --stage self-forcing --init " + (out / "checkpoint").string() +
+                     " --data " + data +
+                     " --split all --max-clips 2 --min-frames 4 --max-frames 5 --batch 1 --lora 4 "
+                     "--critic-steps 1 --steps 3 --out " +
+                     (tmp / "sf_lora").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("distill --lora: "), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("trainable parameters (adapters), "), std::string::npos) << r.output;
+  const auto warm = SafetensorsFile::open(out / "checkpoint" / "model.safetensors");
+  const auto adapted = SafetensorsFile::open(tmp / "sf_lora" / "checkpoint" / "model.safetensors");
+  for (const auto& name : warm.keys())
+    EXPECT_TRUE(torch::equal(warm.tensor(name), adapted.tensor(name))) << name;
+  const auto adapter = SafetensorsFile::open(tmp / "sf_lora" / "checkpoint" / "adapter_model.safetensors");
+  EXPECT_GT(adapter.tensor("net.blocks.0.self_attn.q_proj.lora_B.default.weight").abs().max().item<float>(),
+            0.f)
+      << "the second generator update trained the adapters";
+
   r = test::run_dojo("--threads 1 distill --stage self-forcing --data " + data + " --out " +
                      (tmp / "x").string());
   EXPECT_NE(r.exit_code, 0);

@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include "data/lerobot_export.h"
 #include "synthetic_data.h"
 #include "test_util.h"
 
@@ -66,6 +67,34 @@ TEST(MultiView, ADatasetsCamerasOpenAsOneCanvas) {
   options.views = {"ego", "wrist"};
   EXPECT_NE(test::error_message([&] { open_dataset(tmp / "d", options); }).find("no camera 'wrist'"),
             std::string::npos);
+}
+
+// A LeRobot set with two observation.images.* features (our exporter writes every camera) reads with
+// both views, by modality name.
+TEST(MultiView, ALeRobotSetsCamerasTileByName) {
+  test::TempDir tmp;
+  test::SyntheticOptions g;
+  g.episodes = 2;
+  g.frames = 6;
+  g.side_camera = true;
+  test::write_synthetic_dataset(tmp / "d", g);
+  const auto source = open_dataset(tmp / "d");
+  LeRobotExportOptions export_options;
+  export_options.robot_type = "dojosim_arm";
+  export_lerobot(*source, tmp / "lerobot", export_options);
+  OpenOptions options;
+  options.embodiment = "none";
+  options.views = {"front", "side"};
+  const auto lerobot = open_dataset(tmp / "lerobot", options);
+  EXPECT_EQ(lerobot->format(), "lerobot-v2.1");
+  EXPECT_EQ(lerobot->info().width, 64);
+  const auto canvas = lerobot->read_frames(1, {0, 4}).to(torch::kFloat);
+  OpenOptions side_only;
+  side_only.camera = "side";
+  const auto side = open_dataset(tmp / "d", side_only)->read_frames(1, {0, 4}).to(torch::kFloat);
+  EXPECT_LT((canvas.narrow(2, 32, 32) - side).abs().mean().item<double>(), 4.0) << "H.264 twice";
+  EXPECT_GT((canvas.narrow(2, 0, 32) - side).abs().mean().item<double>(), 1.0)
+      << "the front camera is not the side one";
 }
 
 }  // namespace
