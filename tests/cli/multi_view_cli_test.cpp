@@ -3,6 +3,8 @@
 // the server's capabilities tell the page how to show the cameras apart.
 #include <gtest/gtest.h>
 
+#include <filesystem>
+#include <fstream>
 #include <nlohmann/json.hpp>
 
 #include "serve/model_host.h"
@@ -16,7 +18,7 @@ TEST(MultiViewCli, TrainsOnTheCanvasAndEvaluatesAndServesEachCamera) {
   test::TempDir tmp;
   test::SyntheticOptions g;
   g.episodes = 3;
-  g.frames = 26;
+  g.frames = 52;  // wm stream reads a 49-frame window
   g.val_episodes = 1;
   g.side_camera = true;
   test::write_synthetic_dataset(tmp / "robot", g);
@@ -43,6 +45,12 @@ TEST(MultiViewCli, TrainsOnTheCanvasAndEvaluatesAndServesEachCamera) {
     EXPECT_GT(view.at("copy_frame").at("psnr").get<double>(), 0.0) << camera;
   }
   EXPECT_TRUE(split.at("per_video")[0].at("views").contains("side"));
+  // Streamed (the teacher's weights as a student): the canvas, read as trained.
+  r = test::run_dojo("--threads 1 wm stream -c " + checkpoint.string() + " --tokenizer " + tok + " --data " +
+                     data + " --split val --frames 8 --out " + (tmp / "s.mp4").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("32x64"), std::string::npos) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(tmp / "s.mp4"));
 
   serve::ModelHost::Options o;
   serve::ModelSpec model;
