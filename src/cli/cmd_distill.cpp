@@ -25,7 +25,7 @@ struct DistillArgs {
   int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 12, sink = -1;
   std::string sink_position = "window_edge";
   int batch = 8, student_steps = 4, teacher_steps = 35, counterfactual_copies = 0, warmup_chunks = 1;
-  int64_t lora_rank = 0;
+  int64_t lora_rank = 0, accumulate = 1;
   double lora_alpha = 32;
   std::string lora_targets = "q,k,v,o,mlp1,mlp2";
   double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1;
@@ -81,6 +81,7 @@ int run_distill(DistillArgs a) {
   job.options.grad_clip = a.grad_clip;
   job.options.warmup_steps = 0;  // constant learning rate, as released
   job.batch_size = a.batch;
+  job.accumulate = a.accumulate;
   job.steps = a.steps;
   job.time_budget_s = a.minutes * 60;
   job.save_every = a.save_every;
@@ -127,6 +128,7 @@ void register_distill(CLI::App& app) {
       ->capture_default_str();
   cmd->add_option("--minutes", a->minutes, "Wall-clock budget, trajectories included (0: none)");
   cmd->add_option("--batch,-b", a->batch, "Trajectories per step")->capture_default_str();
+  add_accumulate_option(cmd, a->accumulate);
   cmd->add_option("--lr", a->lr, "AdamW learning rate (constant; released: 3e-5 for a 2B net)")
       ->capture_default_str();
   cmd->add_option("--weight-decay", a->weight_decay, "AdamW weight decay")->capture_default_str();

@@ -17,6 +17,7 @@ struct FastDecoderArgs {
   std::vector<std::string> data;
   int64_t steps = 2000, save_every = 500, hop = 4, max_clips = 0;
   int batch = 8;
+  int64_t accumulate = 1;
   double lr = 1e-3, minutes = 0;
   uint64_t seed = 0;
 };
@@ -35,6 +36,7 @@ int run_fast_decoder(const FastDecoderArgs& a) {
   }
   job.out = a.out;
   job.batch_size = a.batch;
+  job.accumulate = a.accumulate;
   job.steps = a.steps;
   job.lr = a.lr;
   job.time_budget_s = a.minutes * 60;
@@ -64,6 +66,7 @@ void register_fast_decoder(CLI::App& tokenizer) {
   cmd->add_option("--steps", a->steps, "Optimisation steps")->capture_default_str();
   cmd->add_option("--minutes", a->minutes, "Wall-clock budget (0: none)");
   cmd->add_option("--batch,-b", a->batch, "Clips per step")->capture_default_str();
+  add_accumulate_option(cmd, a->accumulate);
   cmd->add_option("--lr", a->lr, "AdamW peak learning rate")->capture_default_str();
   cmd->add_option("--hop", a->hop, "Clip start stride in frames")->capture_default_str();
   cmd->add_option("--max-clips", a->max_clips, "Clips per dataset (0: all)")->capture_default_str();

@@ -39,6 +39,7 @@ void add_train(CLI::App& lam) {
   cmd->add_option("--minutes", *minutes, "Stop (and checkpoint) after this many minutes; 0 = no limit")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--batch,-b", job->batch_size, "Frame pairs per step")->capture_default_str();
+  add_accumulate_option(cmd, job->accumulate);
   cmd->add_option("--lr", job->options.lr, "AdamW learning rate")->capture_default_str();
   cmd->add_option("--weight-decay", job->options.weight_decay, "AdamW weight decay")->capture_default_str();
   cmd->add_option("--beta", job->options.beta, "KL weight")->capture_default_str();

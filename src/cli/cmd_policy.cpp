@@ -26,6 +26,7 @@
 #include "recipes/dojosim_policies.h"
 #include "serve/external_policy.h"
 #include "train/bc_train.h"
+#include "train/data_parallel.h"
 #include "train/success_train.h"
 
 namespace fs = std::filesystem;
@@ -43,7 +44,7 @@ struct WorldModelArgs {
 
 struct DetectorArgs {
   std::string out = "dojo_policy/detector", policies;
-  int64_t scenes = 24, steps = 800, frames = 64, settle_frames = 12;
+  int64_t scenes = 24, steps = 800, frames = 64, settle_frames = 12, accumulate = 1;
   // The detector's input, frames per decision and their spacing: for a new detector (defaults 3
   // and 1); a resumed one keeps its own, and refuses other values given here.
   std::optional<int64_t> window, stride;
@@ -54,7 +55,7 @@ struct DetectorArgs {
 
 struct TrainArgs {
   std::string out = "dojo_policy/bc";
-  int64_t episodes = 400, frames = 64, steps = 3000, batch = 64, shift = 0;
+  int64_t episodes = 400, frames = 64, steps = 3000, batch = 64, shift = 0, accumulate = 1;
   std::vector<int64_t> snapshots = {200, 500, 1000};
   double noise = 0.03;
   uint64_t seed = 20000;
@@ -104,7 +105,9 @@ nlohmann::json train_bc(const TrainArgs& a) {
   const fs::path out = a.out;
   fs::create_directories(out);
   const auto demos = out / "demos.safetensors";
-  if (!fs::exists(demos)) {
+  // Under data parallelism rank 0 renders the demonstrations; the others then read them.
+  train::data_parallel().main_first("the demonstrations", [&] {
+    if (fs::exists(demos)) return;
     recipes::DemonstrationOptions o;
     o.episodes = a.episodes;
     o.frames = a.frames;
@@ -112,12 +115,13 @@ nlohmann::json train_bc(const TrainArgs& a) {
     o.seed = a.seed;
     LOG_INFO("policy train: rendering ", a.episodes, " expert demonstrations in DojoSim");
     recipes::make_demonstrations(o, demos);
-  }
+  });
   train::BcTrainJob job;
   job.data = demos;
   job.out = out;
   job.steps = a.steps;
   job.batch_size = static_cast<int>(a.batch);
+  job.accumulate = a.accumulate;
   job.snapshots = a.snapshots;
   job.shift = a.shift;
   const auto r = train::run_bc_training(job);
@@ -311,38 +315,42 @@ nlohmann::json train_detector(const DetectorArgs& a) {
   fs::create_directories(out);
   const auto data = out / "data.safetensors";
   std::optional<LoadedWorldModel> world_model;
-  if (fs::exists(data)) {
-    require_detector_frames(out, frames, data.string() + " holds", "give another --out");
-  } else {
-    recipes::SuccessDataOptions o;
-    o.scenes = a.scenes;
-    o.seed = a.seed;
-    std::optional<ScopedThreads> matmul_bound;  // the world model's replays, as in `policy eval`
-    if (source) {
-      matmul_bound.emplace(
-          matmul_bound_command_threads("policy detector", parse_device(source->device).is_cuda()));
-      world_model = load_world_model(*source, models::SuccessDetector{nullptr});
+  // Under data parallelism rank 0 renders the labelled episodes; the others then read them.
+  train::data_parallel().main_first("the detector's episodes", [&] {
+    if (fs::exists(data)) {
+      require_detector_frames(out, frames, data.string() + " holds", "give another --out");
+    } else {
+      recipes::SuccessDataOptions o;
+      o.scenes = a.scenes;
+      o.seed = a.seed;
+      std::optional<ScopedThreads> matmul_bound;  // the world model's replays, as in `policy eval`
+      if (source) {
+        matmul_bound.emplace(
+            matmul_bound_command_threads("policy detector", parse_device(source->device).is_cuda()));
+        world_model = load_world_model(*source, models::SuccessDetector{nullptr});
+      }
+      o.episode = episode_options(a.frames, a.settle_frames, world_model ? world_model->per_step : 4);
+      LOG_INFO("policy detector: rendering ", a.scenes, " scenes per policy in DojoSim",
+               world_model ? " and replaying them in the world model" : "");
+      auto specs = policy_set(a.policies);
+      if (std::none_of(specs.begin(), specs.end(), [](const auto& s) { return s.scripted(); }))
+        specs = recipes::default_policy_set();  // labelled episodes need scripted policies
+      const nlohmann::json made = {{"frames", frames},
+                                   {"scenes", a.scenes},
+                                   {"seed", a.seed},
+                                   {"frames_per_episode", a.frames},
+                                   {"settle_frames", a.settle_frames},
+                                   {"policies", a.policies}};
+      write_file_atomic(out / "data.json", made.dump(2) + "\n");  // first: data without it reads as DojoSim's
+      recipes::make_success_data(specs, o, data, world_model ? world_model->environment.get() : nullptr);
     }
-    o.episode = episode_options(a.frames, a.settle_frames, world_model ? world_model->per_step : 4);
-    LOG_INFO("policy detector: rendering ", a.scenes, " scenes per policy in DojoSim",
-             world_model ? " and replaying them in the world model" : "");
-    auto specs = policy_set(a.policies);
-    if (std::none_of(specs.begin(), specs.end(), [](const auto& s) { return s.scripted(); }))
-      specs = recipes::default_policy_set();  // labelled episodes need scripted policies
-    const nlohmann::json made = {{"frames", frames},
-                                 {"scenes", a.scenes},
-                                 {"seed", a.seed},
-                                 {"frames_per_episode", a.frames},
-                                 {"settle_frames", a.settle_frames},
-                                 {"policies", a.policies}};
-    write_file_atomic(out / "data.json", made.dump(2) + "\n");  // first: data without it reads as DojoSim's
-    recipes::make_success_data(specs, o, data, world_model ? world_model->environment.get() : nullptr);
-  }
+  });
   world_model.reset();  // training needs the memory more
   train::SuccessTrainJob job;
   job.data = data;
   job.out = out;
   job.steps = a.steps;
+  job.accumulate = a.accumulate;
   job.model = model;
   const auto r = train::run_success_training(job);
   const auto accuracy = [](const train::SuccessAccuracy& s) {
@@ -593,6 +601,7 @@ void register_policy(CLI::App& app) {
       ->check(CLI::Range(0, 10000000))
       ->capture_default_str();
   train_cmd->add_option("--batch", t->batch, "Batch size")->check(CLI::Range(1, 4096))->capture_default_str();
+  add_accumulate_option(train_cmd, t->accumulate);
   train_cmd->add_option("--shift", t->shift, "Random frame translation in pixels (augmentation)")
       ->check(CLI::Range(0, 16))
       ->capture_default_str();
@@ -615,6 +624,7 @@ void register_policy(CLI::App& app) {
   detector->add_option("--steps", d->steps, "Training steps")
       ->check(CLI::Range(0, 10000000))
       ->capture_default_str();
+  add_accumulate_option(detector, d->accumulate);
   detector->add_option("--frames", d->frames, "Frames each policy acts for (as `policy eval --frames`)")
       ->check(CLI::Range(1, 100000))
       ->capture_default_str();

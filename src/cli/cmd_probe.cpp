@@ -31,6 +31,7 @@ void add_train(CLI::App& probe) {
   cmd->add_option("--minutes", *minutes, "Stop (and checkpoint) after this many minutes; 0 = no limit")
       ->check(CLI::NonNegativeNumber);
   cmd->add_option("--batch,-b", job->batch_size, "Frames per step")->capture_default_str();
+  add_accumulate_option(cmd, job->accumulate);
   cmd->add_option("--lr", job->lr, "AdamW learning rate")->capture_default_str();
   cmd->add_option("--size", job->model.size, "Probe input size (frames are resized to SIZE x SIZE)")
       ->capture_default_str();

@@ -29,7 +29,7 @@ namespace {
 struct TrainArgs {
   std::vector<std::string> data;
   std::string out, split = "train", loss = "mse";
-  int64_t steps = 2000, save_every = 200, warmup = 0;
+  int64_t steps = 2000, save_every = 200, warmup = 0, accumulate = 1;
   // 9 frames (3 latent frames) so the steady-state causal chunk is trained, not only the first
   // two latent frames; world-model clips decode 4 latent frames.
   int batch = 4, image_batch = 16, frames = 9, size = 64, dim = 16, workers = 2, crop = 0;
@@ -63,6 +63,9 @@ int run_train(const TrainArgs& a) {
   DOJO_CHECK(a.loss == "mse" || a.loss == "l1", "--loss must be mse or l1 (got " + a.loss + ")");
   models::WanVaeConfig cfg;
   cfg.dim = a.dim;
+  // Seeded before the network is drawn: libtorch seeds its default generator differently in every
+  // process, and the same --seed must give the same weights (and every data-parallel rank the same).
+  torch::manual_seed(a.seed);
   models::WanVae vae(cfg);
   models::init_frame_by_frame(vae);  // a resumed run loads its weights over this
   data::ClipConfig clip;
@@ -79,7 +82,8 @@ int run_train(const TrainArgs& a) {
     datasets.push_back({data[i].dir, a.split, weights.empty() ? 1.0 : weights[i]});
     mixture.push_back({{"data", data[i].dir}, {"weight", datasets.back().weight}});
   }
-  const auto batches = train::tokenizer_batches(datasets, clip, a.batch, a.image_batch, a.workers, a.seed);
+  const auto batches =
+      train::tokenizer_batches(datasets, clip, a.batch, a.image_batch, a.workers, a.seed, a.accumulate);
   auto o = train::recommended_tokenizer_options();
   o.steps = a.steps;
   o.lr = a.lr;
@@ -96,10 +100,10 @@ int run_train(const TrainArgs& a) {
   o.image_fraction = a.image_fraction;
   o.next_image_batch = batches.images;
   o.time_budget_s = a.minutes * 60;
+  o.accumulate = a.accumulate;
   o.checkpoint_dir = a.out;
   o.trainer_extra = {{"mixture", mixture}};
   o.stats_batches = 8;
-  torch::manual_seed(a.seed);
   const auto r = train::train_tokenizer(vae, batches.clips, o);
   std::printf("trained %lld steps in %.1f s, recon mse %.5f -> %.5f, checkpoint %s\n",
               static_cast<long long>(r.steps_done), r.seconds, r.first_loss, r.last_loss, a.out.c_str());
@@ -225,6 +229,7 @@ void register_tokenizer(CLI::App& app) {
   add_split_option(train_cmd, ta->split);
   train_cmd->add_option("--steps", ta->steps, "Optimisation steps")->capture_default_str();
   train_cmd->add_option("--batch", ta->batch, "Clips per batch")->capture_default_str();
+  add_accumulate_option(train_cmd, ta->accumulate);
   train_cmd->add_option("--frames", ta->frames, "Frames per clip (1 + 4k)")->capture_default_str();
   train_cmd
       ->add_option("--image-fraction", ta->image_fraction,

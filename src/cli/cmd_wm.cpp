@@ -40,6 +40,7 @@ struct WmTrainArgs {
   std::vector<std::string> data, views;
   int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100, lora_rank = 0;
   int batch = 8;
+  int64_t accumulate = 1;
   double lora_alpha = 32;
   std::string lora_targets = "q,k,v,o,mlp1,mlp2";
   double minutes = 0, lr = 1.6e-4, weight_decay = 0.1, grad_clip = 0.1, temporal_weight = 0.1, shift = 5.0,
@@ -107,6 +108,7 @@ int run_wm_train(const WmTrainArgs& a) {
   job.options.flow.temporal_axis =
       a.temporal_axis == "channel" ? diffusion::TemporalAxis::kChannel : diffusion::TemporalAxis::kTime;
   job.batch_size = a.batch;
+  job.accumulate = a.accumulate;
   job.steps = a.steps;
   job.time_budget_s = a.minutes * 60.0;
   job.save_every = a.save_every;
@@ -304,6 +306,7 @@ void register_wm(CLI::App& app) {
   train_cmd->add_option("--minutes", t->minutes,
                         "Stop (and checkpoint) after this many minutes; 0 = no limit");
   train_cmd->add_option("--batch,-b", t->batch, "Clips per step")->capture_default_str();
+  add_accumulate_option(train_cmd, t->accumulate);
   train_cmd->add_option("--lr", t->lr, "AdamW learning rate")->capture_default_str();
   train_cmd->add_option("--weight-decay", t->weight_decay, "AdamW weight decay")->capture_default_str();
   train_cmd->add_option("--grad-clip", t->grad_clip, "Global gradient-norm clip (0 = off)")

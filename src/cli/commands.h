@@ -58,7 +58,8 @@ void register_distill(CLI::App& app);
 void register_serve(CLI::App& app);
 void register_study(CLI::App& app);
 void register_serve_load(CLI::App& app);
+void register_launch(CLI::App& app);       // dojo launch: data-parallel processes
 void register_serve_check(CLI::App& app);  // DojoSim builds only
-void register_policy(CLI::App& app);  // DojoSim builds only
+void register_policy(CLI::App& app);       // DojoSim builds only
 
 }  // namespace dojo::cli

@@ -171,6 +171,7 @@ int main(int argc, char** argv) {
   cli::register_serve(app);
   cli::register_study(app);
   cli::register_serve_load(app);
+  cli::register_launch(app);
   cli::register_metrics(app);
   cli::register_probe(app);
 #endif

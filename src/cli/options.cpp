@@ -21,6 +21,9 @@ const std::vector<SharedOption>& shared_options() {
       {"--json", "Print the result as JSON"},
       {"--out,-o", "Output"},
       {"--checkpoint,--ckpt,-c", "Checkpoint directory"},
+      {"--accumulate",
+       "Micro-batches per step and process: the batch splits over processes x accumulate "
+       "(dojo launch); gradients add up before one optimiser step"},
   };
   return table;
 }
@@ -69,6 +72,13 @@ CLI::Option* add_split_option(CLI::App* cmd, std::vector<std::string>& splits) {
 CLI::Option* add_seed_option(CLI::App* cmd, uint64_t& seed) {
   const auto& o = shared("--seed");
   return cmd->add_option(o.names, seed, o.help)->capture_default_str();
+}
+
+CLI::Option* add_accumulate_option(CLI::App* cmd, int64_t& accumulate) {
+  const auto& o = shared("--accumulate");
+  return cmd->add_option(o.names, accumulate, o.help)
+      ->check(CLI::Range(int64_t{1}, int64_t{4096}))
+      ->capture_default_str();
 }
 
 CLI::Option* add_workers_option(CLI::App* cmd, int& workers) {

@@ -20,9 +20,10 @@ CLI::Option* add_data_option(CLI::App* cmd, std::string& dir);             // --
 CLI::Option* add_data_option(CLI::App* cmd, std::vector<std::string>& dirs, const std::string& extra = "");
 CLI::Option* add_split_option(CLI::App* cmd, std::string& split);  // --split,-s
 CLI::Option* add_split_option(CLI::App* cmd, std::vector<std::string>& splits);
-CLI::Option* add_seed_option(CLI::App* cmd, uint64_t& seed);   // --seed
-CLI::Option* add_workers_option(CLI::App* cmd, int& workers);  // --workers,-j
-CLI::Option* add_json_option(CLI::App* cmd, bool& json);       // --json
+CLI::Option* add_seed_option(CLI::App* cmd, uint64_t& seed);             // --seed
+CLI::Option* add_workers_option(CLI::App* cmd, int& workers);            // --workers,-j
+CLI::Option* add_accumulate_option(CLI::App* cmd, int64_t& accumulate);  // --accumulate (data parallelism)
+CLI::Option* add_json_option(CLI::App* cmd, bool& json);                 // --json
 // A --data value "DIR" or "DIR:WEIGHT" (a mixture weight > 0; a colon not followed by a number
 // belongs to the path). Throws dojo::UsageError naming the value.
 struct WeightedData {

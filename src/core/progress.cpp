@@ -13,7 +13,8 @@ Progress::Progress(std::string label, int64_t total, std::string unit)
     : label_(std::move(label)),
       total_(total),
       unit_(std::move(unit)),
-      tty_(isatty(fileno(stderr)) != 0),
+      // Below INFO (--quiet, a data-parallel rank other than 0) no bar is drawn either.
+      tty_(isatty(fileno(stderr)) != 0 && log_level() <= LogLevel::kInfo),
       start_(std::chrono::steady_clock::now()),
       last_draw_(start_) {
   if (!tty_) LOG_INFO(label_, ": 0/", total_, " ", unit_);

@@ -16,6 +16,10 @@
 namespace dojo {
 
 void set_threads(int threads) {
+  // OMP_NUM_THREADS, as PyTorch reads it: `dojo launch` gives each of its processes a share of the
+  // cores that way.
+  if (const char* omp = std::getenv("OMP_NUM_THREADS"); threads <= 0 && omp != nullptr)
+    threads = std::max(0, std::atoi(omp));
   if (threads <= 0) {
     const unsigned hw = std::thread::hardware_concurrency();
     threads = hw > 0 ? static_cast<int>(hw) : 1;

@@ -12,7 +12,8 @@ struct Device;
 
 namespace dojo {
 
-// Sets the intra-op (and inter-op, once) thread count. threads <= 0 means all cores.
+// Sets the intra-op (and inter-op, once) thread count. threads <= 0 means OMP_NUM_THREADS when set
+// (dojo launch shares the cores among its processes that way), else all cores.
 // Debian's libtorch defaults to one thread, so every entry point calls this.
 void set_threads(int threads);
 int threads();

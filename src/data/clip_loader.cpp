@@ -265,7 +265,7 @@ void PrefetchLoader::worker_loop() {
       index = next_to_make_++;
     }
     try {
-      auto rng = stream_rng(options_.seed, static_cast<uint64_t>(index));
+      auto rng = stream_rng(options_.seed, static_cast<uint64_t>(options_.stream_index(index)));
       std::vector<Clip> clips;
       for (int b = 0; b < options_.batch_size; ++b) clips.push_back(mixture_->sample(rng));
       Batch batch = collate(clips);

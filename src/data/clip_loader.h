@@ -117,6 +117,13 @@ struct LoaderOptions {
   int workers = 2;           // 0: one per core
   int prefetch_batches = 4;  // batches buffered ahead of the consumer
   uint64_t seed = 0;
+  // A share of a stream several consumers split (data-parallel ranks, train/data_parallel.h): the
+  // n-th batch handed out is batch (n / run) * every + first + n % run of the whole stream, i.e.
+  // runs of `run` consecutive batches out of every `every`. The defaults hand out every batch.
+  int64_t stream_every = 1, stream_first = 0, stream_run = 1;
+  int64_t stream_index(int64_t n) const {
+    return n / stream_run * stream_every + stream_first + n % stream_run;
+  }
 };
 
 // Background batch producer. Batch k is built from an RNG seeded by (seed, k) alone, so the

@@ -11,6 +11,7 @@
 #include "core/error.h"
 #include "core/log.h"
 #include "core/safetensors.h"
+#include "train/data_parallel.h"
 #include "train/train_loop.h"
 #include "train/train_util.h"
 
@@ -184,10 +185,12 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
   loop.lr = job.lr;
   loop.cosine = true;
   loop.seed = job.seed;
+  loop.batch_size = job.batch_size;
+  loop.accumulate = job.accumulate;
   const auto run = run_adamw_loop(
       *policy, loop, [&] { return models::bc_policy_checkpoint(*policy); },
-      [&](const LoopStep&, torch::Generator& gen) {
-        const auto pick = torch::randint(train.episode.numel(), {job.batch_size}, gen);
+      [&](const LoopStep&, int64_t batch, torch::Generator& gen) {
+        const auto pick = torch::randint(train.episode.numel(), {batch}, gen);
         const auto b = gather(data, train.episode.index_select(0, pick), train.frame.index_select(0, pick),
                               config.chunk);
         auto images = models::bc_input(policy, b.frames);  // [B, 3, S, S]
@@ -202,7 +205,8 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
       });
   // The finished policy is a snapshot too; a run stopped early by its time budget leaves none
   // (it would become a policy of its own).
-  if (run.end_step == job.steps && !checkpoint_exists(snapshot_dir(job.out, run.end_step)))
+  if (run.end_step == job.steps && data_parallel().main() &&
+      !checkpoint_exists(snapshot_dir(job.out, run.end_step)))
     save_snapshot(run.end_step);
   BcTrainResult r;
   r.steps = run.end_step;

@@ -30,7 +30,8 @@ struct BcTrainJob {
   std::filesystem::path out;   // out/checkpoint, out/snapshots/step-NNNNNN, out/loss.csv
   models::BcPolicyConfig model;
   int batch_size = 64;
-  int64_t steps = 3000;  // total (a resumed job continues up to this)
+  int64_t accumulate = 1;  // micro-batches per step and process (data_parallel.h)
+  int64_t steps = 3000;    // total (a resumed job continues up to this)
   double time_budget_s = 0;
   int64_t save_every = 500;
   std::vector<int64_t> snapshots = {200, 500, 1000};  // kept besides the final one

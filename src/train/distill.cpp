@@ -19,6 +19,7 @@
 #include "data/episode_source.h"
 #include "data/multi_view.h"
 #include "diffusion/samplers.h"
+#include "train/data_parallel.h"
 #include "train/train_loop.h"
 #include "train/train_util.h"
 
@@ -134,25 +135,13 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
   const auto all_actions = clips.actions.index_select(0, action_index);  // [N·copies, 12, 384]
   const int64_t n = clip_count * copies, shards = (n + spec.shard_clips - 1) / spec.shard_clips;
   std::vector<torch::Tensor> points, actions;
-  Progress progress("teacher trajectories", n, "clips");
+  auto& group = data_parallel();
   teacher.eval();
-  for (int64_t k = 0; k < shards; ++k) {
+  // Under data parallelism each rank first builds its share of the missing shards (shard k on rank
+  // k mod world); then every rank reads all of them below.
+  const auto build_shard = [&](int64_t k, const fs::path& file, const nlohmann::json& shard_meta,
+                               Progress* progress) {
     const int64_t begin = k * spec.shard_clips, count = std::min(spec.shard_clips, n - begin);
-    char name[40];  // room for any long long: GCC checks the bound
-    std::snprintf(name, sizeof(name), "shard-%05lld.safetensors", static_cast<long long>(k));
-    const auto file = dir / name;
-    nlohmann::json shard_meta = meta;
-    shard_meta["clips"] = {begin, begin + count};
-    if (fs::exists(file)) {
-      auto f = SafetensorsFile::open(file);
-      const auto it = f.metadata().find("trajectories");
-      if (it != f.metadata().end() && nlohmann::json::parse(it->second) == shard_meta) {
-        points.push_back(f.tensor("points", true));
-        actions.push_back(all_actions.narrow(0, begin, count));
-        progress.advance(count);
-        continue;
-      }
-    }
     std::vector<torch::Tensor> shard;
     for (int64_t b = begin; b < begin + count; b += spec.batch) {
       const int64_t m = std::min<int64_t>(spec.batch, begin + count - b);
@@ -163,11 +152,45 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
       const auto first = clips.latents.narrow(2, 0, 1).index_select(0, torch::tensor(ids, torch::kLong));
       shard.push_back(
           chained_teacher_points(teacher, schedule, first, all_actions.narrow(0, b, m), ids, spec));
-      progress.advance(m);
+      if (progress) progress->advance(m);
     }
     auto shard_points = torch::cat(shard).contiguous();
     save_safetensors(file, {{"points", shard_points}}, {{"trajectories", shard_meta.dump()}});
-    points.push_back(shard_points);
+    return shard_points;
+  };
+  const auto shard_file = [&](int64_t k) {
+    char name[40];  // room for any long long: GCC checks the bound
+    std::snprintf(name, sizeof(name), "shard-%05lld.safetensors", static_cast<long long>(k));
+    return dir / name;
+  };
+  const auto shard_meta_of = [&](int64_t k) {
+    const int64_t begin = k * spec.shard_clips, count = std::min(spec.shard_clips, n - begin);
+    nlohmann::json shard_meta = meta;
+    shard_meta["clips"] = {begin, begin + count};
+    return shard_meta;
+  };
+  const auto cached = [&](const fs::path& file, const nlohmann::json& shard_meta) {
+    if (!fs::exists(file)) return false;
+    auto f = SafetensorsFile::open(file);
+    const auto it = f.metadata().find("trajectories");
+    return it != f.metadata().end() && nlohmann::json::parse(it->second) == shard_meta;
+  };
+  if (group.active()) {
+    for (int64_t k = group.rank(); k < shards; k += group.world())
+      if (!cached(shard_file(k), shard_meta_of(k))) build_shard(k, shard_file(k), shard_meta_of(k), nullptr);
+    group.wait_for_all("the teacher trajectories");
+  }
+  Progress progress("teacher trajectories", n, "clips");
+  for (int64_t k = 0; k < shards; ++k) {
+    const int64_t begin = k * spec.shard_clips, count = std::min(spec.shard_clips, n - begin);
+    const auto file = shard_file(k);
+    const auto shard_meta = shard_meta_of(k);
+    if (cached(file, shard_meta)) {
+      points.push_back(SafetensorsFile::open(file).tensor("points", true));
+      progress.advance(count);
+    } else {
+      points.push_back(build_shard(k, file, shard_meta, &progress));
+    }
     actions.push_back(all_actions.narrow(0, begin, count));
   }
   progress.finish();
@@ -179,10 +202,19 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
 torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& points,
                           const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
                           int64_t window_frames, torch::Generator generator, int64_t sink_frames) {
+  const auto index =
+      torch::randint(points.size(1), {points.size(0), points.size(3)}, generator, torch::kLong);
+  return warmup_loss_at(student, points, actions, timesteps, window_frames, index, sink_frames);
+}
+
+torch::Tensor warmup_loss_at(models::ActionDitImpl& student, const torch::Tensor& points,
+                             const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
+                             int64_t window_frames, torch::Tensor index, int64_t sink_frames) {
   const int64_t B = points.size(0), P = points.size(1), T = points.size(3);
   DOJO_CHECK(static_cast<int64_t>(timesteps.size()) == P, "warmup: one timestep per trajectory point");
-  auto index = torch::randint(P, {B, T}, generator, torch::kLong);  // the point of every frame
-  index.select(1, 0).fill_(P - 1);                                  // frame 0: clean
+  DOJO_CHECK(index.size(0) == B && index.size(1) == T, "warmup: one trajectory point per clip and frame");
+  index = index.clone();            // the point of every frame
+  index.select(1, 0).fill_(P - 1);  // frame 0: clean
   const auto b = torch::arange(B).unsqueeze(1), f = torch::arange(T).unsqueeze(0);
   const auto x = points.permute({0, 3, 1, 2, 4, 5})
                      .index({b, f, index})       // [B, T, 16, h, w]
@@ -269,22 +301,25 @@ TeacherData teacher_data(const DistillJob& job, int frames, const std::string& p
   const auto views = data::views_of_config(t.config, job.teacher.string());
   std::vector<LatentClips> sets;
   nlohmann::json data_json = nlohmann::json::array();
-  for (size_t i = 0; i < job.data.size(); ++i) {
-    auto spec = job.data[i];
-    spec.frames = frames;
-    if (views && spec.views.empty()) {
-      spec.views = views->cameras;
-      spec.view_layout = data::to_string(views->layout);
+  // Rank 0 encodes the latent caches; the other ranks read them once they are written.
+  data_parallel().main_first("the latent caches", [&] {
+    for (size_t i = 0; i < job.data.size(); ++i) {
+      auto spec = job.data[i];
+      spec.frames = frames;
+      if (views && spec.views.empty()) {
+        spec.views = views->cameras;
+        spec.view_layout = data::to_string(views->layout);
+      }
+      const auto slot = data::open_dataset(spec.dataset, spec.open_options())->info().action_slot;
+      if (!slot.empty() && t.action_ranges.contains(slot))
+        spec.action_stats =
+            data::ArrayStats::from_json(t.action_ranges[slot], job.teacher.string() + ": actions." + slot);
+      sets.push_back(
+          load_or_build_latent_clips(spec, job.out / (prefix + "-" + std::to_string(i) + ".safetensors")));
+      t.set_sizes.push_back(sets.back().size());
+      data_json.push_back(spec.to_json());
     }
-    const auto slot = data::open_dataset(spec.dataset, spec.open_options())->info().action_slot;
-    if (!slot.empty() && t.action_ranges.contains(slot))
-      spec.action_stats =
-          data::ArrayStats::from_json(t.action_ranges[slot], job.teacher.string() + ": actions." + slot);
-    sets.push_back(
-        load_or_build_latent_clips(spec, job.out / (prefix + "-" + std::to_string(i) + ".safetensors")));
-    t.set_sizes.push_back(sets.back().size());
-    data_json.push_back(spec.to_json());
-  }
+  });
   t.clips = concat_latent_clips(sets);
   t.fingerprint = {{"teacher", checkpoint_fingerprint(job.teacher)}, {"data", data_json}};
   return t;
@@ -315,6 +350,8 @@ DistillResult run_warmup(const DistillJob& job) {
   const auto ckpt_dir = job.out / "checkpoint";
   // One chunk: the 13-frame clips post-training cached; several: Self-Forcing's longer ones.
   const int chunks = job.trajectories.chunks;
+  auto& group = data_parallel();
+  const auto shards = BatchShards::plan(job.batch_size, job.accumulate, group, "distill");
   const auto data = teacher_data(job, 1 + 12 * chunks, chunks == 1 ? "latents" : "latents-long");
   std::optional<ScopedThreads> matmul_bound;
   if (job.matmul_threads > 0) matmul_bound.emplace(job.matmul_threads);
@@ -373,6 +410,7 @@ DistillResult run_warmup(const DistillJob& job) {
     trainer.resume(ckpt_dir);
     LOG_INFO("distill: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
   }
+  group.check_same("the step to resume from", std::to_string(trainer.steps_done()));
 
   // A fixed batch of points and frame draws tracks the EMA student without batch noise.
   const int64_t probe = std::min<int64_t>(n, 16);
@@ -387,7 +425,7 @@ DistillResult run_warmup(const DistillJob& job) {
   };
   DistillResult result;
   result.clips = n;
-  result.fixed_batch_loss_start = fixed_batch_loss();
+  result.fixed_batch_loss_start = group.main() ? fixed_batch_loss() : std::nan("");
 
   LoopOptions loop;
   loop.name = "distill warm-up";
@@ -406,23 +444,31 @@ DistillResult run_warmup(const DistillJob& job) {
   const auto run = run_training_loop(
       loop, start_step,
       [&](const LoopStep& info) {
+        // The whole step's draws on every rank (they are small), in the order of a plain run; each
+        // rank then trains on its rows of the batch, so any split of the batch is the same step.
         auto gen = step_generator(job.seed, info.index);
         const auto idx = draw_trajectories(mixture, copies, job.batch_size, gen);
         const auto pts = trajectories.points.index_select(0, idx),
                    acts = trajectories.actions.index_select(0, idx);
-        const auto s = trainer.step_loss([&](models::ActionDitImpl& net) {
-          return warmup_loss(net, pts, acts, trajectories.timesteps, settings.window_frames, gen,
-                             settings.sink_frames);
-        });
+        const auto point_index = torch::randint(pts.size(1), {pts.size(0), pts.size(3)}, gen, torch::kLong);
+        const auto s = trainer.step_loss(
+            [&](models::ActionDitImpl& net, int64_t j) {
+              const int64_t row = shards.row_offset(j), m = shards.micro_batch;
+              return warmup_loss_at(net, pts.narrow(0, row, m), acts.narrow(0, row, m),
+                                    trajectories.timesteps, settings.window_frames,
+                                    point_index.narrow(0, row, m), settings.sink_frames);
+            },
+            shards.accumulate);
         recent.push_back(s.loss);
         if (recent.size() > 20) recent.pop_front();
         if (info.index + 1 - start_step == std::min<int64_t>(20, job.steps - start_step))
           result.first_loss = recent_mean();
         std::ostringstream note;
         note << "loss " << s.loss;
-        return StepRecord{{s.loss, s.grad_norm, s.lr, info.saves ? fixed_batch_loss() : std::nan("")},
-                          job.batch_size,
-                          note.str()};
+        return StepRecord{
+            {s.loss, s.grad_norm, s.lr, info.saves && group.main() ? fixed_batch_loss() : std::nan("")},
+            job.batch_size,
+            note.str()};
       },
       [&](int64_t, bool) {
         trainer.save(ckpt_dir, {{"stage", "warmup"},
@@ -430,7 +476,7 @@ DistillResult run_warmup(const DistillJob& job) {
                                 {"trajectories", trajectory_settings},
                                 {"mixture", mixture_record}});
       });
-  if (run.end_step == run.start_step && !resuming)
+  if (run.end_step == run.start_step && !resuming && group.main())
     trainer.save(ckpt_dir, {{"stage", "warmup"},
                             {"clips", n},
                             {"trajectories", trajectory_settings},
@@ -438,7 +484,7 @@ DistillResult run_warmup(const DistillJob& job) {
   result.steps = trainer.steps_done();
   result.last_loss = recent_mean();
   if (result.first_loss == 0) result.first_loss = result.last_loss;
-  result.fixed_batch_loss_end = fixed_batch_loss();
+  result.fixed_batch_loss_end = group.main() ? fixed_batch_loss() : std::nan("");
   result.seconds = run.seconds;
   const nlohmann::json summary = {{"stage", "warmup"},
                                   {"steps", result.steps},
@@ -451,7 +497,7 @@ DistillResult run_warmup(const DistillJob& job) {
                                   {"seconds", result.seconds},
                                   {"student", settings.to_json()},
                                   {"options", job.options.to_json()}};
-  write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
+  if (group.main()) write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
   return result;
 }
 
@@ -465,6 +511,8 @@ DistillResult run_self_forcing(const DistillJob& job) {
   TimeBudget budget(job.time_budget_s);
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint", critic_dir = job.out / "critic";
+  auto& group = data_parallel();
+  const auto shards = BatchShards::plan(job.batch_size, job.accumulate, group, "distill");
   const auto data = teacher_data(job, static_cast<int>(1 + 4 * (sf.max_frames - 1)), "latents-long");
   std::optional<ScopedThreads> matmul_bound;
   if (job.matmul_threads > 0) matmul_bound.emplace(job.matmul_threads);
@@ -535,6 +583,8 @@ DistillResult run_self_forcing(const DistillJob& job) {
     critic.resume(critic_dir);
     LOG_INFO("distill: resumed self-forcing at iteration ", generator.steps_done() + critic.steps_done());
   }
+  group.check_same("the iteration to resume from",
+                   std::to_string(generator.steps_done() + critic.steps_done()));
 
   // Fixed clips: the EMA student's full-length rollouts against the clips' own latents.
   const int64_t probe = std::min<int64_t>(n, 4);
@@ -551,7 +601,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
   };
   DistillResult result;
   result.clips = n;
-  result.fixed_batch_loss_start = fixed_batch_loss();
+  result.fixed_batch_loss_start = group.main() ? fixed_batch_loss() : std::nan("");
 
   LoopOptions loop;
   loop.name = "distill self-forcing";
@@ -584,27 +634,36 @@ DistillResult run_self_forcing(const DistillJob& job) {
         const auto window_noise = torch::randn({x.size(0), x.size(1), 1 + L, x.size(3), x.size(4)}, g);
         const auto window_actions = acts.narrow(1, 4 * (first_scored - 1), 4 * L);
         const bool generator_phase = info.index % (sf.critic_steps + 1) == 0;
+        // Every rank drew the whole step above (in a plain run's order) and runs its rows of it.
+        const int64_t m = shards.micro_batch;
+        const auto rows = [&](const torch::Tensor& t, int64_t j) {
+          return t.narrow(0, shards.row_offset(j), m);
+        };
         WmStepStats s;
         if (generator_phase) {
-          s = generator.step_loss([&](models::ActionDitImpl& net) {
-            const auto rolled =
-                student_rollout(net, student, x.narrow(2, 0, 1), acts, noise, exit_hop, first_scored);
-            return dmd_generator_loss(*teacher, *critic.net(), rolled.narrow(2, first_scored - 1, 1 + L),
-                                      window_actions, sigma, window_noise);
-          });
+          s = generator.step_loss(
+              [&](models::ActionDitImpl& net, int64_t j) {
+                const auto rolled = student_rollout(net, student, rows(x, j).narrow(2, 0, 1), rows(acts, j),
+                                                    rows(noise, j), exit_hop, first_scored);
+                return dmd_generator_loss(*teacher, *critic.net(), rolled.narrow(2, first_scored - 1, 1 + L),
+                                          rows(window_actions, j), rows(sigma, j), rows(window_noise, j));
+              },
+              shards.accumulate);
           recent_generator.push_back(s.loss);
           if (recent_generator.size() > 10) recent_generator.pop_front();
         } else {
-          torch::Tensor rolled;
-          {
-            torch::NoGradGuard no_grad;
-            rolled =
-                student_rollout(*generator.net(), student, x.narrow(2, 0, 1), acts, noise, exit_hop, frames);
-          }
-          s = critic.step_loss([&](models::ActionDitImpl& net) {
-            return critic_loss(net, rolled.narrow(2, first_scored - 1, 1 + L), window_actions, sigma,
-                               window_noise);
-          });
+          s = critic.step_loss(
+              [&](models::ActionDitImpl& net, int64_t j) {
+                torch::Tensor rolled;
+                {
+                  torch::NoGradGuard no_grad;
+                  rolled = student_rollout(*generator.net(), student, rows(x, j).narrow(2, 0, 1),
+                                           rows(acts, j), rows(noise, j), exit_hop, frames);
+                }
+                return critic_loss(net, rolled.narrow(2, first_scored - 1, 1 + L), rows(window_actions, j),
+                                   rows(sigma, j), rows(window_noise, j));
+              },
+              shards.accumulate);
           recent_critic.push_back(s.loss);
           if (recent_critic.size() > 40) recent_critic.pop_front();
         }
@@ -613,7 +672,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
         const double nan = std::nan("");
         return StepRecord{{generator_phase ? s.loss : nan, generator_phase ? nan : s.loss, s.grad_norm,
                            static_cast<double>(exit_hop), static_cast<double>(frames),
-                           info.saves ? fixed_batch_loss() : nan},
+                           info.saves && group.main() ? fixed_batch_loss() : nan},
                           job.batch_size,
                           note.str()};
       },
@@ -626,7 +685,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
       });
   result.steps = generator.steps_done() + critic.steps_done();
   result.first_loss = result.last_loss = mean_of(recent_generator);
-  result.fixed_batch_loss_end = fixed_batch_loss();
+  result.fixed_batch_loss_end = group.main() ? fixed_batch_loss() : std::nan("");
   result.seconds = run.seconds;
   const nlohmann::json summary = {{"stage", "self-forcing"},
                                   {"iterations", result.steps},
@@ -641,7 +700,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
                                   {"seconds", result.seconds},
                                   {"student", student.to_json()},
                                   {"options", sf.to_json()}};
-  write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
+  if (group.main()) write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
   return result;
 }
 

@@ -73,6 +73,11 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
 torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& points,
                           const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
                           int64_t window_frames, torch::Generator generator, int64_t sink_frames = 0);
+// The same with the points chosen: point_index [B, T] (frame 0's the clean one, P - 1), as
+// warmup_loss draws it with torch::randint(P, {B, T}, generator).
+torch::Tensor warmup_loss_at(models::ActionDitImpl& student, const torch::Tensor& points,
+                             const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
+                             int64_t window_frames, torch::Tensor point_index, int64_t sink_frames = 0);
 
 // A warm-up batch's trajectory indices: trajectory j is clip j % N under copy j / N's actions
 // (N = the mixture's clips, `copies` per clip). Weighted: the clip from `mixture`, the copy
@@ -101,7 +106,8 @@ struct DistillJob {
   models::LoraConfig lora;
   TrajectorySpec trajectories;
   WmTrainOptions options;  // lr, weight decay, clipping, EMA (flow-matching fields unused)
-  int batch_size = 8;
+  int batch_size = 8;      // the global batch of a step, over every process
+  int64_t accumulate = 1;  // micro-batches per step and process (data_parallel.h)
   int64_t steps = 1000;
   double time_budget_s = 0;
   int64_t save_every = 200;

@@ -12,6 +12,7 @@
 #include "core/progress.h"
 #include "core/state_dict.h"
 #include "models/wan_vae.h"
+#include "train/data_parallel.h"
 #include "train/train_loop.h"
 #include "train/train_util.h"
 
@@ -35,9 +36,12 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint";
   std::vector<LatentClips> sets;
-  for (size_t i = 0; i < job.data.size(); ++i)
-    sets.push_back(
-        load_or_build_latent_clips(job.data[i], job.out / ("latents-" + std::to_string(i) + ".safetensors")));
+  // Rank 0 encodes the latent caches; the other ranks read them once they are written.
+  data_parallel().main_first("the latent caches", [&] {
+    for (size_t i = 0; i < job.data.size(); ++i)
+      sets.push_back(load_or_build_latent_clips(job.data[i],
+                                                job.out / ("latents-" + std::to_string(i) + ".safetensors")));
+  });
   const auto clips = concat_latent_clips(sets);  // latents [N, 16, 4, h, w]
   const int64_t n = clips.size(), heldout = std::max<int64_t>(1, n / 10), train_n = n - heldout;
   DOJO_CHECK(train_n > 0, "fast decoder: need at least 2 clips");
@@ -86,13 +90,15 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
   loop.lr = job.lr;
   loop.cosine = true;
   loop.seed = job.seed;
+  loop.batch_size = job.batch_size;
+  loop.accumulate = job.accumulate;
   loop.extra_columns = {"heldout_psnr"};
   const auto run = run_adamw_loop(
       *decoder, loop, [&] { return models::fast_decoder_checkpoint(*decoder); },
-      [&](const LoopStep& s, torch::Generator& gen) {
-        const auto idx = torch::randint(train_n, {job.batch_size}, gen, torch::kLong);
+      [&](const LoopStep& s, int64_t batch, torch::Generator& gen) {
+        const auto idx = torch::randint(train_n, {batch}, gen, torch::kLong);
         const auto loss = (decoder->decode(clips.latents.index_select(0, idx)) - target(idx)).pow(2).mean();
-        return AdamwStep{loss, job.batch_size, {s.saves ? heldout_psnr() : std::nan("")}};
+        return AdamwStep{loss, batch, {s.saves ? heldout_psnr() : std::nan("")}};
       });
   FastDecoderResult r;
   r.steps = run.end_step;
@@ -101,15 +107,16 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
   r.loss = run.loss;
   r.heldout_psnr = heldout_psnr();
   r.seconds = run.seconds;
-  write_file_atomic(job.out / "train_summary.json", nlohmann::json{{"steps", r.steps},
-                                                                   {"clips", r.clips},
-                                                                   {"heldout_clips", r.heldout_clips},
-                                                                   {"loss", r.loss},
-                                                                   {"heldout_psnr_vs_wan", r.heldout_psnr},
-                                                                   {"seconds", r.seconds},
-                                                                   {"config", decoder->config().to_json()}}
-                                                            .dump(2) +
-                                                        "\n");
+  if (data_parallel().main())
+    write_file_atomic(job.out / "train_summary.json", nlohmann::json{{"steps", r.steps},
+                                                                     {"clips", r.clips},
+                                                                     {"heldout_clips", r.heldout_clips},
+                                                                     {"loss", r.loss},
+                                                                     {"heldout_psnr_vs_wan", r.heldout_psnr},
+                                                                     {"seconds", r.seconds},
+                                                                     {"config", decoder->config().to_json()}}
+                                                              .dump(2) +
+                                                          "\n");
   return r;
 }
 

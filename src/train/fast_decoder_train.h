@@ -18,6 +18,7 @@ struct FastDecoderJob {
   std::filesystem::path out;          // out/checkpoint, out/loss.csv, out/latents-<i>.safetensors
   models::FastDecoderConfig model;
   int batch_size = 8;
+  int64_t accumulate = 1;  // micro-batches per step and process (data_parallel.h)
   int64_t steps = 2000;
   double lr = 1e-3;  // AdamW, 50 warm-up steps, cosine to 10% over the steps
   double time_budget_s = 0;

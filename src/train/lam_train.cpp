@@ -15,6 +15,7 @@
 #include "core/state_dict.h"
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
+#include "train/data_parallel.h"
 #include "train/train_loop.h"
 #include "train/train_util.h"
 
@@ -54,25 +55,47 @@ LamTrainer::LamTrainer(models::LatentActionModel model, LamTrainOptions options)
   std::vector<torch::Tensor> params;
   for (auto& p : model_->parameters())
     if (p.requires_grad()) params.push_back(p);  // rotary freqs are frozen
+  // Every data-parallel rank starts from rank 0's weights.
+  auto shared = model_->parameters();
+  for (const auto& b : model_->buffers()) shared.push_back(b);
+  data_parallel().broadcast_from_main(shared);
   optimizer_ = std::make_unique<torch::optim::AdamW>(
       params, torch::optim::AdamWOptions(options_.lr).weight_decay(options_.weight_decay));
 }
 
 LamStepStats LamTrainer::step(const torch::Tensor& videos_in) {
+  return step(std::vector<torch::Tensor>{videos_in});
+}
+
+LamStepStats LamTrainer::step(const std::vector<torch::Tensor>& micro_batches,
+                              const std::vector<uint64_t>& seeds) {
   model_->train();
-  const auto videos = models::to_unit_float(videos_in);
   optimizer_->zero_grad();
-  const auto out = model_->forward(videos);
-  const auto loss = models::lam_loss(out, videos, options_.beta);
-  loss.total.backward();
+  const auto count = static_cast<int64_t>(micro_batches.size());
+  double loss = 0, mse = 0, kl = 0;
+  for (int64_t j = 0; j < count; ++j) {
+    if (!seeds.empty()) torch::manual_seed(seeds[j]);
+    const auto videos = models::to_unit_float(micro_batches[j]);
+    const auto out = model_->forward(videos);
+    const auto l = models::lam_loss(out, videos, options_.beta);
+    // One micro-batch alone is backpropagated unscaled: the step is bit for bit the plain one.
+    (count == 1 ? l.total : l.total / static_cast<double>(count)).backward();
+    loss += l.total.item<double>() / static_cast<double>(count);
+    mse += l.mse.item<double>() / static_cast<double>(count);
+    kl += l.kl.item<double>() / static_cast<double>(count);
+  }
+  auto& group = data_parallel();
+  const auto& params = optimizer_->param_groups()[0].params();
+  group.average_gradients(params);
   LamStepStats s;
   double clip = options_.grad_clip > 0 ? options_.grad_clip : std::numeric_limits<double>::infinity();
-  s.grad_norm = torch::nn::utils::clip_grad_norm_(optimizer_->param_groups()[0].params(), clip);
+  s.grad_norm = torch::nn::utils::clip_grad_norm_(params, clip);
   optimizer_->step();
   ++steps_;
-  s.loss = loss.total.item<double>();
-  s.mse = loss.mse.item<double>();
-  s.kl = loss.kl.item<double>();
+  const auto means = group.mean({loss, mse, kl});
+  s.loss = means[0];
+  s.mse = means[1];
+  s.kl = means[2];
   s.psnr = -10.0 * std::log10(std::max(s.mse, 1e-12));
   return s;
 }
@@ -136,11 +159,21 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   auto mixture = std::make_shared<data::ClipMixture>();
   for (const auto& [dir, weight] : job.datasets)
     mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(dir), clip, "train"), weight);
+  auto& group = data_parallel();
+  group.check_same("the step to resume from", std::to_string(trainer.steps_done()));
+  const auto shards = BatchShards::plan(job.batch_size, job.accumulate, group, "lam train");
   data::LoaderOptions lo;
-  lo.batch_size = job.batch_size;
+  lo.batch_size = static_cast<int>(shards.micro_batch);
   lo.workers = job.workers;
   lo.seed = job.seed;
-  data::PrefetchLoader loader(mixture, lo, trainer.steps_done());
+  // This rank's micro-batches of each step: a run of `accumulate` batches out of every `shards`.
+  lo.stream_every = shards.shards();
+  lo.stream_first = shards.rank * shards.accumulate;
+  lo.stream_run = shards.accumulate;
+  data::PrefetchLoader loader(mixture, lo, trainer.steps_done() * shards.accumulate);
+  // One process, one micro-batch: the augmentation stream of a plain run. A split batch draws
+  // each micro-batch's augmentation and posterior sample from its own (seed, stream index).
+  const bool split = shards.shards() > 1;
   torch::Generator aug_gen = at::make_generator<at::CPUGeneratorImpl>(job.seed + 7919 * trainer.steps_done());
 
   LoopOptions loop;
@@ -153,14 +186,23 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   LamStepStats last;
   const auto run = run_training_loop(
       loop, trainer.steps_done(),
-      [&](const LoopStep&) {
-        const auto batch = loader.next();
+      [&](const LoopStep& info) {
+        std::vector<torch::Tensor> micro;
+        std::vector<uint64_t> seeds;
+        for (int64_t j = 0; j < shards.accumulate; ++j) {
+          const auto batch = loader.next();
+          const auto index = shards.stream_index(info.index, j);
+          auto gen = split ? step_generator(job.seed + 7919, index) : aug_gen;
+          micro.push_back(augment_brightness(models::to_unit_float(batch.video.slice(1, 0, 2)),
+                                             job.options.brightness, gen));
+          if (split)
+            seeds.push_back(job.seed * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(index) * 2654435761ULL +
+                            17);
+        }
         const auto t0 = std::chrono::steady_clock::now();
-        const auto videos = augment_brightness(models::to_unit_float(batch.video.slice(1, 0, 2)),
-                                               job.options.brightness, aug_gen);
-        last = trainer.step(videos);
+        last = trainer.step(micro, seeds);
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        const int64_t clips = batch.video.size(0);
+        const int64_t clips = job.batch_size;
         std::ostringstream note;
         note << "loss " << last.loss << " psnr " << last.psnr;
         return StepRecord{

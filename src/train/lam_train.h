@@ -38,6 +38,11 @@ class LamTrainer {
   // videos: [B, T >= 2, H, W, 3], float in [0, 1] or uint8. One AdamW step on them (no
   // augmentation here; see augment_brightness).
   LamStepStats step(const torch::Tensor& videos);
+  // One AdamW step on this process's micro-batches of a step: gradients accumulated over them and
+  // averaged over the data-parallel ranks (data_parallel.h). With `seeds`, the model's own draws
+  // (the posterior sample) for micro-batch j come from a generator seeded with seeds[j], so a split
+  // of the batch draws what the whole batch would. Statistics are means over the global batch.
+  LamStepStats step(const std::vector<torch::Tensor>& micro_batches, const std::vector<uint64_t>& seeds = {});
   int64_t steps_done() const { return steps_; }
   models::LatentActionModel& model() { return model_; }
   const LamTrainOptions& options() const { return options_; }
@@ -65,8 +70,9 @@ struct LamTrainJob {
   std::filesystem::path out;  // checkpoint "out/checkpoint", loss curve "out/loss.csv"
   models::LamConfig model = models::LamConfig::small();
   LamTrainOptions options;
-  int batch_size = 8;
-  int64_t steps = 1000;  // total steps (a resumed job continues up to this)
+  int batch_size = 8;      // the global batch of a step, over every process
+  int64_t accumulate = 1;  // micro-batches per step and process (data_parallel.h)
+  int64_t steps = 1000;    // total steps (a resumed job continues up to this)
   int64_t save_every = 200;
   int workers = 1;
   uint64_t seed = 0;

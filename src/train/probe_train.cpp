@@ -49,15 +49,17 @@ ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
   loop.save_every = job.save_every;
   loop.lr = job.lr;
   loop.seed = job.seed;
+  loop.batch_size = job.batch_size;
+  loop.accumulate = job.accumulate;
   const auto run = run_adamw_loop(
       *probe, loop, [&] { return models::keypoint_probe_checkpoint(*probe); },
-      [&](const LoopStep&, torch::Generator& gen) {
+      [&](const LoopStep&, int64_t batch, torch::Generator& gen) {
         // The batch, its augmentation and nothing else depend on (seed, step).
-        const auto idx = torch::randint(n, {job.batch_size}, gen, torch::kLong);
+        const auto idx = torch::randint(n, {batch}, gen, torch::kLong);
         auto images = frames.frames.index_select(0, idx).permute({0, 3, 1, 2}).to(torch::kFloat32).div(255.0);
         const auto target = targets.index_select(0, idx);
         images = soften_like_generated(images, job.blur_probability, job.brightness, gen);
-        return AdamwStep{keypoint_probe_loss(probe->forward(images), target), job.batch_size, {}};
+        return AdamwStep{keypoint_probe_loss(probe->forward(images), target), batch, {}};
       });
   ProbeTrainResult r;
   r.steps = run.end_step;

@@ -20,7 +20,8 @@ struct ProbeTrainJob {
   std::filesystem::path out;  // out/checkpoint, out/loss.csv
   models::KeypointProbeConfig model;
   int batch_size = 32;
-  int64_t steps = 1500;  // total (a resumed job continues up to this)
+  int64_t accumulate = 1;  // micro-batches per step and process (data_parallel.h)
+  int64_t steps = 1500;    // total (a resumed job continues up to this)
   double time_budget_s = 0;
   int64_t save_every = 250;
   double lr = 2e-3;               // AdamW, linear warm-up over the first 50 steps

@@ -156,14 +156,16 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
   loop.save_every = job.save_every;
   loop.lr = job.lr;
   loop.seed = job.seed;
-  const int64_t half = job.batch_size / 2;
+  loop.batch_size = job.batch_size;
+  loop.accumulate = job.accumulate;
   const auto run = run_adamw_loop(
       *detector, loop, [&] { return models::success_detector_checkpoint(*detector); },
-      [&](const LoopStep&, torch::Generator& gen) {
+      [&](const LoopStep&, int64_t batch, torch::Generator& gen) {
         // Half the batch success windows, half failures; everything depends on (seed, step).
-        const auto pick = torch::cat(
-            {positive.index_select(0, torch::randint(positive.numel(), {half}, gen)),
-             negative.index_select(0, torch::randint(negative.numel(), {job.batch_size - half}, gen))});
+        const int64_t half = batch / 2;
+        const auto pick =
+            torch::cat({positive.index_select(0, torch::randint(positive.numel(), {half}, gen)),
+                        negative.index_select(0, torch::randint(negative.numel(), {batch - half}, gen))});
         const auto episode = train_windows.episode.index_select(0, pick);
         const auto end = train_windows.end.index_select(0, pick);
         const auto target = train_windows.label.index_select(0, pick);  // [B]

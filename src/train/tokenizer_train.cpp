@@ -12,6 +12,7 @@
 #include "core/state_dict.h"
 #include "data/clip_loader.h"
 #include "data/episode_store.h"
+#include "train/data_parallel.h"
 #include "train/train_loop.h"
 #include "train/train_util.h"
 
@@ -133,6 +134,13 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
   const int64_t start = checkpoints && o.resume && checkpoint_exists(o.checkpoint_dir)
                             ? resume_training(o.checkpoint_dir, vae, opt)
                             : 0;
+  auto& group = data_parallel();
+  group.check_same("the step to resume from", std::to_string(start));
+  auto shared = vae->parameters();
+  for (const auto& b : vae->buffers()) shared.push_back(b);
+  group.broadcast_from_main(shared);
+  const int64_t accumulate = std::max<int64_t>(1, o.accumulate);
+  const int64_t shards = group.world() * accumulate;
   auto image_batch = [&](int64_t step) {
     if (o.next_image_batch) return o.next_image_batch(step);
     const auto clips = next_batch(step);  // [B, 3, T, H, W]
@@ -157,31 +165,49 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
       [&](const LoopStep& s) {
         const bool images = std::max(static_cast<double>(s.index) / static_cast<double>(o.steps),
                                      s.budget_fraction) < o.image_fraction;
-        const auto video = random_spatial_crop(images ? image_batch(s.index) : next_batch(s.index), o.crop,
-                                               static_cast<uint64_t>(s.index));
         const double lr = tokenizer_lr(o, s.index, s.budget_fraction);
         for (auto& group : opt.param_groups())
           static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
-        auto loss = tokenizer_loss(vae, video, o);
         opt.zero_grad();
-        loss.total.backward();
+        double recon = 0, kl = 0;
+        int64_t frames = 0;
+        for (int64_t j = 0; j < accumulate; ++j) {
+          // Micro-batch j of this rank: its crop (and, split, its posterior draws) follow its
+          // stream index; one process with one micro-batch keeps the plain run's draws.
+          const int64_t index = s.index * shards + group.rank() * accumulate + j;
+          if (shards > 1)
+            torch::manual_seed(0x70CE11ULL * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(index));
+          const auto video = random_spatial_crop(images ? image_batch(s.index) : next_batch(s.index), o.crop,
+                                                 static_cast<uint64_t>(index));
+          auto loss = tokenizer_loss(vae, video, o);
+          (accumulate == 1 ? loss.total : loss.total / static_cast<double>(accumulate)).backward();
+          recon += loss.mse.item<double>() / static_cast<double>(accumulate);
+          kl += loss.kl.item<double>() / static_cast<double>(accumulate);
+          frames += video.size(0) * video.size(2);
+        }
+        group.average_gradients(params);
         if (o.grad_clip > 0) torch::nn::utils::clip_grad_norm_(params, o.grad_clip);
         opt.step();
-        const double recon = loss.mse.item<double>(), kl = loss.kl.item<double>();
+        const auto means = group.mean({recon, kl});
+        recon = means[0];
+        kl = means[1];
         if (first) result.first_loss = recon, first = false;
         result.last_loss = recon;
         char note[96];
         std::snprintf(note, sizeof note, "%s mse %.5f kl %.3f lr %.2g", images ? "images" : "clips", recon,
                       kl, lr);
-        const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        return StepRecord{{recon, kl, seconds, images ? 1.0 : 0.0}, video.size(0) * video.size(2), note};
-      },
-      [&](int64_t steps_done, bool last) {
-        if (last && o.stats_batches > 0) {
+        // After the last step, before its save: the latent normalisation from stats_batches batches
+        // (each rank its share of them, the sums added over the ranks).
+        if (s.last && o.stats_batches > 0) {
           std::vector<torch::Tensor> videos;
-          for (int64_t i = 0; i < o.stats_batches; ++i) videos.push_back(next_batch(o.steps + i));
-          fit_latent_stats(vae, videos);
+          for (int64_t i = 0; i < o.stats_batches * accumulate; ++i)
+            videos.push_back(next_batch(o.steps + i));
+          fit_latent_stats(vae, videos, group);
         }
+        const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        return StepRecord{{recon, kl, seconds, images ? 1.0 : 0.0}, frames * group.world(), note};
+      },
+      [&](int64_t steps_done, bool) {
         if (checkpoints) save_training_checkpoint(o.checkpoint_dir, vae, opt, steps_done, o.trainer_extra);
       });
   result.steps_done = run.end_step;
@@ -192,7 +218,7 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
 
 TokenizerBatches tokenizer_batches(const std::vector<TokenizerDataset>& datasets,
                                    const data::ClipConfig& clip, int clip_batch, int image_batch, int workers,
-                                   uint64_t seed) {
+                                   uint64_t seed, int64_t accumulate) {
   auto mixture = [&](int frames) {
     auto m = std::make_shared<data::ClipMixture>();
     data::ClipConfig c = clip;
@@ -202,19 +228,53 @@ TokenizerBatches tokenizer_batches(const std::vector<TokenizerDataset>& datasets
     return m;
   };
   // One lazily started loader per stream; shared_ptr so the std::function copies share it.
-  auto stream = [workers](std::shared_ptr<data::ClipMixture> m, int batch, uint64_t stream_seed) {
+  // One lazily started loader per stream; shared_ptr so the std::function copies share it. A
+  // rank's loader hands out its runs of micro-batches of the whole stream (BatchShards).
+  auto& group = data_parallel();
+  auto stream = [workers](std::shared_ptr<data::ClipMixture> m, const BatchShards& shards,
+                          uint64_t stream_seed) {
     auto loader = std::make_shared<std::unique_ptr<data::PrefetchLoader>>();
+    data::LoaderOptions lo{static_cast<int>(shards.micro_batch), workers, 4, stream_seed};
+    lo.stream_every = shards.shards();
+    lo.stream_first = shards.rank * shards.accumulate;
+    lo.stream_run = shards.accumulate;
     return [=](int64_t step) {
-      if (!*loader)
-        *loader = std::make_unique<data::PrefetchLoader>(
-            m, data::LoaderOptions{batch, workers, 4, stream_seed}, step);
+      if (!*loader) *loader = std::make_unique<data::PrefetchLoader>(m, lo, step * lo.stream_run);
       return models::video_to_model((*loader)->next().video);  // [B, 3, T, H, W]
     };
   };
   TokenizerBatches b;
-  b.clips = stream(mixture(clip.num_frames), clip_batch, seed);
-  b.images = stream(mixture(1), image_batch, seed ^ 0x9e3779b97f4a7c15ULL);
+  b.clips = stream(mixture(clip.num_frames),
+                   BatchShards::plan(clip_batch, accumulate, group, "tokenizer train"), seed);
+  b.images = stream(mixture(1), BatchShards::plan(image_batch, accumulate, group, "tokenizer train (images)"),
+                    seed ^ 0x9e3779b97f4a7c15ULL);
   return b;
+}
+
+void fit_latent_stats(WanVae& vae, const std::vector<torch::Tensor>& videos, DataParallel& group) {
+  if (!group.active()) return fit_latent_stats(vae, videos);
+  // Count, sum and sum of squares per latent channel, added over the ranks: the statistics of
+  // every rank's batches together.
+  torch::NoGradGuard no_grad;
+  const int64_t z = vae->config().z_dim;
+  auto sums = torch::zeros({2 * z + 1}, torch::kFloat64);
+  for (const auto& v : videos) {
+    const auto mu = vae->encode(v, false).mu.transpose(0, 1).reshape({z, -1}).to(torch::kFloat64);  // [z, n]
+    sums.narrow(0, 0, z).add_(mu.sum(1));
+    sums.narrow(0, z, z).add_(mu.pow(2).sum(1));
+    sums[2 * z] += static_cast<double>(mu.size(1));
+  }
+  std::vector<double> local(sums.data_ptr<double>(), sums.data_ptr<double>() + sums.numel());
+  auto total = group.mean(local);
+  for (auto& t : total) t *= group.world();
+  const double n = total[static_cast<size_t>(2 * z)];
+  std::vector<double> mean(static_cast<size_t>(z)), stdv(static_cast<size_t>(z));
+  for (int64_t c = 0; c < z; ++c) {
+    mean[c] = total[c] / n;
+    const double var = (total[z + c] - n * mean[c] * mean[c]) / std::max(1.0, n - 1);
+    stdv[c] = std::max(std::sqrt(std::max(var, 0.0)), 1e-6);
+  }
+  vae->set_latent_stats(mean, stdv);
 }
 
 void fit_latent_stats(WanVae& vae, const std::vector<torch::Tensor>& videos) {

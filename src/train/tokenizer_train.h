@@ -20,6 +20,8 @@
 
 namespace dojo::train {
 
+class DataParallel;
+
 struct TokenizerTrainOptions {
   int64_t steps = 1000;
   double lr = 1e-3;
@@ -62,7 +64,10 @@ struct TokenizerTrainOptions {
   double image_fraction = 0;
   // Image batches [N, 3, 1, H, W] for that phase; unset: every frame of next_batch's clips.
   std::function<torch::Tensor(int64_t)> next_image_batch;
-  double time_budget_s = 0;          // stop early (fit stats, checkpoint) after this long; 0: none
+  double time_budget_s = 0;  // stop early (fit stats, checkpoint) after this long; 0: none
+  // Micro-batches per step and process (data_parallel.h): next_batch is called this many times a
+  // step, gradients accumulate, then are averaged over the ranks.
+  int64_t accumulate = 1;
   std::filesystem::path loss_curve;  // CSV "step,recon,kl,seconds,images" when set
 };
 
@@ -122,12 +127,17 @@ struct TokenizerDataset {
 struct TokenizerBatches {
   std::function<torch::Tensor(int64_t)> clips, images;
 };
+// Under data parallelism (data_parallel.h) the batches are this process's micro-batches
+// (clip_batch and image_batch are global: split over world x accumulate, the same `accumulate` as
+// TokenizerTrainOptions::accumulate), each call handing out the next one.
 TokenizerBatches tokenizer_batches(const std::vector<TokenizerDataset>& datasets,
                                    const data::ClipConfig& clip, int clip_batch, int image_batch, int workers,
-                                   uint64_t seed);
+                                   uint64_t seed, int64_t accumulate = 1);
 
 // Per-channel mean/std of mu over the given videos, written into the config used for
 // normalisation (a freshly trained model's latents do not follow the published constants).
 void fit_latent_stats(models::WanVae& vae, const std::vector<torch::Tensor>& videos);
+// The same over every data-parallel rank's videos (data_parallel.h); the plain fit in a world of 1.
+void fit_latent_stats(models::WanVae& vae, const std::vector<torch::Tensor>& videos, DataParallel& group);
 
 }  // namespace dojo::train

@@ -7,6 +7,7 @@
 
 #include "core/log.h"
 #include "core/progress.h"
+#include "train/data_parallel.h"
 #include "train/train_util.h"
 
 namespace dojo::train {
@@ -43,7 +44,9 @@ LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
   if (start_step >= o.steps) return result;
 
   const auto start = std::chrono::steady_clock::now();
-  const bool main = o.main_process;
+  // Under data parallelism only rank 0 draws, writes and saves; every rank runs the same steps.
+  auto& group = data_parallel();
+  const bool main = o.main_process && group.main();
   std::optional<LossCurve> curve;
   if (main && !o.loss_curve.empty()) curve.emplace(o.loss_curve, curve_header(o.columns), start_step);
   std::optional<Progress> progress;
@@ -51,16 +54,21 @@ LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
     progress.emplace(o.name, o.steps - start_step, "step");
     progress->set_time_budget(o.time_budget_s);
   }
-  auto elapsed = [&] { return seconds_between(start, std::chrono::steady_clock::now()); };
-  auto out_of_time = [&] { return o.time_budget_s > 0 && elapsed() >= o.time_budget_s; };
+  // With a time budget the ranks share one clock (the mean of theirs), so all of them make the
+  // same step the last one and no rank waits in a collective for a peer that has stopped.
+  auto elapsed = [&] {
+    const double mine = seconds_between(start, std::chrono::steady_clock::now());
+    return o.time_budget_s > 0 ? group.mean({mine})[0] : mine;
+  };
 
   int64_t timed_items = 0;
   double timed_seconds = 0;
   for (int64_t s = start_step; s < o.steps; ++s) {
     LoopStep info;
     info.index = s;
-    info.budget_fraction = o.time_budget_s > 0 ? std::min(1.0, elapsed() / o.time_budget_s) : 0.0;
-    result.out_of_time = out_of_time();
+    const double now = elapsed();
+    info.budget_fraction = o.time_budget_s > 0 ? std::min(1.0, now / o.time_budget_s) : 0.0;
+    result.out_of_time = o.time_budget_s > 0 && now >= o.time_budget_s;
     info.last = s + 1 == o.steps || result.out_of_time;
     info.saves = info.last || (o.save_every > 0 && (s + 1) % o.save_every == 0);
 
@@ -84,7 +92,7 @@ LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
   if (progress) progress->finish();
   if (result.out_of_time)
     LOG_INFO(o.name, ": time budget of ", o.time_budget_s, " s reached at step ", result.end_step);
-  result.seconds = elapsed();
+  result.seconds = seconds_between(start, std::chrono::steady_clock::now());
   result.items_per_second = timed_seconds > 0 ? static_cast<double>(timed_items) / timed_seconds : 0;
   return result;
 }

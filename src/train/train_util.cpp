@@ -13,6 +13,7 @@
 #include "core/error.h"
 #include "core/log.h"
 #include "core/state_dict.h"
+#include "train/data_parallel.h"
 #include "train/train_loop.h"
 
 namespace dojo::train {
@@ -157,16 +158,22 @@ torch::Tensor soften_like_generated(const torch::Tensor& images, double blur_pro
 
 AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
                         const std::function<CheckpointData()>& checkpoint,
-                        const std::function<AdamwStep(const LoopStep&, torch::Generator&)>& step,
+                        const std::function<AdamwStep(const LoopStep&, int64_t, torch::Generator&)>& step,
                         const std::function<void(int64_t)>& after_step) {
+  auto& group = data_parallel();
+  const auto shards = BatchShards::plan(loop.batch_size, loop.accumulate, group, loop.name);
   const auto ckpt_dir = loop.out / "checkpoint";
-  torch::optim::AdamW opt(model.parameters(),
-                          torch::optim::AdamWOptions(loop.lr).weight_decay(loop.weight_decay));
+  const auto params = model.parameters();
+  torch::optim::AdamW opt(params, torch::optim::AdamWOptions(loop.lr).weight_decay(loop.weight_decay));
   int64_t start = 0;
   if (checkpoint_exists(ckpt_dir)) {
     start = resume_with_adamw(ckpt_dir, model, loop.prefix, opt);
     LOG_INFO(loop.name, ": resumed from ", ckpt_dir.string(), " at step ", start);
   }
+  group.check_same(loop.name + " start step", std::to_string(start));
+  auto shared = params;
+  for (const auto& b : model.buffers()) shared.push_back(b);
+  group.broadcast_from_main(shared);
   model.train();
 
   LoopOptions options;
@@ -182,7 +189,6 @@ AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
   const auto run = run_training_loop(
       options, start,
       [&](const LoopStep& s) {
-        auto gen = step_generator(loop.seed, s.index);
         const double warm = std::min(1.0, static_cast<double>(s.index + 1) /
                                               static_cast<double>(std::max<int64_t>(1, loop.warmup_steps)));
         const double progress = std::min(
@@ -190,19 +196,33 @@ AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
         const double lr = loop.lr * warm * (loop.cosine ? 0.1 + 0.45 * (1 + std::cos(M_PI * progress)) : 1.0);
         for (auto& group : opt.param_groups())
           static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
-        const auto r = step(s, gen);
         opt.zero_grad();
-        r.loss.backward();
+        // This rank's micro-batches of the step; each draws its batch and noise from its own
+        // (seed, stream index), so the split does not change what the whole world trains on.
+        double loss_sum = 0;
+        int64_t items = 0;
+        std::vector<double> extra;
+        for (int64_t j = 0; j < shards.accumulate; ++j) {
+          auto gen = step_generator(loop.seed, shards.stream_index(s.index, j));
+          const auto r = step(s, shards.micro_batch, gen);
+          (shards.accumulate == 1 ? r.loss : r.loss / static_cast<double>(shards.accumulate)).backward();
+          loss_sum += r.loss.item<double>();
+          items += r.items;
+          if (extra.empty()) extra.assign(r.extra.size(), 0.0);
+          for (size_t e = 0; e < r.extra.size() && e < extra.size(); ++e)
+            extra[e] += r.extra[e] / static_cast<double>(shards.accumulate);
+        }
+        group.average_gradients(params);
         opt.step();
-        const double value = r.loss.item<double>();
+        const double value = group.mean({loss_sum / static_cast<double>(shards.accumulate)})[0];
         recent.push_back(value);
         if (recent.size() > 20) recent.pop_front();
-        if (after_step) after_step(s.index + 1);
+        if (after_step && group.main()) after_step(s.index + 1);
         std::vector<double> values = {value, lr};
-        values.insert(values.end(), r.extra.begin(), r.extra.end());
+        values.insert(values.end(), extra.begin(), extra.end());
         std::ostringstream note;
         note << "loss " << value;
-        return StepRecord{values, r.items, note.str()};
+        return StepRecord{values, items * shards.world, note.str()};
       },
       [&](int64_t steps_done, bool) { save_with_adamw(ckpt_dir, checkpoint(), opt, model, steps_done); });
   AdamwRun out;

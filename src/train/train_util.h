@@ -83,7 +83,10 @@ int64_t resume_with_adamw(const std::filesystem::path& dir, torch::nn::Module& m
 // `prefix` and the moments, save_with_adamw), a linear warm-up then a constant rate or a cosine
 // decay to a tenth, the loss curve out/loss.csv ("loss", "lr", then `extra_columns`), saves, and
 // the mean loss of the last 20 steps. The model is built by the caller (from the checkpoint's
-// config when resuming) and left in train mode.
+// config when resuming) and left in train mode. Under data parallelism (data_parallel.h) the
+// parameters start from rank 0's, gradients are averaged over the ranks and rank 0 alone saves and
+// runs after_step; the step function gets the micro-batch size to draw and that micro-batch's
+// generator, and `loss` is the mean over the whole global batch.
 struct AdamwLoop {
   std::string name;  // progress label and log prefix, e.g. "probe train"
   std::string unit = "items";
@@ -97,6 +100,10 @@ struct AdamwLoop {
   bool cosine = false;
   uint64_t seed = 0;  // every step draws from step_generator(seed, step): resumes continue the stream
   std::vector<std::string> extra_columns;
+  // The global batch of a step, split into world x accumulate micro-batches (data_parallel.h):
+  // the step function is asked for one micro-batch at a time, drawn from its own generator.
+  int64_t batch_size = 0;
+  int64_t accumulate = 1;
 };
 struct AdamwStep {
   torch::Tensor loss;         // the scalar to minimise
@@ -108,10 +115,10 @@ struct AdamwRun {
   double loss = 0;  // mean of the last 20 steps of this run; NaN when it ran none
   double seconds = 0, items_per_second = 0;
 };
-AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
-                        const std::function<CheckpointData()>& checkpoint,
-                        const std::function<AdamwStep(const LoopStep&, torch::Generator&)>& step,
-                        const std::function<void(int64_t steps_done)>& after_step = {});
+AdamwRun run_adamw_loop(
+    torch::nn::Module& model, const AdamwLoop& loop, const std::function<CheckpointData()>& checkpoint,
+    const std::function<AdamwStep(const LoopStep&, int64_t batch, torch::Generator&)>& step,
+    const std::function<void(int64_t steps_done)>& after_step = {});
 
 // A CSV loss curve: header row plus one row per step, rewritten atomically. Opening an existing
 // file keeps rows up to `resume_step` (rows written after the last checkpoint are dropped, so a

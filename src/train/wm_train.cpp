@@ -19,6 +19,7 @@
 #include "data/actions.h"
 #include "data/episode_source.h"
 #include "data/multi_view.h"
+#include "train/data_parallel.h"
 #include "train/train_loop.h"
 #include "train/train_util.h"
 
@@ -150,6 +151,11 @@ WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options, torch::Devic
   // Moved before the optimiser sees the parameters: Module::to swaps their data in place.
   net_->to(device_);
   ema_->to(device_);
+  // Every data-parallel rank starts from rank 0's weights (a resumed run then loads the same
+  // checkpoint everywhere).
+  auto shared = net_->parameters();
+  for (const auto& b : net_->buffers()) shared.push_back(b);
+  data_parallel().broadcast_from_main(shared);
   // The EMA starts as an exact copy; it never trains.
   load_state_dict(*ema_, state_dict(*net_));
   ema_->eval();
@@ -171,32 +177,54 @@ double WmTrainer::lr_at(int64_t step) const {
 
 WmStepStats WmTrainer::step(const torch::Tensor& x0, const torch::Tensor& actions,
                             torch::Generator generator) {
-  torch::Tensor mse;
-  auto s = step_loss([&](models::ActionDitImpl&) {
-    const auto loss = flow_loss(net_, options_, x0.to(device_), actions.to(device_), generator, precision_);
-    mse = loss.mse;
-    return loss.total;
-  });
-  s.mse = mse.item<double>();
+  return step(std::vector<MicroBatch>{{x0, actions, std::move(generator)}});
+}
+
+WmStepStats WmTrainer::step(const std::vector<MicroBatch>& micro_batches) {
+  std::vector<torch::Tensor> mse(micro_batches.size());
+  auto s = step_loss(
+      [&](models::ActionDitImpl&, int64_t j) {
+        const auto& m = micro_batches[j];
+        const auto loss =
+            flow_loss(net_, options_, m.x0.to(device_), m.actions.to(device_), m.generator, precision_);
+        mse[j] = loss.mse.detach();
+        return loss.total;
+      },
+      static_cast<int64_t>(micro_batches.size()));
+  double mse_sum = 0;
+  for (const auto& m : mse) mse_sum += m.item<double>();
+  s.mse = data_parallel().mean({mse_sum / static_cast<double>(mse.size())})[0];
   s.temporal = options_.flow.temporal_weight > 0 ? (s.loss - s.mse) / options_.flow.temporal_weight : 0.0;
   return s;
 }
 
 WmStepStats WmTrainer::step_loss(const std::function<torch::Tensor(models::ActionDitImpl& net)>& loss_fn) {
+  return step_loss([&](models::ActionDitImpl& net, int64_t) { return loss_fn(net); }, 1);
+}
+
+WmStepStats WmTrainer::step_loss(
+    const std::function<torch::Tensor(models::ActionDitImpl& net, int64_t micro)>& loss_fn, int64_t count) {
   net_->train();
   WmStepStats s;
   s.lr = lr_at(steps_);
   for (auto& group : optimizer_->param_groups())
     static_cast<torch::optim::AdamWOptions&>(group.options()).lr(s.lr);
   optimizer_->zero_grad();
-  const auto loss = loss_fn(*net_);
-  loss.backward();
+  double loss_sum = 0;
+  for (int64_t j = 0; j < count; ++j) {
+    const auto loss = loss_fn(*net_, j);
+    // One micro-batch alone is backpropagated unscaled: the step is bit for bit the plain one.
+    (count == 1 ? loss : loss / static_cast<double>(count)).backward();
+    loss_sum += loss.item<double>();
+  }
+  auto& group = data_parallel();
+  group.average_gradients(params_);
   const double clip = options_.grad_clip > 0 ? options_.grad_clip : std::numeric_limits<double>::infinity();
   s.grad_norm = torch::nn::utils::clip_grad_norm_(params_, clip);
   optimizer_->step();
   ++steps_;
   diffusion::ema_update(ema_params_, params_, diffusion::power_ema_beta(steps_, ema_gamma_));
-  s.loss = s.mse = loss.item<double>();
+  s.loss = s.mse = group.mean({loss_sum / static_cast<double>(count)})[0];
   return s;
 }
 
@@ -365,16 +393,21 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
                                             .value("actions", nlohmann::json::object())
                              : continuing ? init_ranges
                                           : robot_action_ranges(infos);
+  auto& group = data_parallel();
+  const auto shards = BatchShards::plan(job.batch_size, job.accumulate, group, "wm train");
+  // Rank 0 encodes the latent caches; the other ranks read them once they are written.
   std::vector<LatentClips> sets;
-  for (size_t i = 0; i < job.data.size(); ++i) {
-    auto spec = job.data[i];
-    const auto& slot = infos[i].action_slot;
-    if (!slot.empty() && action_ranges.contains(slot))
-      spec.action_stats =
-          data::ArrayStats::from_json(action_ranges[slot], ckpt_dir.string() + ": actions." + slot);
-    sets.push_back(
-        load_or_build_latent_clips(spec, job.out / ("latents-" + std::to_string(i) + ".safetensors")));
-  }
+  group.main_first("the latent caches", [&] {
+    for (size_t i = 0; i < job.data.size(); ++i) {
+      auto spec = job.data[i];
+      const auto& slot = infos[i].action_slot;
+      if (!slot.empty() && action_ranges.contains(slot))
+        spec.action_stats =
+            data::ArrayStats::from_json(action_ranges[slot], ckpt_dir.string() + ": actions." + slot);
+      sets.push_back(
+          load_or_build_latent_clips(spec, job.out / ("latents-" + std::to_string(i) + ".safetensors")));
+    }
+  });
   const auto clips = concat_latent_clips(sets);
   const int64_t n = clips.size();
   std::vector<int64_t> set_sizes;
@@ -423,6 +456,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
     trainer.resume(ckpt_dir);
     LOG_INFO("wm train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
   }
+  group.check_same("the step to resume from", std::to_string(trainer.steps_done()));
 
   // A fixed batch with fixed noise tracks progress without the noise of random batches.
   const int64_t probe = std::min<int64_t>(n, 16);
@@ -453,20 +487,25 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   const auto run = run_training_loop(
       loop, start_step,
       [&](const LoopStep& info) {
-        // Batch and noise of step k depend on (seed, k) only, so a resumed run sees the same stream.
-        auto gen = step_generator(job.seed, info.index);
-        const auto idx = mixture.draw(job.batch_size, gen);
+        // Batch and noise of step k depend on (seed, k) only, so a resumed run sees the same stream;
+        // each micro-batch of the step draws from its own stream index (BatchShards).
+        std::vector<WmTrainer::MicroBatch> micro;
+        for (int64_t j = 0; j < shards.accumulate; ++j) {
+          auto gen = step_generator(job.seed, shards.stream_index(info.index, j));
+          const auto idx = mixture.draw(shards.micro_batch, gen);
+          micro.push_back({clips.latents.index_select(0, idx), clips.actions.index_select(0, idx), gen});
+        }
         const auto t0 = std::chrono::steady_clock::now();
-        const auto s =
-            trainer.step(clips.latents.index_select(0, idx), clips.actions.index_select(0, idx), gen);
+        const auto s = trainer.step(micro);
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         recent.push_back(s.loss);
         if (recent.size() > 20) recent.pop_front();
         // The mean of this run's first 20 losses (or of all of them in a shorter run).
         if (info.index + 1 - start_step == std::min<int64_t>(20, job.steps - start_step))
           result.first_loss = recent_mean();
-        const double probe_loss =
-            info.saves ? trainer.eval_loss(probe_x0, probe_actions, probe_seed) : std::nan("");
+        const double probe_loss = info.saves && group.main()
+                                      ? trainer.eval_loss(probe_x0, probe_actions, probe_seed)
+                                      : std::nan("");
         std::ostringstream note;
         note << "loss " << s.loss;
         return StepRecord{{s.loss, s.mse, s.temporal, s.grad_norm, s.lr, job.batch_size / secs, probe_loss},
@@ -475,7 +514,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
       },
       [&](int64_t, bool) { trainer.save(ckpt_dir, checkpoint_extra); });
   // A job with no steps to run still leaves a checkpoint behind.
-  if (run.end_step == run.start_step && !resuming) trainer.save(ckpt_dir, checkpoint_extra);
+  if (run.end_step == run.start_step && !resuming && group.main()) trainer.save(ckpt_dir, checkpoint_extra);
   result.last_loss = recent_mean();
   if (result.first_loss == 0) result.first_loss = result.last_loss;
   result.steps = trainer.steps_done();
@@ -499,8 +538,10 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
                                   {"seconds", result.seconds},
                                   {"clips_per_second", result.clips_per_second},
                                   {"gflops", result.gflops},
+                                  {"processes", group.world()},
+                                  {"accumulate", job.accumulate},
                                   {"options", job.options.to_json()}};
-  write_file_atomic(job.out / "train_summary.json", summary.dump(2) + "\n");
+  if (group.main()) write_file_atomic(job.out / "train_summary.json", summary.dump(2) + "\n");
   return result;
 }
 

@@ -62,10 +62,22 @@ class WmTrainer {
   // the trainer's). One optimiser step; the noise and time draws come from `generator` (a CPU
   // generator, so a seed gives the same draws on every device).
   WmStepStats step(const torch::Tensor& x0, const torch::Tensor& actions, torch::Generator generator);
+  // One optimiser step on this process's micro-batches of a step (accumulated, then averaged over
+  // the data-parallel ranks, data_parallel.h): each brings its own generator. The statistics are
+  // means over the whole global batch.
+  struct MicroBatch {
+    torch::Tensor x0, actions;
+    torch::Generator generator;
+  };
+  WmStepStats step(const std::vector<MicroBatch>& micro_batches);
   // One optimiser step on any loss of the network (distillation): loss_fn runs the forward pass
   // (the caller picks its precision) and returns a scalar. Learning-rate warm-up, clipping and
   // the EMA update as in step(); WmStepStats::loss and mse are the returned loss.
   WmStepStats step_loss(const std::function<torch::Tensor(models::ActionDitImpl& net)>& loss_fn);
+  // The same over `count` micro-batches: loss_fn(net, j) for j < count, each backward pass scaled
+  // by 1 / count, gradients then averaged over the data-parallel ranks.
+  WmStepStats step_loss(
+      const std::function<torch::Tensor(models::ActionDitImpl& net, int64_t micro)>& loss_fn, int64_t count);
   // Flow-matching loss of the EMA network on a fixed batch and fixed noise (no update).
   double eval_loss(const torch::Tensor& x0, const torch::Tensor& actions, uint64_t seed);
 
@@ -122,7 +134,8 @@ struct WmTrainJob {
   std::filesystem::path init;  // posttrain: the pretrained checkpoint (a post-trained one: continued)
   models::DitConfig model = models::DitConfig::small();
   WmTrainOptions options;
-  int batch_size = 8;
+  int batch_size = 8;        // the global batch of a step, over every process
+  int64_t accumulate = 1;    // micro-batches per step and process (data_parallel.h)
   int64_t steps = 2000;      // total steps (a resumed job continues up to this)
   double time_budget_s = 0;  // wall-clock budget of the job, latent caching included; 0: none
   int64_t save_every = 100;

@@ -64,17 +64,19 @@ TEST(TrainUtil, AdamwLoopResumesExactlyWithItsSchedule) {
     loop.warmup_steps = 3;
     loop.cosine = true;
     loop.seed = 7;
+    loop.batch_size = 4;
     const auto checkpoint = [&] {
       CheckpointData data;
       data.config = {{"model", "linear"}};
       for (const auto& [name, t] : state_dict(*net)) data.model.emplace_back("net." + name, t);
       return data;
     };
-    const auto run = run_adamw_loop(*net, loop, checkpoint, [&](const LoopStep& s, torch::Generator& gen) {
-      if (s.index == crash_at) throw std::runtime_error("crash");
-      const auto x = torch::randn({4, 3}, gen);
-      return AdamwStep{(net(x) - 1).pow(2).mean(), 4, {}};
-    });
+    const auto run =
+        run_adamw_loop(*net, loop, checkpoint, [&](const LoopStep& s, int64_t batch, torch::Generator& gen) {
+          if (s.index == crash_at) throw std::runtime_error("crash");
+          const auto x = torch::randn({batch, 3}, gen);
+          return AdamwStep{(net(x) - 1).pow(2).mean(), batch, {}};
+        });
     return std::make_pair(net->weight.detach().clone(), run);
   };
   test::TempDir tmp;
