@@ -18,6 +18,7 @@ PACKAGES=(
   opencv-doc                                         # real camera clips used by the video tests
   libboost-dev libturbojpeg0-dev libsqlite3-dev      # dojo serve: HTTP/WebSocket, JPEG frames, votes
   libssl-dev                                         # dojo serve --tls-cert: HTTPS
+  clang-format                                       # scripts/check_sources.py (CI)
   chromium nodejs npm                                # browser tests of the served pages
 )
 
@@ -45,6 +46,7 @@ if [[ ! -d tests/browser/node_modules/playwright-core ]] && command -v npm >/dev
 fi
 
 JOBS="${JOBS:-$(nproc)}"
-cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=Release
+# DOJO_WERROR=ON (CI) makes every compiler warning an error.
+cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=Release -DDOJO_WARNINGS_AS_ERRORS="${DOJO_WERROR:-OFF}"
 cmake --build build -j "$JOBS"
 echo "[setup] built ./build/dojo"

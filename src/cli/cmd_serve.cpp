@@ -138,7 +138,8 @@ int run_serve(const ServeArgs& a) {
   serve::Server server(a.server, host);
   const auto port = server.start();  // /health answers 503 while the models load
   LOG_INFO("serve: listening on ", a.server.tls_cert.empty() ? "http" : "https", "://", a.server.host, ":",
-           port, "/", a.server.token.empty() ? "" : "?token=...");
+           port, "/",
+           a.server.token.empty() ? "" : "#token=... (the token in the fragment, never sent in a URL)");
   std::thread loader([&] {
     try {
       host->load();
@@ -231,9 +232,22 @@ void register_serve(CLI::App& app) {
   cmd->add_option("--host", a->server.host, "Address to bind (0.0.0.0 exposes the server)")
       ->capture_default_str();
   cmd->add_option("--port", a->server.port, "Port (0: any free one)")->capture_default_str();
-  cmd->add_option("--token", a->server.token, "Require this token (Bearer header or ?token=)");
+  cmd->add_option("--token", a->server.token,
+                  "Require this token (an Authorization: Bearer header, or open the page as /#token=TOKEN)");
+  cmd->add_flag("--insecure", a->server.insecure, "Allow a --host other than loopback without --token");
   cmd->add_option("--max-sessions", a->server.max_sessions, "Concurrent sessions and rollout jobs")
       ->check(CLI::Range(1, 256))
+      ->capture_default_str();
+  cmd->add_option("--max-rollout-frames", a->server.max_rollout_frames,
+                  "Frames one POST /v1/rollout may ask for")
+      ->check(CLI::Range(int64_t{2}, int64_t{1} << 20))
+      ->capture_default_str();
+  cmd->add_option("--max-rollout-seconds", a->server.max_rollout_seconds,
+                  "Seconds a rollout may generate before it stops with 503")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_option("--study-threads", a->server.study_threads, "Threads answering the study's requests")
+      ->check(CLI::Range(1, 64))
       ->capture_default_str();
   cmd->add_option("--fps", a->server.fps, "Live frame rate (0: 10 frames/s, the released rate)")
       ->check(CLI::NonNegativeNumber);

@@ -65,7 +65,8 @@ std::vector<PickleRef*> child_slots(PickleValue& v) {
 
 // Depth-first over the values reachable from `roots`; `on_cycle` gets each slot that points back
 // at a value on the current path (the edge that closes a cycle). Iterative: no recursion.
-void for_each_cycle_edge(const std::vector<PickleValue*>& roots, const std::function<void(PickleRef&)>& on_cycle) {
+void for_each_cycle_edge(const std::vector<PickleValue*>& roots,
+                         const std::function<void(PickleRef&)>& on_cycle) {
   enum class Mark { kOnPath, kDone };
   std::unordered_map<const PickleValue*, Mark> marks;
   struct Frame {

@@ -3,6 +3,7 @@
 #include "data/action_rows.h"
 
 #include <array>
+#include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -68,7 +69,8 @@ std::string base64_decode(std::string_view text, const std::string& what) {
 }
 
 HttpReply run_rollout_request(const ModelHost& host, const std::string& body, ServerMetrics& metrics,
-                              int jpeg_quality) {
+                              const RolloutLimits& limits) {
+  const auto start_time = std::chrono::steady_clock::now();
   try {
     const auto request = nlohmann::json::parse(body, nullptr, /*allow_exceptions=*/false);
     DOJO_CHECK(!request.is_discarded() && request.is_object(), "request body must be a JSON object");
@@ -84,6 +86,17 @@ HttpReply run_rollout_request(const ModelHost& host, const std::string& body, Se
                "'seed' must be a non-negative integer");
     DOJO_CHECK(request.contains("actions"), "missing 'actions'");
     const auto rows = data::action_rows_from_json(request["actions"], "'actions'");  // [n, w]
+    // One frame per action row after the start frame: refused before any model runs.
+    if (rows.size(0) + 1 > limits.max_frames) {
+      metrics.error();
+      return {413, "application/json",
+              nlohmann::json{{"error", "'actions': " + std::to_string(rows.size(0)) + " rows ask for " +
+                                           std::to_string(rows.size(0) + 1) +
+                                           " frames; this server makes at most " +
+                                           std::to_string(limits.max_frames) +
+                                           " per request (dojo serve --max-rollout-frames)"}}
+                  .dump()};
+    }
 
     auto generator = host.make_generator(model);
     const int64_t per_step = generator->actions_per_step();
@@ -121,6 +134,18 @@ HttpReply run_rollout_request(const ModelHost& host, const std::string& body, Se
 
     std::vector<torch::Tensor> frames = {generator->reset(start.frame, request.value("seed", uint64_t{0}))};
     for (int64_t i = 0; i < layout.size(0); i += per_step) {
+      const double spent =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - start_time).count();
+      if (spent > limits.max_seconds) {
+        metrics.error();
+        return {
+            503, "application/json",
+            nlohmann::json{{"error", "the rollout ran past " +
+                                         std::to_string(static_cast<int64_t>(limits.max_seconds)) +
+                                         " s after " + std::to_string(frames.size() - 1) +
+                                         " steps (dojo serve --max-rollout-seconds); ask for fewer frames"}}
+                .dump()};
+      }
       frames.push_back(generator->step(layout.narrow(0, i, per_step)));  // [n, H, W, 3]
       metrics.observe_step(generator->last_step_seconds());
       metrics.frames_generated(frames.back().size(0));
@@ -129,7 +154,7 @@ HttpReply run_rollout_request(const ModelHost& host, const std::string& body, Se
     if (format == "jpeg") {
       nlohmann::json out = {{"frames", nlohmann::json::array()}, {"episode", start.episode}};
       for (int64_t i = 0; i < video.size(0); ++i)
-        out["frames"].push_back(base64_encode(io::encode_jpeg(video[i], jpeg_quality)));
+        out["frames"].push_back(base64_encode(io::encode_jpeg(video[i], limits.jpeg_quality)));
       return {200, "application/json", out.dump()};
     }
     // The encoder writes files; a private temporary one is read back and removed.

@@ -7,6 +7,7 @@
 // -> video/mp4, or {"frames": ["<base64 JPEG>", ...]} with the start frame first.
 #pragma once
 
+#include <cstdint>
 #include <string>
 
 #include "serve/metrics.h"
@@ -21,10 +22,18 @@ struct HttpReply {
   std::string body;
 };
 
+// What one request may cost: frames are checked before any work (413 above the cap), the wall
+// time between steps (503 once past it, the work done so far dropped).
+struct RolloutLimits {
+  int64_t max_frames = 1200;
+  double max_seconds = 300;
+  int jpeg_quality = 85;
+};
+
 // Runs the request to completion (seconds to minutes for the teacher). Bad input: a 400 reply
 // whose JSON names the field; never throws.
 HttpReply run_rollout_request(const ModelHost& host, const std::string& body, ServerMetrics& metrics,
-                              int jpeg_quality);
+                              const RolloutLimits& limits);
 
 // Standard base64 (RFC 4648, with padding). decode throws dojo::Error naming `what` on bad input.
 std::string base64_encode(std::string_view bytes);

@@ -5,6 +5,7 @@
 #include <boost/asio/post.hpp>
 #include <boost/asio/ssl.hpp>
 #include <boost/asio/strand.hpp>
+#include <boost/asio/thread_pool.hpp>
 #include <boost/beast/core.hpp>
 #include <boost/beast/http.hpp>
 #include <boost/beast/ssl.hpp>
@@ -12,10 +13,12 @@
 #include <boost/beast/websocket/ssl.hpp>
 
 #include <algorithm>
+#include <cctype>
 #include <condition_variable>
 #include <deque>
 #include <mutex>
 #include <optional>
+#include <string_view>
 #include <thread>
 #include <vector>
 
@@ -46,6 +49,10 @@ struct Server::Impl {
   std::optional<net::ssl::context> tls;  // with --tls-cert / --tls-key: every connection is HTTPS
   std::vector<std::thread> threads;
   std::atomic<int> sessions{0};  // WebSocket sessions and rollout jobs in flight
+  // The study's requests: a fixed pool (a vote waits for its fsync, so not on the IO threads) and
+  // a cap on those queued or running, so a crowd of voters costs threads and memory in bounds.
+  std::optional<net::thread_pool> study_pool;
+  std::atomic<int> study_requests{0};
   std::atomic<bool> stopping{false};
   // Work that outlives its connection: rollout jobs and sessions winding down (recordings being
   // written). Detached threads, counted: stop() waits for all of them.
@@ -75,6 +82,24 @@ struct Server::Impl {
       --background_running;
       background_done.notify_all();
     }).detach();
+  }
+  // Runs `work` on the study pool, counted like background work so stop() waits for it.
+  void run_on_study_pool(std::function<void()> work) {
+    {
+      std::lock_guard<std::mutex> lock(background_mutex);
+      ++background_running;
+    }
+    net::post(*study_pool, [this, work = std::move(work)]() mutable {
+      try {
+        work();
+      } catch (const std::exception& e) {
+        LOG_WARN("serve: study request failed: ", e.what());
+      }
+      work = nullptr;
+      std::lock_guard<std::mutex> lock(background_mutex);
+      --background_running;
+      background_done.notify_all();
+    });
   }
   bool authorised(const http::request<http::string_body>& req) const;
   void accept();
@@ -344,7 +369,9 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
                              user_robot_mapping(path) != nullptr;
     if (!public_page && !server_.authorised(req)) {
       server_.metrics.error();
-      return write(json_error(req, http::status::unauthorized, "missing or wrong token"));
+      return write(json_error(req, http::status::unauthorized,
+                              "missing or wrong token: send it as an Authorization: Bearer header or the "
+                              "dojo_token cookie (open the page as /#token=...), never in the URL"));
     }
     if (websocket::is_upgrade(req)) {
       if (path != "/ws") return write(json_error(req, http::status::not_found, "WebSocket endpoint is /ws"));
@@ -395,8 +422,10 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
       // Minutes of work must not hold an IO thread: run it aside, answer on this connection.
       auto self = shared_from_this();
       server_.run_in_background([self, req = std::move(req)]() mutable {
-        auto r = run_rollout_request(*self->server_.host, req.body(), self->server_.metrics,
-                                     self->server_.options.jpeg_quality);
+        const auto& o = self->server_.options;
+        auto r =
+            run_rollout_request(*self->server_.host, req.body(), self->server_.metrics,
+                                RolloutLimits{o.max_rollout_frames, o.max_rollout_seconds, o.jpeg_quality});
         --self->server_.sessions;
         auto res = reply(req, static_cast<http::status>(r.status), r.content_type, std::move(r.body));
         net::post(self->stream_.get_executor(),
@@ -407,9 +436,15 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
     if (StudyApi::handles(path)) {
       if (!server_.study)
         return write(json_error(req, http::status::not_found, "this server runs no study (--study DIR)"));
-      // A vote waits for its fsync (synchronous=FULL); keep that off the IO threads.
+      // A vote waits for its fsync (synchronous=FULL); keep that off the IO threads, on a pool.
+      if (server_.study_requests.fetch_add(1) >= server_.options.max_study_requests) {
+        --server_.study_requests;
+        server_.metrics.error();
+        return write(json_error(req, http::status::service_unavailable, "the study is busy; retry later"));
+      }
       auto self = shared_from_this();
-      server_.run_in_background([self, req = std::move(req), path]() mutable {
+      server_.run_on_study_pool([self, req = std::move(req), path]() mutable {
+        --self->server_.study_requests;
         auto r = self->server_.study->handle(std::string(req.method_string()), path,
                                              query_param(req.target(), "rater"), req.body(),
                                              std::string(req[http::field::user_agent]));
@@ -448,11 +483,55 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
 
 }  // namespace
 
+namespace {
+
+// Equal strings, in a time that depends on their lengths only (not on where they first differ).
+bool same_secret(std::string_view given, std::string_view expected) {
+  unsigned char differ = given.size() == expected.size() ? 0 : 1;
+  for (size_t i = 0; i < given.size(); ++i)
+    differ |= static_cast<unsigned char>(given[i] ^ expected[i % std::max<size_t>(1, expected.size())]);
+  return differ == 0;
+}
+
+// The value of cookie `name` in a Cookie header ("a=1; dojo_token=xyz"), or "" when absent.
+std::string cookie_value(std::string_view header, std::string_view name) {
+  while (!header.empty()) {
+    const auto end = header.find(';');
+    auto pair = header.substr(0, end);
+    while (!pair.empty() && pair.front() == ' ') pair.remove_prefix(1);
+    if (pair.size() > name.size() && pair.substr(0, name.size()) == name && pair[name.size()] == '=')
+      return std::string(pair.substr(name.size() + 1));
+    if (end == std::string_view::npos) break;
+    header.remove_prefix(end + 1);
+  }
+  return "";
+}
+
+std::string percent_decoded(std::string_view text) {
+  std::string out;
+  for (size_t i = 0; i < text.size(); ++i) {
+    if (text[i] == '%' && i + 2 < text.size() && std::isxdigit(static_cast<unsigned char>(text[i + 1])) &&
+        std::isxdigit(static_cast<unsigned char>(text[i + 2]))) {
+      out += static_cast<char>(std::stoi(std::string(text.substr(i + 1, 2)), nullptr, 16));
+      i += 2;
+    } else {
+      out += text[i];
+    }
+  }
+  return out;
+}
+
+}  // namespace
+
 bool Server::Impl::authorised(const http::request<http::string_body>& req) const {
   if (options.token.empty()) return true;
-  const auto header = req[http::field::authorization];
-  if (header == "Bearer " + options.token) return true;
-  return query_param(req.target(), "token") == options.token;
+  const std::string_view header(req[http::field::authorization].data(),
+                                req[http::field::authorization].size());
+  if (header.size() > 7 && header.substr(0, 7) == "Bearer " && same_secret(header.substr(7), options.token))
+    return true;
+  const std::string_view cookies(req[http::field::cookie].data(), req[http::field::cookie].size());
+  const auto cookie = cookie_value(cookies, "dojo_token");
+  return !cookie.empty() && same_secret(percent_decoded(cookie), options.token);
 }
 
 void Server::Impl::accept() {
@@ -478,7 +557,16 @@ ServerMetrics& Server::metrics() { return impl_->metrics; }
 
 uint16_t Server::start() {
   auto& s = *impl_;
+  {
+    beast::error_code ec;
+    const auto address = net::ip::make_address(s.options.host, ec);
+    DOJO_CHECK(ec || address.is_loopback() || !s.options.token.empty() || s.options.insecure,
+               "serve: --host " + s.options.host +
+                   " opens the server to the network without a token: give --token (or --insecure to serve "
+                   "it open anyway)");
+  }
   if (!s.options.study.empty()) s.study = std::make_unique<StudyApi>(s.options.study);
+  s.study_pool.emplace(static_cast<size_t>(std::max(1, s.options.study_threads)));
   if (!s.options.tls_cert.empty() || !s.options.tls_key.empty()) {
     DOJO_CHECK(!s.options.tls_cert.empty() && !s.options.tls_key.empty(),
                "serve: HTTPS needs both --tls-cert and --tls-key");
@@ -530,6 +618,7 @@ void Server::stop() {
   for (auto& t : s.threads)
     if (t.joinable()) t.join();
   s.threads.clear();
+  if (s.study_pool) s.study_pool->join();
 }
 
 }  // namespace dojo::serve

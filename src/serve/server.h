@@ -9,8 +9,9 @@
 //   GET  /ws                WebSocket sessions: live teleop or step-by-step (serve/session.h)
 //   GET  /study             the preference study page, with --study (serve/study_api.h)
 //
-// Binds 127.0.0.1 unless told otherwise; with a token every route but /health needs it (an
-// "Authorization: Bearer" header, or ?token= where browsers cannot set headers).
+// Binds 127.0.0.1 unless told otherwise (another host needs a token, or `insecure`); with a token
+// every route but /health and the pages needs it, as an "Authorization: Bearer" header or the
+// dojo_token cookie the pages set from the address's #token= fragment, never in a URL.
 #pragma once
 
 #include <cstdint>
@@ -26,10 +27,19 @@ class ModelHost;
 
 struct ServeOptions {
   std::string host = "127.0.0.1";
-  uint16_t port = 8080;                // 0: any free port (tests)
-  std::string token;                   // empty: open
+  uint16_t port = 8080;  // 0: any free port (tests)
+  // Empty: open. Otherwise every call but the pages needs it, as an "Authorization: Bearer" header
+  // or the dojo_token cookie the pages set from the address's #token= fragment; never in the URL
+  // (addresses end up in logs and browser history). Compared in constant time.
+  std::string token;
+  // A host other than loopback without a token is refused unless this is set (--insecure).
+  bool insecure = false;
   int max_sessions = 4;                // concurrent WebSocket sessions and rollout jobs; more get 503
   size_t max_message_bytes = 4 << 20;  // WebSocket messages and request bodies
+  int64_t max_rollout_frames = 1200;   // frames one POST /v1/rollout may ask for; more get 413
+  double max_rollout_seconds = 300;    // a rollout still generating after this stops with 503
+  int study_threads = 4;               // the study's requests (a vote waits for its fsync) run on this pool
+  int max_study_requests = 256;        // study requests queued or running; more get 503
   int jpeg_quality = 85;
   double fps = 0;  // live pacing in frames/s; 0: the data's rate (10 for DojoSim)
   std::filesystem::path recordings = "recordings";

@@ -50,14 +50,16 @@ if (!benchSeconds)
        "--student", `student=${join(reference, "student")}`, "--tokenizer", join(reference, "tokenizer"),
        "--data", join(tmp, "robot"), "--split", "all", "--episodes", "2", "--chunks", "1");
 
-// The server, on a free port.
+// The server, on a free port, behind a token the pages take from the address's fragment.
+const token = "browser-secret";
 // The page's mechanics are checked on the post-trained teacher's weights streamed as a student, as
 // they always were: the shipped student answers a held key more weakly (frame 44 differs from the
 // idle run's by 0.83 of 255 on average, under the 1.0 this test asks; docs/benchmarks.md, the
 // eleventh session's section).
 const serverArgs = ["serve", "--student", join(reference, "wm_posttrain"), "--no-teacher", "--tokenizer",
   join(reference, "tokenizer"), "--data", join(tmp, "robot"), "--split", "all", "--port", "0",
-  "--recordings", join(tmp, "recordings"), "--max-sessions", String(Math.max(4, benchSessions))];
+  "--recordings", join(tmp, "recordings"), "--max-sessions", String(Math.max(4, benchSessions)),
+  "--token", token];
 if (!benchSeconds) serverArgs.push("--study", join(tmp, "study"));
 let serverLog;
 ({ server, base, log: serverLog } = await startServer(exe, serverArgs).catch((e) => fail(e.message)));
@@ -80,8 +82,9 @@ async function teleop({ key = null, frames = 41, seconds = 0 } = {}) {
       if (buf.subarray(0, 4).toString() === "DJF1") received.set(buf.readUInt32LE(4), buf.subarray(32));
     });
   });
-  await page.goto(base + "/");
+  await page.goto(base + "/#token=" + token);
   await page.waitForFunction(() => window.dojo.capabilities && document.getElementById("model").options.length > 0);
+  assert.ok(!page.url().includes(token), "the token leaves the address bar once it is a cookie");
   await page.click("#start");
   await page.waitForFunction(() => window.dojo.ready !== null, null, { timeout: 30000 });
   if (key) { await page.focus("#view"); await page.keyboard.down(key); }
@@ -128,7 +131,7 @@ try {
     const runs = await Promise.all(Array.from({ length: benchSessions }, () => teleop({ key: "KeyD", seconds: benchSeconds })));
     const fps = runs.map((r) => r.received.size / r.elapsed);
     const latencies = runs.flatMap((r) => r.latencies);
-    const metrics = await (await fetch(base + "/metrics")).text();
+    const metrics = await (await fetch(base + "/metrics", { headers: { Authorization: "Bearer " + token } })).text();
     const rss = Number(readFileSync(`/proc/${server.pid}/status`, "utf8").match(/VmRSS:\s+(\d+)/)[1]) / 1024;
     console.log(JSON.stringify({ sessions: benchSessions, seconds: benchSeconds,
       frames_per_s_per_session: fps.map((x) => +x.toFixed(2)),
@@ -172,7 +175,8 @@ try {
     // 4. The study: a vote lands in SQLite, survives a killed server, shows in the report.
     step("study: vote");
     const study = await browser.newPage();
-    await study.goto(base + "/study");
+    assert.equal((await fetch(base + "/api/capabilities?token=" + token)).status, 401, "no token in a URL");
+    await study.goto(base + "/study#token=" + token);
     await study.waitForFunction(() => window.dojoStudy.trial !== null, null, { timeout: 30000 });
     assert.equal(await study.evaluate(() => document.querySelector("#truth").src.includes("/study/clips/")), true);
     assert.equal(await study.isDisabled("#submit"), true, "submit waits for every answer");

@@ -35,6 +35,23 @@ TEST(Cli, VersionJson) {
   EXPECT_TRUE(info["cuda_available"].is_boolean());
 }
 
+// A copy of the sources inside another repository (vendored, exported into a monorepo) reports no
+// commit rather than the other repository's.
+TEST(Cli, VersionNamesOnlyThisProjectsOwnCommit) {
+  test::TempDir tmp;
+  const auto outer = tmp / "outer";
+  auto r = test::run_command("mkdir -p '" + (outer / "dojo").string() + "' && git -C '" + outer.string() +
+                             "' init -q && git -C '" + outer.string() +
+                             "' -c user.name=t -c user.email=t@t commit -q --allow-empty -m other");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto script = std::string(DOJO_SOURCE_DIR) + "/cmake/git_commit.cmake";
+  r = test::run_command("cmake -DSOURCE_DIR='" + (outer / "dojo").string() + "' -DOUT='" +
+                        (tmp / "h").string() + "' -P '" + script + "'");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_NE(test::read_file(tmp / "h").find("DOJO_GIT_COMMIT \"unknown\""), std::string::npos)
+      << test::read_file(tmp / "h");
+}
+
 // OpenBLAS on a CPU newer than itself runs its SSE3 kernels at a quarter of the speed; the
 // executable then starts itself again with OPENBLAS_CORETYPE set (core/blas_kernels.h). This
 // process was started that way, so the variable is taken away for the child.

@@ -144,10 +144,17 @@ TEST(Pickle, DeepNestingAndCyclesNeitherCrashNorRecurse) {
   bytes += '.';
   { EXPECT_EQ(parse(bytes)->kind, Kind::kList); }
   // A list that contains itself (through the memo) is refused, and freed (the fuzzer's leak check).
-  const std::string message = test::error_message([] { parse(BYTES("\x80\x04]\x94h\x00" "a.")); });
+  const std::string message = test::error_message([] {
+    parse(
+        BYTES("\x80\x04]\x94h\x00"
+              "a."));
+  });
   EXPECT_NE(message.find("contains itself"), std::string::npos) << message;
   // A cycle among values the result does not reach is freed too; the result stands.
-  EXPECT_EQ(parse(BYTES("\x80\x04]\x94h\x00" "a0K\x07."))->integer, 7);
+  EXPECT_EQ(parse(BYTES("\x80\x04]\x94h\x00"
+                        "a0K\x07."))
+                ->integer,
+            7);
 }
 
 }  // namespace

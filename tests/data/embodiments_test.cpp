@@ -21,9 +21,12 @@ namespace {
 nlohmann::json arm_spec(const std::string& name, int begin = 240) {
   nlohmann::json action = nlohmann::json::array();
   for (const char* key : {"y", "x", "a", "b", "c", "d"}) action.push_back({key, 1});
-  return {{"name", name},       {"robot_types", {name + "_v2", "Crane-" + name}},
-          {"slot", {begin, begin + 6}}, {"action", action},
-          {"camera", "front"},  {"frame_stride", 2}};
+  return {{"name", name},
+          {"robot_types", {name + "_v2", "Crane-" + name}},
+          {"slot", {begin, begin + 6}},
+          {"action", action},
+          {"camera", "front"},
+          {"frame_stride", 2}};
 }
 
 std::filesystem::path write_table(const std::filesystem::path& file,

@@ -168,8 +168,11 @@ TEST_F(TeleopCheckTest, AStreamDissolvedIntoBandsKeepsNoSceneAndNoArm) {
   EXPECT_LT(r.scene_share[40], 0.6);
   // No hold that ends in the bands agrees, whatever the probe reads into them.
   ASSERT_EQ(r.counted_keys, 4);
-  for (const auto& k : r.keys)
-    if (k.first_row + k.rows >= kept) EXPECT_FALSE(k.agrees || k.stream_found) << k.dimension;
+  for (const auto& k : r.keys) {
+    if (k.first_row + k.rows >= kept) {
+      EXPECT_FALSE(k.agrees || k.stream_found) << k.dimension;
+    }
+  }
 }
 
 TEST_F(TeleopCheckTest, AFrozenStreamAndAStreamDrivenTheOtherWayDisagree) {

@@ -17,9 +17,10 @@ struct HttpResult {
 };
 
 // One request to 127.0.0.1:port; a non-empty body goes as JSON, a non-empty bearer as the
-// Authorization header.
+// Authorization header, a non-empty cookie as the Cookie header.
 inline HttpResult http_request(uint16_t port, boost::beast::http::verb verb, const std::string& target,
-                               const std::string& body = "", const std::string& bearer = "") {
+                               const std::string& body = "", const std::string& bearer = "",
+                               const std::string& cookie = "") {
   namespace beast = boost::beast;
   namespace http = beast::http;
   namespace net = boost::asio;
@@ -29,6 +30,7 @@ inline HttpResult http_request(uint16_t port, boost::beast::http::verb verb, con
   http::request<http::string_body> req{verb, target, 11};
   req.set(http::field::host, "127.0.0.1");
   if (!bearer.empty()) req.set(http::field::authorization, "Bearer " + bearer);
+  if (!cookie.empty()) req.set(http::field::cookie, cookie);
   if (!body.empty()) {
     req.set(http::field::content_type, "application/json");
     req.body() = body;

@@ -196,7 +196,8 @@ TEST(ServeFuzz, MutatedMessagesNeverBreakASession) {
   const std::string rollout =
       R"({"model":"student","format":"jpeg","seed":0,"actions":[[1.0,0.5,1.8,0.8,0,0.5],[1.0,0.5,1.8,0.8,0,0.5],[1.0,0.5,1.8,0.8,0,0.5],[1.0,0.5,1.8,0.8,0,0.5]]})";
   for (int i = 0; i < 300; ++i) {
-    const auto reply = run_rollout_request(host, bodies.mutate(rollout), metrics, 80);
+    const auto reply =
+        run_rollout_request(host, bodies.mutate(rollout), metrics, RolloutLimits{1200, 300, 80});
     EXPECT_TRUE(reply.status == 200 || reply.status == 400) << reply.status << " " << reply.body;
   }
 }

@@ -202,7 +202,22 @@ TEST_F(ServeTest, HttpRoutesTokensAndMalformedRequests) {
   EXPECT_EQ(j.at("models").size(), 2u);
   EXPECT_EQ(j.at("models")[0].at("action_slots")[0].at("slot"), "dojosim_robot");
   EXPECT_EQ(j.at("episodes").size(), 2u);
-  const auto page = request(port, http::verb::get, "/?token=secret");
+  // Never in the URL (addresses reach logs and histories); the page's cookie, set from the
+  // address's fragment, or a Bearer header.
+  const auto in_url = request(port, http::verb::get, "/api/capabilities?token=secret");
+  EXPECT_EQ(in_url.status, 401);
+  EXPECT_NE(in_url.body.find("never in the URL"), std::string::npos) << in_url.body;
+  EXPECT_EQ(
+      test::http_request(port, http::verb::get, "/api/capabilities", "", "", "lang=en; dojo_token=secret")
+          .status,
+      200);
+  EXPECT_EQ(test::http_request(port, http::verb::get, "/api/capabilities", "", "", "dojo_token=secre").status,
+            401);
+  EXPECT_EQ(
+      test::http_request(port, http::verb::get, "/api/capabilities", "", "", "dojo_token=secretX").status,
+      401);
+  EXPECT_EQ(request(port, http::verb::get, "/api/capabilities", "", "secre").status, 401);
+  const auto page = request(port, http::verb::get, "/");
   EXPECT_EQ(page.status, 200);
   EXPECT_NE(page.body.find("teleop.js"), std::string::npos);
   // The pages and scripts load without the token (a browser fetches scripts without it); what
@@ -232,6 +247,19 @@ TEST_F(ServeTest, HttpRoutesTokensAndMalformedRequests) {
   EXPECT_NE(metrics.body.find("dojo_step_seconds_bucket{le=\"+Inf\"}"), std::string::npos);
   EXPECT_NE(metrics.body.find("dojo_errors_total"), std::string::npos);
   server.stop();
+
+  // Another host than loopback needs a token, or --insecure.
+  auto open = options();
+  open.host = "0.0.0.0";
+  Server exposed(open, h);
+  EXPECT_NE(test::error_message([&] { exposed.start(); })
+                .find("--host 0.0.0.0 opens the server to the network "
+                      "without a token"),
+            std::string::npos);
+  open.insecure = true;
+  Server insecure(open, h);
+  EXPECT_GT(insecure.start(), 0);
+  insecure.stop();
 }
 
 TEST_F(ServeTest, LiveSessionStreamsFramesAndSurvivesBadMessages) {
@@ -337,6 +365,28 @@ TEST_F(ServeTest, StepModeRolloutApiAndSessionCap) {
   EXPECT_EQ(r.status, 400);
   EXPECT_NE(r.body.find("'actions'"), std::string::npos) << r.body;
   server.stop();
+
+  // Bounded by frames (before any work) and by time (between steps), not only by the body's size.
+  auto bounded = options();
+  bounded.max_rollout_frames = 8;
+  const auto shared = host();
+  Server small(bounded, shared);
+  const auto small_port = small.start();
+  body["actions"] = nlohmann::json::array();
+  for (int i = 0; i < 8; ++i) body["actions"].push_back({1 + 0.02 * i, 0.5, 1.8, 0.8, 0, 0.5});
+  r = request(small_port, http::verb::post, "/v1/rollout", body.dump());
+  EXPECT_EQ(r.status, 413);
+  EXPECT_NE(r.body.find("8 rows ask for 9 frames; this server makes at most 8"), std::string::npos) << r.body;
+  small.stop();
+  bounded.max_rollout_frames = 1200;
+  bounded.max_rollout_seconds = 1e-9;
+  Server hasty(bounded, shared);
+  const auto hasty_port = hasty.start();
+  r = request(hasty_port, http::verb::post, "/v1/rollout", body.dump());
+  EXPECT_EQ(r.status, 503);
+  EXPECT_NE(r.body.find("--max-rollout-seconds"), std::string::npos) << r.body;
+  EXPECT_EQ(request(hasty_port, http::verb::get, "/health").status, 200) << "and it keeps serving";
+  hasty.stop();
 }
 
 }  // namespace

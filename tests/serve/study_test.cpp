@@ -17,6 +17,7 @@
 #include <thread>
 
 #include "core/error.h"
+#include "http_request.h"
 #include "io/video.h"
 #include "serve/model_host.h"
 #include "serve/server.h"
@@ -286,6 +287,82 @@ TEST(Study, ServedOverHttpsAndWss) {
   bad.tls_key = tls / "missing.pem";
   Server broken(bad, host);
   expect_error_contains([&] { broken.start(); }, "missing.pem");
+}
+
+}  // namespace
+}  // namespace dojo::serve
+
+namespace dojo::serve {
+namespace {
+
+int process_threads() {
+  std::ifstream status("/proc/self/status");
+  std::string line;
+  while (std::getline(status, line))
+    if (line.rfind("Threads:", 0) == 0) return std::stoi(line.substr(8));
+  return -1;
+}
+
+// A crowd of voters against a server whose study runs on 2 threads with at most 4 requests queued
+// or running: every request is answered (a vote or 503, retried), no thread is started per request,
+// and the votes stored are exactly the votes answered 200.
+TEST(Study, ACrowdOfVotersIsAnsweredOnABoundedPoolAndLosesNoVote) {
+  test::TempDir tmp;
+  create_study_from_videos(tmp / "s", write_clips(tmp / "clips", 2), {"a", "b"}, "");
+  auto host = std::make_shared<ModelHost>(ModelHost::Options{});  // a study server: no model
+  host->load();
+  ServeOptions o;
+  o.port = 0;
+  o.study = tmp / "s";
+  o.study_threads = 2;
+  o.max_study_requests = 4;
+  Server server(o, host);
+  const auto port = server.start();
+  constexpr int kVoters = 24;
+  std::atomic<bool> sampling{true};
+  std::atomic<int> peak{0};
+  std::thread sampler([&] {
+    while (sampling)
+      peak = std::max(peak.load(), process_threads()),
+      std::this_thread::sleep_for(std::chrono::microseconds(300));
+  });
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  const int before = process_threads();  // the server's threads, the pool's and the sampler
+  std::atomic<int> stored{0}, busy{0}, failed{0};
+  const auto call = [&](http::verb verb, const std::string& target, const std::string& body) {
+    for (int attempt = 0; attempt < 400; ++attempt) {
+      const auto r = test::http_request(port, verb, target, body);
+      if (r.status != 503) return r;
+      ++busy;
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    return test::HttpResult{503, "", ""};
+  };
+  std::vector<std::thread> voters;
+  for (int v = 0; v < kVoters; ++v)
+    voters.emplace_back([&] {
+      const auto made = call(http::verb::post, "/api/study/raters", "");
+      if (made.status != 200) return void(++failed);
+      const auto rater = nlohmann::json::parse(made.body)["rater"].get<std::string>();
+      for (int guard = 0; guard < 20; ++guard) {
+        const auto next = call(http::verb::get, "/api/study/next?rater=" + rater, "");
+        if (next.status != 200) return void(++failed);
+        const auto j = nlohmann::json::parse(next.body);
+        if (j["done"]) return;
+        const nlohmann::json vote = {
+            {"rater", rater}, {"trial", j["trial"]}, {"answers", {{"physics", "left"}, {"action", "right"}}}};
+        if (call(http::verb::post, "/api/study/vote", vote.dump()).status == 200) ++stored;
+      }
+    });
+  for (auto& t : voters) t.join();
+  sampling = false;
+  sampler.join();
+  server.stop();
+  EXPECT_EQ(failed, 0);
+  EXPECT_EQ(stored, kVoters * 2);  // 2 items x 1 pair each
+  EXPECT_LE(peak, before + kVoters + 1) << "no thread per request (" << busy << " answers were 503)";
+  VoteStore reader(tmp / "s" / "votes.sqlite");
+  EXPECT_EQ(reader.all().size(), static_cast<size_t>(stored * 2));  // two questions a vote
 }
 
 }  // namespace

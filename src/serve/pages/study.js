@@ -2,8 +2,17 @@
 // trial at a time; the server decides the order and which model is A, and never names them.
 "use strict";
 const params = new URLSearchParams(location.search);
-const token = params.get("token") || "";
-const withToken = (url) => (token ? url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token) : url);
+// A token comes in the address's fragment (/#token=...), which browsers never send: it becomes the
+// dojo_token cookie every later request of this page carries (the server takes no token in a URL).
+function adoptToken() {
+  const fragment = new URLSearchParams(location.hash.slice(1));
+  const token = fragment.get("token");
+  if (!token) return;
+  const secure = location.protocol === "https:" ? "; Secure" : "";
+  document.cookie = `dojo_token=${encodeURIComponent(token)}; path=/; SameSite=Strict${secure}`;
+  history.replaceState(null, "", location.pathname + location.search);  // out of the address bar
+}
+adoptToken();
 const $ = (id) => document.getElementById(id);
 window.dojoStudy = { rater: null, trial: null, stored: 0, done: false, errors: [] };
 
@@ -12,7 +21,7 @@ let trial = null;
 function log(text) { $("log").textContent = text; if (text) window.dojoStudy.errors.push(text); }
 
 async function api(path, body) {
-  const r = await fetch(withToken(path), body === undefined ? {} : {
+  const r = await fetch(path, body === undefined ? {} : {
     method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
   const json = await r.json();
   if (!r.ok) { const e = new Error(json.error || r.statusText); e.status = r.status; throw e; }
@@ -67,7 +76,7 @@ async function next() {
   }
   trial = t;
   window.dojoStudy.trial = t.trial;
-  for (const v of ["truth", "left", "right"]) $(v).src = withToken(t[v]);
+  for (const v of ["truth", "left", "right"]) $(v).src = t[v];
   const form = $("questions");
   form.innerHTML = "";
   for (const q of t.questions) {

@@ -3,8 +3,17 @@
 // through the embodiment's mapping file, sent as {"type": "control"} messages.
 "use strict";
 const params = new URLSearchParams(location.search);
-const token = params.get("token") || "";
-const auth = token ? "?token=" + encodeURIComponent(token) : "";
+// A token comes in the address's fragment (/#token=...), which browsers never send: it becomes the
+// dojo_token cookie every later request of this page carries (the server takes no token in a URL).
+function adoptToken() {
+  const fragment = new URLSearchParams(location.hash.slice(1));
+  const token = fragment.get("token");
+  if (!token) return;
+  const secure = location.protocol === "https:" ? "; Secure" : "";
+  document.cookie = `dojo_token=${encodeURIComponent(token)}; path=/; SameSite=Strict${secure}`;
+  history.replaceState(null, "", location.pathname + location.search);  // out of the address bar
+}
+adoptToken();
 const $ = (id) => document.getElementById(id);
 const view = $("view"), ctx = view.getContext("2d");
 
@@ -22,11 +31,11 @@ const recordFromStart = params.get("record") === "1";
 function log(text) { $("log").textContent = text; if (text) window.dojo.errors.push(text); }
 
 async function init() {
-  let caps = await (await fetch("/api/capabilities" + auth)).json();
+  let caps = await (await fetch("/api/capabilities")).json();
   while (!caps.ready) {  // the models are still loading
     $("status").textContent = "models loading";
     await new Promise((r) => setTimeout(r, 1000));
-    caps = await (await fetch("/api/capabilities" + auth)).json();
+    caps = await (await fetch("/api/capabilities")).json();
   }
   $("status").textContent = "idle";
   for (const m of caps.models) $("model").add(new Option(`${m.name} (${m.kind})`, m.name));
@@ -72,7 +81,7 @@ function send(message) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSO
 function start() {
   if (ws) ws.close();
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  ws = new WebSocket(`${proto}//${location.host}/ws${auth}`);
+  ws = new WebSocket(`${proto}//${location.host}/ws`);
   ws.binaryType = "arraybuffer";
   $("status").textContent = "connecting";
   ws.onopen = async () => {
