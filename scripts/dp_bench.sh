@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Data-parallel scaling on this machine: the reference world model post-trained on DojoSim with a
-# global batch of 8, on one process (one thread, then all cores) and on 2 processes of one thread
-# each (`dojo launch --nproc 2`), same data, init, steps and seed.
+# global batch of 8, on one process (on one core; one OpenMP thread with OpenBLAS on every core, the
+# default; all cores) and on 2 processes of one core each (`dojo launch --nproc 2`, which gives each
+# process OMP_NUM_THREADS = OPENBLAS_NUM_THREADS = cores / 2), same data, init, steps and seed.
 #
 #   scripts/dp_bench.sh [OUT=/tmp/dp_bench] [STEPS=24]
 #
 # Throughput is the trainer's steady state (train_summary.json clips_per_second: steps after the
-# first two). Scaling efficiency = 2-process clips/s / (2 x 1-process one-thread clips/s). Also
+# first two). Scaling efficiency = 2-process clips/s / (2 x one-core clips/s). Also
 # checks that the 2-process run ends where the one-process run with --accumulate 2 ends (largest
 # weight difference). Prints a markdown table.
 set -euo pipefail
@@ -33,6 +34,7 @@ run() {  # name, extra trainer arguments, then the command before `wm train`
     [[ -f $OUT/latents-0.safetensors ]] || cp "$OUT/$name/latents-0.safetensors" "$OUT/"
   fi
 }
+run one_core "" env OPENBLAS_NUM_THREADS=1 $DOJO --threads 1
 run one_thread "" $DOJO --threads 1
 run all_cores "" $DOJO
 run two_processes "" $DOJO launch --nproc 2 --master-port 29611 -- dojo --threads 1
@@ -61,15 +63,17 @@ def weights(name):  # model.safetensors as float32 arrays (u64 header size, JSON
     return arrays
 wa, wb = weights("accumulate2"), weights("two_processes")
 difference = max(float(np.abs(wa[k] - wb[k]).max()) for k in wa)
-base = summary("one_thread")["clips_per_second"]
-print("| run | clips/s (steady state) | vs 1 process, 1 thread | peak resident memory (MiB) | last loss |")
+base = summary("one_core")["clips_per_second"]
+print("| run | clips/s (steady state) | vs one core | peak resident memory (MiB) | last loss |")
 print("|---|---|---|---|---|")
-for name, label in [("one_thread", "1 process, 1 thread"), ("all_cores", "1 process, 2 threads"),
-                    ("two_processes", "2 processes x 1 thread (`dojo launch --nproc 2`)")]:
+for name, label in [("one_core", "1 process on one core (1 thread, OpenBLAS 1 thread)"),
+                    ("one_thread", "1 process, 1 thread (OpenBLAS on both cores: the default)"),
+                    ("all_cores", "1 process, 2 threads"),
+                    ("two_processes", "2 processes x 1 core (`dojo launch --nproc 2`)")]:
     s = summary(name)
     print(f"| {label} | {s['clips_per_second']:.2f} | {s['clips_per_second'] / base:.2f}x | "
           f"{peak_mib(name):.0f} | {s['last_loss']:.4f} |")
 efficiency = summary("two_processes")["clips_per_second"] / (2 * base)
-print(f"\nScaling efficiency 1 -> 2 processes: {efficiency:.0%}. Largest weight difference, 2 processes "
-      f"vs 1 process with --accumulate 2: {difference:.2e}.")
+print(f"\nScaling efficiency, one core -> 2 processes on a core each: {efficiency:.0%}. Largest weight "
+      f"difference, 2 processes vs 1 process with --accumulate 2: {difference:.2e}.")
 PY
