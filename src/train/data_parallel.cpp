@@ -50,6 +50,8 @@ int64_t env_integer(const char* name, int64_t fallback, int64_t low, int64_t hig
 ParallelWorld parallel_world_from_environment() {
   ParallelWorld w;
   w.world = static_cast<int>(env_integer("WORLD_SIZE", 1, 1, 1 << 16));
+  // One process: nothing else is read (a RANK left in the environment by something else is not ours).
+  if (w.world == 1) return w;
   w.rank = static_cast<int>(env_integer("RANK", 0, 0, w.world - 1));
   w.local_rank = static_cast<int>(env_integer("LOCAL_RANK", w.rank, 0, w.world - 1));
   w.master_addr = env_or("MASTER_ADDR", w.master_addr);
@@ -145,8 +147,11 @@ void DataParallel::broadcast_from_main(const std::vector<torch::Tensor>& tensors
   try {
     torch::NoGradGuard no_grad;
     for (const auto& t : tensors) {
-      // Gloo wants contiguous tensors; a parameter normally is, a view may not be.
-      std::vector<torch::Tensor> one = {t.is_contiguous() ? t : t.contiguous()};
+      // Gloo wants contiguous tensors of a type it reduces (no bool: sent as bytes); a parameter
+      // normally is one, a view or a mask buffer may not be.
+      std::vector<torch::Tensor> one = {t.scalar_type() == torch::kBool ? t.to(torch::kUInt8)
+                                        : t.is_contiguous()             ? t
+                                                                        : t.contiguous()};
       group_->gloo->broadcast(one)->wait();
       if (!one[0].is_same(t)) t.copy_(one[0]);
     }

@@ -56,9 +56,11 @@ LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
   }
   // With a time budget the ranks share one clock (the mean of theirs), so all of them make the
   // same step the last one and no rank waits in a collective for a peer that has stopped.
+  // The budget itself is agreed too: a trainer may have computed it from its own clock.
+  const double budget = o.time_budget_s > 0 ? group.mean({o.time_budget_s})[0] : 0.0;
   auto elapsed = [&] {
     const double mine = seconds_between(start, std::chrono::steady_clock::now());
-    return o.time_budget_s > 0 ? group.mean({mine})[0] : mine;
+    return budget > 0 ? group.mean({mine})[0] : mine;
   };
 
   int64_t timed_items = 0;
@@ -67,8 +69,8 @@ LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
     LoopStep info;
     info.index = s;
     const double now = elapsed();
-    info.budget_fraction = o.time_budget_s > 0 ? std::min(1.0, now / o.time_budget_s) : 0.0;
-    result.out_of_time = o.time_budget_s > 0 && now >= o.time_budget_s;
+    info.budget_fraction = budget > 0 ? std::min(1.0, now / budget) : 0.0;
+    result.out_of_time = budget > 0 && now >= budget;
     info.last = s + 1 == o.steps || result.out_of_time;
     info.saves = info.last || (o.save_every > 0 && (s + 1) % o.save_every == 0);
 

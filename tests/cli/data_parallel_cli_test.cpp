@@ -116,6 +116,18 @@ TEST(DataParallelCli, TwoProcessesTrainAsOneProcessWithTwoMicroBatches) {
   r = test::run_dojo(launch(4) + distill_args + out("d2"));
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_LT(max_difference(tmp / "d1" / "checkpoint", tmp / "d2" / "checkpoint"), kTolerance);
+  // Self-Forcing from that student: a generator update, then a critic update, each split by rows.
+  const std::string sf_args =
+      "distill --stage self-forcing --init " + (tmp / "d1" / "checkpoint").string() + " --teacher " +
+      (tmp / "wm1" / "checkpoint").string() + tok + data +
+      " --split all --max-clips 2 --min-frames 4 --max-frames 5 --critic-steps 1 --steps 2 "
+      "--batch 2 --generator-lr 1e-3 --critic-lr 1e-3";
+  r = test::run_dojo("--threads 1 " + sf_args + out("sf1"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = test::run_dojo(launch(9) + sf_args + out("sf2"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_LT(max_difference(tmp / "sf1" / "checkpoint", tmp / "sf2" / "checkpoint"), kTolerance);
+  EXPECT_LT(max_difference(tmp / "sf1" / "critic", tmp / "sf2" / "critic"), kTolerance);
 
   // LAM (frame pairs from its clip loader).
   const std::string lam_args = "lam train --model tiny --steps 2 --batch 2 --lr 1e-3" + data;

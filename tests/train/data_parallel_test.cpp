@@ -82,6 +82,9 @@ TEST(DataParallel, TheEnvironmentIsReadAsTorchrunWritesItAndBadValuesAreNamed) {
   w = parallel_world_from_environment();
   EXPECT_EQ(w.world, 1);
   EXPECT_EQ(w.rank, 0);
+  setenv("RANK", "3", 1);  // without WORLD_SIZE: one process, whatever else set RANK
+  EXPECT_EQ(parallel_world_from_environment().world, 1);
+  unsetenv("RANK");
 }
 
 TEST(DataParallel, ALoaderShareHandsOutItsRunsOfTheWholeStream) {
