@@ -66,40 +66,31 @@ struct Server::Impl {
   };
   std::vector<Closer> closers;  // close every live WebSocket at stop()
 
-  void run_in_background(std::function<void()> work) {
+  // `work` wrapped so that stop() waits for it: counted from now until it has run (and released
+  // what it holds), its exception logged under `what`.
+  std::function<void()> counted(std::function<void()> work, const char* what) {
     {
       std::lock_guard<std::mutex> lock(background_mutex);
       ++background_running;
     }
-    std::thread([this, work = std::move(work)]() mutable {
+    return [this, what, work = std::move(work)]() mutable {
       try {
         work();
       } catch (const std::exception& e) {
-        LOG_WARN("serve: background work failed: ", e.what());
+        LOG_WARN("serve: ", what, " failed: ", e.what());
       }
       work = nullptr;  // release what it holds before counting it done
       std::lock_guard<std::mutex> lock(background_mutex);
       --background_running;
       background_done.notify_all();
-    }).detach();
+    };
   }
-  // Runs `work` on the study pool, counted like background work so stop() waits for it.
+  void run_in_background(std::function<void()> work) {
+    std::thread(counted(std::move(work), "background work")).detach();
+  }
+  // The study's requests (a vote waits for its fsync) on the bounded pool.
   void run_on_study_pool(std::function<void()> work) {
-    {
-      std::lock_guard<std::mutex> lock(background_mutex);
-      ++background_running;
-    }
-    net::post(*study_pool, [this, work = std::move(work)]() mutable {
-      try {
-        work();
-      } catch (const std::exception& e) {
-        LOG_WARN("serve: study request failed: ", e.what());
-      }
-      work = nullptr;
-      std::lock_guard<std::mutex> lock(background_mutex);
-      --background_running;
-      background_done.notify_all();
-    });
+    net::post(*study_pool, counted(std::move(work), "study request"));
   }
   bool authorised(const http::request<http::string_body>& req) const;
   void accept();
@@ -557,14 +548,6 @@ ServerMetrics& Server::metrics() { return impl_->metrics; }
 
 uint16_t Server::start() {
   auto& s = *impl_;
-  {
-    beast::error_code ec;
-    const auto address = net::ip::make_address(s.options.host, ec);
-    DOJO_CHECK(ec || address.is_loopback() || !s.options.token.empty() || s.options.insecure,
-               "serve: --host " + s.options.host +
-                   " opens the server to the network without a token: give --token (or --insecure to serve "
-                   "it open anyway)");
-  }
   if (!s.options.study.empty()) s.study = std::make_unique<StudyApi>(s.options.study);
   s.study_pool.emplace(static_cast<size_t>(std::max(1, s.options.study_threads)));
   if (!s.options.tls_cert.empty() || !s.options.tls_key.empty()) {
@@ -584,6 +567,10 @@ uint16_t Server::start() {
   beast::error_code ec;
   const auto address = net::ip::make_address(s.options.host, ec);
   DOJO_CHECK(!ec, "serve: --host '" + s.options.host + "' is not an IP address");
+  DOJO_CHECK(address.is_loopback() || !s.options.token.empty() || s.options.insecure,
+             "serve: --host " + s.options.host +
+                 " opens the server to the network without a token: give --token (or --insecure to serve it "
+                 "open anyway)");
   const tcp::endpoint endpoint(address, s.options.port);
   s.acceptor.open(endpoint.protocol(), ec);
   if (!ec) s.acceptor.set_option(net::socket_base::reuse_address(true), ec);

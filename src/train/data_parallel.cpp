@@ -20,6 +20,7 @@
 
 #include "core/error.h"
 #include "core/log.h"
+#include "data/clip_loader.h"
 
 namespace dojo::train {
 namespace {
@@ -163,20 +164,24 @@ void DataParallel::broadcast_from_main(const std::vector<torch::Tensor>& tensors
 #endif
 }
 
+void DataParallel::broadcast_from_main(const torch::nn::Module& module) {
+  auto tensors = module.parameters();
+  for (const auto& b : module.buffers()) tensors.push_back(b);
+  broadcast_from_main(tensors);
+}
+
 void DataParallel::average_gradients(const std::vector<torch::Tensor>& params, int64_t bucket_bytes) {
   if (!active()) return;
 #ifdef DOJO_HAVE_GLOO
   torch::NoGradGuard no_grad;
   try {
     // Which gradients exist anywhere: a rank that skipped a branch must still add its zeros.
-    auto defined = torch::zeros({static_cast<int64_t>(params.size())});
+    std::vector<double> defined(params.size());
     for (size_t i = 0; i < params.size(); ++i) defined[i] = params[i].grad().defined() ? 1.0 : 0.0;
-    std::vector<torch::Tensor> flags = {defined};
-    group_->gloo->allreduce(flags)->wait();
-    const auto anywhere = flags[0].gt(0);
+    const auto anywhere = mean(std::move(defined));  // > 0 where some rank has the gradient
     std::vector<torch::Tensor> grads;
     for (size_t i = 0; i < params.size(); ++i) {
-      if (!anywhere[i].item<bool>()) continue;
+      if (anywhere[i] == 0) continue;
       auto& p = params[i];
       if (!p.grad().defined()) p.mutable_grad() = torch::zeros_like(p);
       grads.push_back(p.grad());
@@ -230,29 +235,13 @@ std::vector<double> DataParallel::mean(std::vector<double> values) {
     std::vector<torch::Tensor> t = {torch::tensor(values, torch::kFloat64)};
     group_->gloo->allreduce(t)->wait();
     const auto sum = t[0].contiguous();
-    for (size_t i = 0; i < values.size(); ++i)
-      values[i] = sum[static_cast<int64_t>(i)].item<double>() / static_cast<double>(world_.world);
+    const double* summed = sum.data_ptr<double>();
+    for (size_t i = 0; i < values.size(); ++i) values[i] = summed[i] / static_cast<double>(world_.world);
   } catch (const std::exception& e) {
     peer_lost(world_, "averaging step statistics", e);
   }
 #endif
   return values;
-}
-
-bool DataParallel::any(bool flag) {
-  if (!active()) return flag;
-  return mean({flag ? 1.0 : 0.0})[0] > 0;
-}
-
-void DataParallel::barrier(const std::string& what) {
-  if (!active()) return;
-#ifdef DOJO_HAVE_GLOO
-  try {
-    group_->gloo->barrier()->wait();
-  } catch (const std::exception& e) {
-    peer_lost(world_, what, e);
-  }
-#endif
 }
 
 void DataParallel::main_first(const std::string& what, const std::function<void()>& work) {
@@ -311,6 +300,13 @@ void DataParallel::check_same(const std::string& what, const std::string& value)
                   std::to_string(r) + ": " + values[r] + ", this rank: " + value +
                   "); start every rank with the same command");
 #endif
+}
+
+void BatchShards::share_stream(data::LoaderOptions& loader) const {
+  loader.batch_size = static_cast<int>(micro_batch);
+  loader.stream_every = shards();
+  loader.stream_first = rank * accumulate;
+  loader.stream_run = accumulate;
 }
 
 BatchShards BatchShards::plan(int64_t global_batch, int64_t accumulate, const DataParallel& group,

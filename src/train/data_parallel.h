@@ -33,6 +33,13 @@
 #include <string>
 #include <vector>
 
+namespace torch::nn {
+class Module;
+}
+namespace dojo::data {
+struct LoaderOptions;
+}
+
 namespace dojo::train {
 
 struct ParallelWorld {
@@ -59,13 +66,13 @@ class DataParallel {
 
   // Overwrites `tensors` (same shapes on every rank) with rank 0's values.
   void broadcast_from_main(const std::vector<torch::Tensor>& tensors);
+  // The same for every parameter and buffer of `module`: how each trainer starts its ranks alike.
+  void broadcast_from_main(const torch::nn::Module& module);
   // Averages the gradients of `params` over the ranks, in flat buckets of about `bucket_bytes`
   // reduced concurrently. A gradient no rank computed stays undefined; one computed on some ranks
   // only counts as zero on the others.
   void average_gradients(const std::vector<torch::Tensor>& params, int64_t bucket_bytes = 32 << 20);
   std::vector<double> mean(std::vector<double> values);  // elementwise over the ranks
-  bool any(bool flag);                                   // true on every rank when one says true
-  void barrier(const std::string& what);
   // Rank 0 runs `work` (e.g. writing a cache) before the others do, which then find its result.
   // Waits without the collective timeout: work may take long; a dead rank 0 still ends the wait.
   void main_first(const std::string& what, const std::function<void()>& work);
@@ -97,6 +104,10 @@ struct BatchShards {
   // Where this rank's micro-batch `micro` starts in a step's global batch, for trainers that draw
   // the whole batch on every rank and keep their rows (distillation: its draws are per step).
   int64_t row_offset(int64_t micro) const { return (rank * accumulate + micro) * micro_batch; }
+  // Makes `loader` hand out this rank's micro-batches: micro_batch clips a batch, the runs of
+  // `accumulate` batches of the whole stream that are this rank's (data::LoaderOptions::stream_*).
+  // A loader resuming at step k starts at its batch k * accumulate.
+  void share_stream(data::LoaderOptions& loader) const;
   // Throws dojo::UsageError ("<who>: a batch of 6 does not split into 4 equal micro-batches ...") unless
   // global_batch divides into world x accumulate equal micro-batches.
   static BatchShards plan(int64_t global_batch, int64_t accumulate, const DataParallel& group,

@@ -56,9 +56,7 @@ LamTrainer::LamTrainer(models::LatentActionModel model, LamTrainOptions options)
   for (auto& p : model_->parameters())
     if (p.requires_grad()) params.push_back(p);  // rotary freqs are frozen
   // Every data-parallel rank starts from rank 0's weights.
-  auto shared = model_->parameters();
-  for (const auto& b : model_->buffers()) shared.push_back(b);
-  data_parallel().broadcast_from_main(shared);
+  data_parallel().broadcast_from_main(*model_);
   optimizer_ = std::make_unique<torch::optim::AdamW>(
       params, torch::optim::AdamWOptions(options_.lr).weight_decay(options_.weight_decay));
 }
@@ -163,13 +161,9 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   group.check_same("the step to resume from", std::to_string(trainer.steps_done()));
   const auto shards = BatchShards::plan(job.batch_size, job.accumulate, group, "lam train");
   data::LoaderOptions lo;
-  lo.batch_size = static_cast<int>(shards.micro_batch);
   lo.workers = job.workers;
   lo.seed = job.seed;
-  // This rank's micro-batches of each step: a run of `accumulate` batches out of every `shards`.
-  lo.stream_every = shards.shards();
-  lo.stream_first = shards.rank * shards.accumulate;
-  lo.stream_run = shards.accumulate;
+  shards.share_stream(lo);  // this rank's micro-batches of each step
   data::PrefetchLoader loader(mixture, lo, trainer.steps_done() * shards.accumulate);
   // One process, one micro-batch: the augmentation stream of a plain run. A split batch draws
   // each micro-batch's augmentation and posterior sample from its own (seed, stream index).

@@ -136,11 +136,13 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
                             : 0;
   auto& group = data_parallel();
   group.check_same("the step to resume from", std::to_string(start));
-  auto shared = vae->parameters();
-  for (const auto& b : vae->buffers()) shared.push_back(b);
-  group.broadcast_from_main(shared);
+  group.broadcast_from_main(*vae);
   const int64_t accumulate = std::max<int64_t>(1, o.accumulate);
-  const int64_t shards = group.world() * accumulate;
+  // The stream indices of this rank's micro-batches (their sizes are the loaders', tokenizer_batches).
+  BatchShards split;
+  split.accumulate = accumulate;
+  split.world = group.world();
+  split.rank = group.rank();
   auto image_batch = [&](int64_t step) {
     if (o.next_image_batch) return o.next_image_batch(step);
     const auto clips = next_batch(step);  // [B, 3, T, H, W]
@@ -174,8 +176,8 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
         for (int64_t j = 0; j < accumulate; ++j) {
           // Micro-batch j of this rank: its crop (and, split, its posterior draws) follow its
           // stream index; one process with one micro-batch keeps the plain run's draws.
-          const int64_t index = s.index * shards + group.rank() * accumulate + j;
-          if (shards > 1)
+          const int64_t index = split.stream_index(s.index, j);
+          if (split.shards() > 1)
             torch::manual_seed(0x70CE11ULL * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(index));
           const auto video = random_spatial_crop(images ? image_batch(s.index) : next_batch(s.index), o.crop,
                                                  static_cast<uint64_t>(index));
@@ -234,10 +236,10 @@ TokenizerBatches tokenizer_batches(const std::vector<TokenizerDataset>& datasets
   auto stream = [workers](std::shared_ptr<data::ClipMixture> m, const BatchShards& shards,
                           uint64_t stream_seed) {
     auto loader = std::make_shared<std::unique_ptr<data::PrefetchLoader>>();
-    data::LoaderOptions lo{static_cast<int>(shards.micro_batch), workers, 4, stream_seed};
-    lo.stream_every = shards.shards();
-    lo.stream_first = shards.rank * shards.accumulate;
-    lo.stream_run = shards.accumulate;
+    data::LoaderOptions lo;
+    lo.workers = workers;
+    lo.seed = stream_seed;
+    shards.share_stream(lo);
     return [=](int64_t step) {
       if (!*loader) *loader = std::make_unique<data::PrefetchLoader>(m, lo, step * lo.stream_run);
       return models::video_to_model((*loader)->next().video);  // [B, 3, T, H, W]

@@ -171,9 +171,7 @@ AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
     LOG_INFO(loop.name, ": resumed from ", ckpt_dir.string(), " at step ", start);
   }
   group.check_same(loop.name + " start step", std::to_string(start));
-  auto shared = params;
-  for (const auto& b : model.buffers()) shared.push_back(b);
-  group.broadcast_from_main(shared);
+  group.broadcast_from_main(model);
   model.train();
 
   LoopOptions options;

@@ -153,9 +153,7 @@ WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options, torch::Devic
   ema_->to(device_);
   // Every data-parallel rank starts from rank 0's weights (a resumed run then loads the same
   // checkpoint everywhere).
-  auto shared = net_->parameters();
-  for (const auto& b : net_->buffers()) shared.push_back(b);
-  data_parallel().broadcast_from_main(shared);
+  data_parallel().broadcast_from_main(*net_);
   // The EMA starts as an exact copy; it never trains.
   load_state_dict(*ema_, state_dict(*net_));
   ema_->eval();

@@ -3,17 +3,6 @@
 // through the embodiment's mapping file, sent as {"type": "control"} messages.
 "use strict";
 const params = new URLSearchParams(location.search);
-// A token comes in the address's fragment (/#token=...), which browsers never send: it becomes the
-// dojo_token cookie every later request of this page carries (the server takes no token in a URL).
-function adoptToken() {
-  const fragment = new URLSearchParams(location.hash.slice(1));
-  const token = fragment.get("token");
-  if (!token) return;
-  const secure = location.protocol === "https:" ? "; Secure" : "";
-  document.cookie = `dojo_token=${encodeURIComponent(token)}; path=/; SameSite=Strict${secure}`;
-  history.replaceState(null, "", location.pathname + location.search);  // out of the address bar
-}
-adoptToken();
 const $ = (id) => document.getElementById(id);
 const view = $("view"), ctx = view.getContext("2d");
 
