@@ -174,8 +174,9 @@ void register_serve_load(CLI::App& app) {
   cmd->add_option("--seconds", o->seconds, "How long each session runs")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
-  cmd->add_option("--mode", o->mode, "step (policy round trips) or live (teleoperation)")
-      ->check(CLI::IsMember({"step", "live"}))
+  cmd->add_option("--mode", o->mode,
+                  "step (policy round trips), live (teleoperation) or study (preference-study voters)")
+      ->check(CLI::IsMember({"step", "live", "study"}))
       ->capture_default_str();
   cmd->add_option("--model", o->model, "Model name (default: the server's first)");
   add_json_option(cmd, *json);
@@ -184,19 +185,29 @@ void register_serve_load(CLI::App& app) {
       const auto r = serve::run_load(*o);
       if (*json) {
         std::printf("%s\n", r.to_json().dump().c_str());
+      } else if (o->mode == "study") {
+        std::printf(
+            "%d voter(s), %.0f s: %lld votes acknowledged (%.1f/s); vote latency p50 %.1f ms, p95 %.1f ms, "
+            "p99 %.1f ms; %lld answers 503 (retried); failed voters %lld; server RSS %.1f -> %.1f MiB\n",
+            o->sessions, o->seconds, static_cast<long long>(r.votes_acknowledged),
+            r.votes_acknowledged / o->seconds, r.latency_ms_p50, r.latency_ms_p95, r.latency_ms_p99,
+            static_cast<long long>(r.refusals), static_cast<long long>(r.failed_sessions),
+            r.server_rss_mib_before, r.server_rss_mib_after);
+        for (const auto& f : r.failures) std::printf("  failed: %s\n", f.c_str());
       } else {
         std::printf("%d %s session(s), %.0f s: frames/s per session", o->sessions, o->mode.c_str(),
                     o->seconds);
         for (double f : r.frames_per_second) std::printf(" %.1f", f);
         std::printf(
-            "; latency p50 %.1f ms, p95 %.1f ms; errors %lld, failed sessions %lld, dropped frames %lld; "
-            "server RSS %.1f -> %.1f MiB\n",
-            r.latency_ms_p50, r.latency_ms_p95, static_cast<long long>(r.errors),
-            static_cast<long long>(r.failed_sessions), static_cast<long long>(r.frames_dropped),
-            r.server_rss_mib_before, r.server_rss_mib_after);
+            "; latency p50 %.1f ms, p95 %.1f ms, p99 %.1f ms; errors %lld, failed sessions %lld, refused at "
+            "the cap %lld, dropped frames %lld; server RSS %.1f -> %.1f MiB\n",
+            r.latency_ms_p50, r.latency_ms_p95, r.latency_ms_p99, static_cast<long long>(r.errors),
+            static_cast<long long>(r.failed_sessions), static_cast<long long>(r.refused_sessions),
+            static_cast<long long>(r.frames_dropped), r.server_rss_mib_before, r.server_rss_mib_after);
         for (const auto& f : r.failures) std::printf("  failed: %s\n", f.c_str());
       }
-      return r.failed_sessions == 0 && r.errors == 0 ? 0 : 1;
+      // Sessions declined at the cap are the server's clear answer, not a failure of the run.
+      return r.failed_sessions == 0 && r.errors == 0 && r.server_alive_after ? 0 : 1;
     });
   });
 }

@@ -41,6 +41,7 @@ struct WmTrainArgs {
   int64_t steps = 2000, save_every = 100, hop = 2, max_clips = 0, warmup = 100, lora_rank = 0;
   int batch = 8;
   int64_t accumulate = 1;
+  bool checkpoint_activations = false;
   double lora_alpha = 32;
   std::string lora_targets = "q,k,v,o,mlp1,mlp2";
   double minutes = 0, lr = 1.6e-4, weight_decay = 0.1, grad_clip = 0.1, temporal_weight = 0.1, shift = 5.0,
@@ -109,6 +110,7 @@ int run_wm_train(const WmTrainArgs& a) {
       a.temporal_axis == "channel" ? diffusion::TemporalAxis::kChannel : diffusion::TemporalAxis::kTime;
   job.batch_size = a.batch;
   job.accumulate = a.accumulate;
+  job.checkpoint_activations = a.checkpoint_activations;
   job.steps = a.steps;
   job.time_budget_s = a.minutes * 60.0;
   job.save_every = a.save_every;
@@ -271,6 +273,9 @@ void register_wm(CLI::App& app) {
   wm->require_subcommand(1);
   register_wm_stream(*wm);
   register_wm_speed(*wm);
+#ifdef DOJO_WITH_SIM
+  register_wm_step_speed(*wm);
+#endif
 
   auto t = std::make_shared<WmTrainArgs>();
   auto* train_cmd =
@@ -361,6 +366,9 @@ void register_wm(CLI::App& app) {
                       "Ablation: normalised absolute actions instead of chunk-relative deltas");
   train_cmd->add_flag("--whole-clip-actions", t->whole_clip_actions,
                       "Ablation: one embedding of all 12 actions added to every frame (no per-frame chunks)");
+  train_cmd->add_flag("--checkpoint-activations", t->checkpoint_activations,
+                      "Keep only each block's inputs and run it again in the backward pass: far less "
+                      "activation memory for about a third more compute (docs/distributed.md, Memory)");
   train_cmd->add_option("--save-every", t->save_every, "Checkpoint interval in steps")->capture_default_str();
   add_seed_option(train_cmd, t->seed);
   add_device_options(train_cmd, t->device, t->precision);

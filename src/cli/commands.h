@@ -50,8 +50,9 @@ void register_lam(CLI::App& app);
 void register_tokenizer(CLI::App& app);
 void register_fast_decoder(CLI::App& tokenizer);  // `tokenizer fast-decoder`
 void register_wm(CLI::App& app);
-void register_wm_stream(CLI::App& wm);  // `wm stream`, under register_wm's `wm`
-void register_wm_speed(CLI::App& wm);   // `wm speed`, likewise
+void register_wm_stream(CLI::App& wm);      // `wm stream`, under register_wm's `wm`
+void register_wm_speed(CLI::App& wm);       // `wm speed`, likewise
+void register_wm_step_speed(CLI::App& wm);  // `wm step-speed` (DojoSim builds: a recipe)
 void register_metrics(CLI::App& app);
 void register_probe(CLI::App& app);
 void register_distill(CLI::App& app);

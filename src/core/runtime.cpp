@@ -5,8 +5,10 @@
 #include <torch/torch.h>
 #include <unistd.h>
 
+#include <cstdlib>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <string>
 #include <thread>
 
 #include "core/blas_kernels.h"
@@ -141,6 +143,14 @@ std::string torch_version() {
 #endif
 }
 
+bool plain_kernels() {
+  static const bool plain = [] {
+    const char* value = std::getenv("DOJO_PLAIN_KERNELS");
+    return value != nullptr && std::string(value) == "1";
+  }();
+  return plain;
+}
+
 nlohmann::json version_info() {
   nlohmann::json info;
   info["version"] = version_string();
@@ -151,6 +161,7 @@ nlohmann::json version_info() {
   info["blas"] = blas_library();
   if (const auto kernels = blas_kernels(); !kernels.empty()) info["blas_kernels"] = kernels;
   info["threads"] = threads();
+  info["plain_kernels"] = plain_kernels();
   info["hardware_threads"] = std::thread::hardware_concurrency();
 #ifdef DOJO_WITH_SIM
   info["sim"] = true;

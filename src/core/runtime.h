@@ -42,6 +42,11 @@ class ScopedThreads {
 // thread and 10.7 with two, the LAM at 9.8 vs 6.3 steps/s. Then 1; otherwise threads().
 int matmul_bound_threads();
 
+// True when the environment sets DOJO_PLAIN_KERNELS to 1: every optimised kernel (the fused
+// optimizer step, the fused inference kernels of the DiT) runs its plain libtorch reference
+// path instead, for comparison and for ruling them out when something looks wrong. Read once.
+bool plain_kernels();
+
 // Resident set size of this process now, in bytes (/proc/self/statm; 0 where unavailable).
 int64_t resident_memory_bytes();
 

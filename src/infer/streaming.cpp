@@ -377,9 +377,19 @@ torch::Tensor StreamingEngine::run_hops(const torch::Tensor& noise, const torch:
   base.frame_offset = offset;  // RoPE index of the new frame
   base.rope_cos = rope_cos;
   base.rope_sin = rope_sin;
+  if (!rope_cos.defined()) {  // the hops share their positions too: their angles once, not once a hop
+    const int64_t p = net_->config.patch_spatial;
+    std::tie(base.rope_cos, base.rope_sin) =
+        net_->rope_cos_sin(1, latent_shape_[3] / p, latent_shape_[4] / p, offset);
+  }
   base.kv_cache = &cache_;
   base.store_kv = false;  // hops read the cache; the clean pass writes it
-  auto x = noise;         // TrigFlow state at t = π/2
+  if (actions.defined() && offset > 0) {
+    // The hops share their actions: the action MLPs run once, not once a hop.
+    AutocastGuard autocast(options_.device.type(), options_.precision);
+    base.action_embedding = net_->embed_actions(actions, 1);
+  }
+  auto x = noise;  // TrigFlow state at t = π/2
   torch::Tensor x0;
   for (size_t s = 0; s < schedule_.size(); ++s) {
     {

@@ -145,20 +145,36 @@ torch::Tensor WorldModel::predict_chunk(const torch::Tensor& cond, const torch::
   const auto acts = actions.to(device_, torch::kFloat);
 
   const bool guided = sampler.action_guidance != 1.0;
+  // What every step of the chunk shares, computed once: the text context (or the zeros that stand
+  // in for it) through its projection, the action MLPs' outputs (guided: for [actions; zero
+  // actions]) and the tokens' RoPE angles.
+  const auto all_actions = guided ? torch::cat({acts, torch::zeros_like(acts)}) : acts;  // [rows, 12, A]
+  const bool per_frame = net_->config.whole_clip_actions == 0;  // else the ablation's injection, per call
+  models::DitActionEmbedding embedded;
+  torch::Tensor projected;
+  {
+    AutocastGuard autocast(device_.type(), precision_);
+    if (per_frame) embedded = net_->embed_actions(all_actions, latent_frames - 1);
+    projected = net_->project_context(text_context_.defined()
+                                          ? text_context_  // [1, L, C]
+                                          : torch::zeros({1, 1, net_->config.crossattn_emb_channels}, opts));
+  }
+  const int64_t p = net_->config.patch_spatial;
+  const auto [rope_cos, rope_sin] = net_->rope_cos_sin(latent_frames, gt.size(3) / p, gt.size(4) / p, 0);
   const diffusion::VelocityFn velocity = [&](const torch::Tensor& x, double /*sigma*/, int64_t timestep) {
+    const int64_t rows = guided ? 2 * batch : batch;
     models::DitInputs in;
-    in.timesteps = torch::full({batch, 1}, static_cast<double>(timestep), opts);
-    in.condition_mask = mask;
-    in.actions = acts;
-    if (text_context_.defined()) in.context = text_context_.expand({batch, -1, -1});
+    in.timesteps = torch::full({rows, 1}, static_cast<double>(timestep), opts);
+    in.condition_mask = guided ? mask.repeat({2, 1, 1, 1, 1}) : mask;
+    in.action_embedding = embedded;
+    if (!per_frame) in.actions = all_actions;
+    in.projected_context = projected.expand({rows, -1, -1});
+    in.rope_cos = rope_cos;
+    in.rope_sin = rope_sin;
     // Only the network runs in the lower precision; the solver's updates stay float32.
     AutocastGuard autocast(device_.type(), precision_);
     if (!guided) return models::denoise_velocity(*net_, in, x, gt, noise, mask).to(torch::kFloat32);
     // Both branches in one batch: [with actions; zero actions].
-    in.timesteps = in.timesteps.repeat({2, 1});
-    in.condition_mask = mask.repeat({2, 1, 1, 1, 1});
-    in.actions = torch::cat({acts, torch::zeros_like(acts)});
-    if (text_context_.defined()) in.context = text_context_.expand({2 * batch, -1, -1});
     const auto v = models::denoise_velocity(*net_, in, x.repeat({2, 1, 1, 1, 1}), gt.repeat({2, 1, 1, 1, 1}),
                                             noise.repeat({2, 1, 1, 1, 1}), in.condition_mask)
                        .to(torch::kFloat32);

@@ -1,11 +1,14 @@
 #include "models/dit.h"
 
+#include <torch/autograd.h>
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
 
 #include "core/error.h"
 #include "models/attention.h"
+#include "models/dit_kernels.h"
 
 namespace dojo::models {
 
@@ -263,25 +266,45 @@ torch::Tensor DitAttentionImpl::self_attention(const torch::Tensor& x, const tor
   const int64_t B = x.size(0), L = x.size(1);
   // Norm and RoPE act per head on the [B, L, h, d] layout the projections produce; the
   // transposes to [B, h, L, d] are views (the attention matmuls take them as they are).
-  const auto q = apply_rope(q_norm(lora_forward(q_proj, q_lora, x).view({B, L, heads, head_dim})), cos, sin)
-                     .transpose(1, 2);
-  auto k = apply_rope(k_norm(lora_forward(k_proj, k_lora, x).view({B, L, heads, head_dim})), cos, sin)
-               .transpose(1, 2);
+  const auto q_raw = lora_forward(q_proj, q_lora, x).view({B, L, heads, head_dim});
+  const auto k_raw = lora_forward(k_proj, k_lora, x).view({B, L, heads, head_dim});
+  torch::Tensor q, k;           // [B, h, L, d]
+  std::optional<double> scale;  // attention's default 1/sqrt(d), unless folded into q
+  if (fused_dit_kernels_apply(q_raw)) {
+    q = rms_norm_rope_fused(q_raw, q_norm->weight, q_norm->eps, cos, sin,
+                            1.0 / std::sqrt(static_cast<double>(head_dim)))
+            .transpose(1, 2);
+    k = rms_norm_rope_fused(k_raw, k_norm->weight, k_norm->eps, cos, sin).transpose(1, 2);
+    scale = 1.0;
+  } else {
+    q = apply_rope(q_norm(q_raw), cos, sin).transpose(1, 2);
+    k = apply_rope(k_norm(k_raw), cos, sin).transpose(1, 2);
+  }
   auto v = lora_forward(v_proj, v_lora, x).view({B, L, heads, head_dim}).transpose(1, 2);  // [B, h, L, d]
   torch::Tensor k_all = k, v_all = v;  // [B, h, cached + L, d]
   if (cache != nullptr) std::tie(k_all, v_all) = cache->attend(k, v, store_kv);
   std::optional<torch::Tensor> m;
   if (mask.defined()) m = mask;
-  const auto o = attention(q, k_all, v_all, m);  // [B, h, L, d]
+  const auto o = attention(q, k_all, v_all, m, /*causal=*/false, scale);  // [B, h, L, d]
   return lora_forward(output_proj, output_lora,
                       o.transpose(1, 2).reshape({B, L, heads * head_dim}));  // [B, L, D]
 }
 
 torch::Tensor DitAttentionImpl::cross_attention(const torch::Tensor& x, const torch::Tensor& context) {
   const int64_t B = x.size(0), L = x.size(1), Lc = context.size(1);
-  const auto q = q_norm(lora_forward(q_proj, q_lora, x).view({B, L, heads, head_dim})).transpose(1, 2);
-  const auto k = k_norm(lora_forward(k_proj, k_lora, context).view({B, Lc, heads, head_dim})).transpose(1, 2);
+  const auto q_raw = lora_forward(q_proj, q_lora, x).view({B, L, heads, head_dim});
+  const auto k_raw = lora_forward(k_proj, k_lora, context).view({B, Lc, heads, head_dim});
   const auto v = lora_forward(v_proj, v_lora, context).view({B, Lc, heads, head_dim}).transpose(1, 2);
+  if (fused_dit_kernels_apply(q_raw)) {
+    const auto q = rms_norm_rope_fused(q_raw, q_norm->weight, q_norm->eps, {}, {},
+                                       1.0 / std::sqrt(static_cast<double>(head_dim)));
+    const auto k = rms_norm_rope_fused(k_raw, k_norm->weight, k_norm->eps, {}, {});
+    const auto o =
+        attention(q.transpose(1, 2), k.transpose(1, 2), v, std::nullopt, false, 1.0);  // [B, h, L, d]
+    return lora_forward(output_proj, output_lora, o.transpose(1, 2).reshape({B, L, heads * head_dim}));
+  }
+  const auto q = q_norm(q_raw).transpose(1, 2);
+  const auto k = k_norm(k_raw).transpose(1, 2);
   const auto o = attention(q, k, v);  // [B, h, L, d]
   return lora_forward(output_proj, output_lora,
                       o.transpose(1, 2).reshape({B, L, heads * head_dim}));  // [B, L, D]
@@ -306,8 +329,7 @@ DitModulation::DitModulation(int64_t dim, int64_t lora_dim, int64_t out)
 namespace {
 // LayerNorm without affine parameters (eps 1e-6), then adaLN: norm · (1 + scale) + shift.
 torch::Tensor modulate(const torch::Tensor& x, const torch::Tensor& shift, const torch::Tensor& scale) {
-  const auto normed = torch::layer_norm(x, {x.size(-1)}, {}, {}, 1e-6);
-  return normed * (1 + scale) + shift;
+  return fused_dit_kernels_apply(x) ? modulate_fused(x, shift, scale) : modulate_plain(x, shift, scale);
 }
 }  // namespace
 
@@ -347,6 +369,64 @@ torch::Tensor DitBlockImpl::forward(const torch::Tensor& input, const DitBlockCo
   y = modulate(x, ml[0], ml[1]);
   return x + ml[2] * mlp(y);
 }
+
+namespace {
+
+// One block under activation checkpointing: the forward pass runs it without recording (only the
+// inputs are kept); the backward pass runs it again with gradients recorded and backpropagates
+// through that, which also accumulates the block's parameter gradients (the re-entrant scheme of
+// torch.utils.checkpoint). The block has no randomness, so both passes compute the same function.
+struct RecomputedBlock : torch::autograd::Function<RecomputedBlock> {
+  // libtorch 1.13 refuses undefined tensors among a Function's inputs: an empty one stands for
+  // "no mask".
+  static torch::Tensor no_mask() { return torch::empty({0}, torch::kBool); }
+  static torch::Tensor mask_of(const torch::Tensor& t) { return t.numel() == 0 ? torch::Tensor() : t; }
+
+  static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& x,
+                               const torch::Tensor& silu_emb, const torch::Tensor& adaln_lora,
+                               const torch::Tensor& context, const torch::Tensor& cos,
+                               const torch::Tensor& sin, const torch::Tensor& mask, int64_t block) {
+    ctx->save_for_backward({x, silu_emb, adaln_lora, context, cos, sin, mask});
+    ctx->saved_data["block"] = block;
+    DitBlockContext c;
+    c.silu_emb = silu_emb;
+    c.adaln_lora = adaln_lora;
+    c.context = context;
+    c.cos = cos;
+    c.sin = sin;
+    c.mask = mask_of(mask);
+    return reinterpret_cast<DitBlockImpl*>(block)->forward(x, c);
+  }
+
+  static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
+                                                 torch::autograd::variable_list grad_out) {
+    const auto saved = ctx->get_saved_variables();
+    std::vector<torch::Tensor> inputs;  // x, silu_emb, adaln_lora, context, detached
+    for (int i = 0; i < 4; ++i)
+      inputs.push_back(saved[i].defined() ? saved[i].detach().requires_grad_(ctx->needs_input_grad(i))
+                                          : saved[i]);
+    torch::Tensor out;
+    {
+      torch::AutoGradMode recording(true);
+      DitBlockContext c;
+      c.silu_emb = inputs[1];
+      c.adaln_lora = inputs[2];
+      c.context = inputs[3];
+      c.cos = saved[4];
+      c.sin = saved[5];
+      c.mask = mask_of(saved[6]);
+      out = reinterpret_cast<DitBlockImpl*>(ctx->saved_data["block"].toInt())->forward(inputs[0], c);
+    }
+    torch::autograd::backward({out}, {grad_out[0]});
+    torch::autograd::variable_list grads;
+    for (const auto& t : inputs)
+      grads.push_back(t.defined() && t.requires_grad() ? t.grad() : torch::Tensor());
+    grads.resize(8);  // cos, sin, mask and the block take none
+    return grads;
+  }
+};
+
+}  // namespace
 
 DitTimestepEmbeddingImpl::DitTimestepEmbeddingImpl(int64_t dim) {
   linear_1 = register_module("linear_1", nn::Linear(nn::LinearOptions(dim, dim).bias(false)));
@@ -462,6 +542,21 @@ torch::Tensor ActionDitImpl::action_scale_on(const torch::TensorOptions& options
   return action_scales_.back();
 }
 
+DitActionEmbedding ActionDitImpl::embed_actions(const torch::Tensor& actions_in, int64_t action_frames) {
+  const auto& c = config;
+  const int64_t k = c.actions_per_latent_frame;
+  DOJO_CHECK(c.whole_clip_actions == 0, "DiT: embed_actions is for per-frame action injection");
+  DOJO_CHECK(
+      actions_in.dim() == 3 && actions_in.size(1) == k * action_frames && actions_in.size(2) == c.action_dim,
+      "DiT: actions must be [B, " + std::to_string(k * action_frames) + ", " + std::to_string(c.action_dim) +
+          "] for " + std::to_string(action_frames) + " latent frames with actions");
+  const auto actions =
+      c.action_scale.empty() ? actions_in : actions_in * action_scale_on(actions_in.options());
+  const auto rows = actions.to(x_embedder->linear->weight.scalar_type())
+                        .reshape({actions.size(0), action_frames, k * c.action_dim});  // [B, T', 4A]
+  return {action_embedder_B_D(rows), action_embedder_B_3D(rows)};  // [B, T', D], [B, T', 3D]
+}
+
 std::map<std::string, torch::Tensor> ActionDitImpl::forward_with_intermediates(const DitInputs& in) {
   std::map<std::string, torch::Tensor> out;
   out["velocity"] = forward_impl(in, &out);
@@ -566,16 +661,24 @@ torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
     const auto row = actions.to(dtype).reshape({B, 1, c.whole_clip_actions * c.action_dim});  // [B, 1, NA]
     t_emb = t_emb + action_embedder_B_D(row);             // [B, T_t, D], the same for every frame
     adaln_lora = adaln_lora + action_embedder_B_3D(row);  // [B, T_t, 3D]
-  } else if (actions.defined() && action_frames > 0) {
+  } else if ((actions.defined() || in.action_embedding.defined()) && action_frames > 0) {
     const int64_t k = c.actions_per_latent_frame;
-    DOJO_CHECK(actions.dim() == 3 && actions.size(0) == B && actions.size(1) == k * action_frames &&
-                   actions.size(2) == c.action_dim,
-               "DiT: actions must be [B, " + std::to_string(k * action_frames) + ", " +
-                   std::to_string(c.action_dim) + "] for " + std::to_string(T) +
-                   " latent frames at frame_offset " + std::to_string(in.frame_offset));
-    const auto rows = actions.to(dtype).reshape({B, action_frames, k * c.action_dim});  // [B, T', 4A]
-    auto emb_D = action_embedder_B_D(rows);                                             // [B, T', D]
-    auto emb_3D = action_embedder_B_3D(rows);                                           // [B, T', 3D]
+    DOJO_CHECK(
+        !actions.defined() || (actions.dim() == 3 && actions.size(0) == B &&
+                               actions.size(1) == k * action_frames && actions.size(2) == c.action_dim),
+        "DiT: actions must be [B, " + std::to_string(k * action_frames) + ", " +
+            std::to_string(c.action_dim) + "] for " + std::to_string(T) + " latent frames at frame_offset " +
+            std::to_string(in.frame_offset));
+    const auto embedded =
+        in.action_embedding.defined() ? in.action_embedding : embed_actions(in.actions, action_frames);
+    // In the dtype the MLPs gave (bf16 under autocast), as the sums below always saw them.
+    auto emb_D = embedded.to_t_emb;        // [B, T', D]
+    auto emb_3D = embedded.to_adaln_lora;  // [B, T', 3D]
+    DOJO_CHECK(emb_D.dim() == 3 && emb_D.size(0) == B && emb_D.size(1) == action_frames &&
+                   emb_D.size(2) == D && emb_3D.dim() == 3 && emb_3D.size(1) == action_frames &&
+                   emb_3D.size(2) == 3 * D,
+               "DiT: the action embedding must be [B, " + std::to_string(action_frames) + ", D] and [B, " +
+                   std::to_string(action_frames) + ", 3D] for this call");
     keep("action_emb_B_D", emb_D);
     keep("action_emb_B_3D", emb_3D);
     if (lead > 0) {
@@ -601,9 +704,13 @@ torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
                "DiT: kv_cache must hold one entry per block (" + std::to_string(c.num_blocks) + ")");
 
   x = x.view({B, T, S, D});
+  const bool recompute = recompute_blocks && torch::GradMode::is_enabled() && in.kv_cache == nullptr;
   for (int64_t i = 0; i < c.num_blocks; ++i) {
     ctx.cache = in.kv_cache != nullptr ? &(*in.kv_cache)[i] : nullptr;
-    x = block_list[i]->forward(x, ctx);  // [B, T, S, D]
+    x = recompute ? RecomputedBlock::apply(x, ctx.silu_emb, ctx.adaln_lora, ctx.context, ctx.cos, ctx.sin,
+                                           ctx.mask.defined() ? ctx.mask : RecomputedBlock::no_mask(),
+                                           reinterpret_cast<int64_t>(block_list[i].get()))
+                  : block_list[i]->forward(x, ctx);  // [B, T, S, D]
     if (capture != nullptr) keep("block" + std::to_string(i) + "_out", x.reshape({B, L, D}));
   }
 

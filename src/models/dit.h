@@ -345,6 +345,14 @@ class DitFinalLayerImpl : public torch::nn::Module {
 };
 TORCH_MODULE(DitFinalLayer);
 
+// The action MLPs' outputs for a call's action rows (before frame 0's zero row is prepended):
+// [B, T', D] added to the timestep embedding and [B, T', 3D] to the adaLN-LoRA. Constant while the
+// actions are: a sampler's 35 steps of a chunk, a student's 4 hops and its re-cache pass.
+struct DitActionEmbedding {
+  torch::Tensor to_t_emb, to_adaln_lora;
+  bool defined() const { return to_t_emb.defined(); }
+};
+
 struct DitInputs {
   torch::Tensor x;               // [B, 16, T, H, W] noisy latent (conditioning frames already replaced)
   torch::Tensor timesteps;       // [B, 1] or [B, T], network units BEFORE timestep_scale (teacher: 0..1000)
@@ -353,6 +361,9 @@ struct DitInputs {
   // [B, 4·(T − 1), action_dim] when frame_offset == 0 (frame 0 gets no action term), else
   // [B, 4·T, action_dim]; undefined => zero action embedding.
   torch::Tensor actions;
+  // Optional: embed_actions(actions, ...) computed once for calls that share the actions; takes
+  // precedence over actions.
+  DitActionEmbedding action_embedding;
   torch::Tensor context;  // [B, L, crossattn_emb_channels] or undefined => zeros [B, 1, C]
   // Optional: the context already through crossattn_proj (project_context), [B, L, proj_dim];
   // takes precedence over context. The released context is one constant per prompt, and its
@@ -386,12 +397,20 @@ class ActionDitImpl : public torch::nn::Module {
   int64_t num_parameters() const;  // learned parameters (buffers excluded)
   // Projected text context crossattn_proj(context) (constant for a fixed prompt: cache it).
   torch::Tensor project_context(const torch::Tensor& context);
+  // The action MLPs on `actions` [B, 4·T', action_dim] for T' latent frames with actions (the
+  // config's action scaling applied): what forward() adds for them.
+  DitActionEmbedding embed_actions(const torch::Tensor& actions, int64_t action_frames);
   // RoPE cos and sin [T·hp·wp, 1, head_dim] (float32) of T latent frames from frame_offset, on
   // a grid of hp x wp patches: what forward() computes for its tokens.
   std::pair<torch::Tensor, torch::Tensor> rope_cos_sin(int64_t frames, int64_t hp, int64_t wp,
                                                        int64_t frame_offset) const;
 
   DitConfig config;
+  // Activation checkpointing (a training option, not part of the architecture): when gradients
+  // are recorded and no KV cache is in use, each block keeps only its inputs in the forward pass
+  // and runs again in the backward pass. Activation memory falls from every block's
+  // intermediates to one block's plus the blocks' inputs, for about a third more compute.
+  bool recompute_blocks = false;
   torch::Tensor accum_video_sample_counter, accum_image_sample_counter, accum_iteration, accum_train_in_hours;
   DitPatchEmbed x_embedder{nullptr};
   DitRopeBuffers pos_embedder{nullptr};

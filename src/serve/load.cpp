@@ -51,6 +51,8 @@ double metric(const std::string& text, const std::string& name) {
 
 struct SessionResult {
   int64_t frames = 0, errors = 0;
+  bool refused = false;                          // declined at the session cap
+  int64_t votes = 0, answers = 0, refusals = 0;  // study mode
   double seconds = 0;
   std::vector<double> latencies_ms, server_step_ms;
   std::string failure;
@@ -180,16 +182,98 @@ SessionResult run_session(const LoadOptions& o, int index, Sockets& sockets) {
     }
     r.seconds = ms_since(t0) / 1000;
     ws.close(websocket::close_code::normal);
+  } catch (const beast::system_error& e) {
+    r.refused = e.code() == websocket::error::upgrade_declined;
+    r.failure = e.what();
   } catch (const std::exception& e) {
     r.failure = e.what();
   }
   return r;
 }
 
+struct HttpAnswer {
+  int status = 0;
+  nlohmann::json body;
+};
+
+// One request on its own connection (registered, so the watchdog can cut a stalled one).
+HttpAnswer request(const LoadOptions& o, http::verb verb, const std::string& target, const std::string& body,
+                   Sockets& sockets) {
+  net::io_context ioc;
+  beast::tcp_stream stream(ioc);
+  stream.connect(tcp::endpoint(net::ip::make_address(o.host), o.port));
+  const int fd = stream.socket().native_handle();
+  sockets.add(fd);
+  struct Unregister {
+    Sockets& sockets;
+    int fd;
+    ~Unregister() { sockets.remove(fd); }
+  } unregister{sockets, fd};
+  http::request<http::string_body> req{verb, target, 11};
+  req.set(http::field::host, o.host);
+  if (!o.token.empty()) req.set(http::field::authorization, "Bearer " + o.token);
+  if (verb == http::verb::post) {
+    req.set(http::field::content_type, "application/json");
+    req.body() = body;
+    req.prepare_payload();
+  }
+  http::write(stream, req);
+  beast::flat_buffer buffer;
+  http::response<http::string_body> res;
+  http::read(stream, buffer, res);
+  return {static_cast<int>(res.result_int()), nlohmann::json::parse(res.body(), nullptr, false)};
+}
+
+// One study voter, run to its deadline: raters, trials and votes over HTTP; a 503 is counted and
+// retried after 20 ms. Any other failure (the server gone) ends the voter with what it has.
+SessionResult run_voter(const LoadOptions& o, Sockets& sockets) {
+  SessionResult r;
+  const auto t0 = Clock::now();
+  const auto deadline =
+      t0 + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(o.seconds));
+  const auto call = [&](http::verb verb, const std::string& target, const std::string& body) {
+    while (true) {
+      auto answer = request(o, verb, target, body, sockets);
+      if (answer.status != 503) {
+        DOJO_CHECK(answer.status == 200,
+                   target + " answered " + std::to_string(answer.status) + ": " + answer.body.dump());
+        return answer.body;
+      }
+      ++r.refusals;
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+  };
+  try {
+    std::string rater;
+    while (Clock::now() < deadline) {
+      if (rater.empty())
+        rater = call(http::verb::post, "/api/study/raters", "").at("rater").get<std::string>();
+      const auto trial = call(http::verb::get, "/api/study/next?rater=" + rater, "");
+      if (trial.value("done", false)) {
+        rater.clear();  // every trial voted on: a new rater sees them all again
+        continue;
+      }
+      nlohmann::json answers = nlohmann::json::object();
+      for (const auto& q : trial.at("questions")) answers[q.at("id").get<std::string>()] = "left";
+      const nlohmann::json vote = {{"rater", rater}, {"trial", trial.at("trial")}, {"answers", answers}};
+      const auto sent = Clock::now();
+      call(http::verb::post, "/api/study/vote", vote.dump());
+      r.latencies_ms.push_back(std::chrono::duration<double, std::milli>(Clock::now() - sent).count());
+      ++r.votes;
+      r.answers += static_cast<int64_t>(answers.size());
+    }
+  } catch (const std::exception& e) {
+    r.failure = e.what();
+  }
+  r.seconds = std::chrono::duration<double>(Clock::now() - t0).count();
+  return r;
+}
+
 }  // namespace
 
 LoadReport run_load(const LoadOptions& o) {
-  DOJO_CHECK(o.mode == "step" || o.mode == "live", "load: mode must be step or live");
+  DOJO_CHECK(o.mode == "step" || o.mode == "live" || o.mode == "study",
+             "load: mode must be step, live or study");
   DOJO_CHECK(o.sessions >= 1 && o.seconds > 0, "load: needs at least one session and a positive duration");
   boost::system::error_code address_error;
   net::ip::make_address(o.host, address_error);
@@ -211,7 +295,7 @@ LoadReport run_load(const LoadOptions& o) {
   std::vector<std::thread> threads;
   for (int i = 0; i < o.sessions; ++i)
     threads.emplace_back([&, i] {
-      results[i] = run_session(o, i, sockets);
+      results[i] = o.mode == "study" ? run_voter(o, sockets) : run_session(o, i, sockets);
       std::lock_guard<std::mutex> lock(done_mutex);
       --running;
       done_cv.notify_all();
@@ -227,17 +311,29 @@ LoadReport run_load(const LoadOptions& o) {
   try {
     after = get(o, "/metrics");
   } catch (const std::exception& e) {
-    throw Error("load: the server stopped answering /metrics after the run: " + std::string(e.what()));
+    // Reported, not thrown: a run that killed its server still counts what was acknowledged.
+    report.server_alive_after = false;
+    report.failures.push_back("the server stopped answering /metrics after the run: " +
+                              std::string(e.what()));
   }
   std::vector<double> latencies, steps;
   for (const auto& r : results) {
+    report.votes_acknowledged += r.votes;
+    report.answers_acknowledged += r.answers;
+    report.refusals += r.refusals;
+    if (r.refused) {
+      ++report.refused_sessions;
+      continue;
+    }
     if (!r.failure.empty()) {
       ++report.failed_sessions;
       report.failures.push_back(r.failure);
-      continue;
+      if (o.mode != "study") continue;
     }
-    report.frames.push_back(r.frames);
-    report.frames_per_second.push_back(r.seconds > 0 ? r.frames / r.seconds : 0);
+    if (o.mode != "study") {  // voters see no frames
+      report.frames.push_back(r.frames);
+      report.frames_per_second.push_back(r.seconds > 0 ? r.frames / r.seconds : 0);
+    }
     report.errors += r.errors;
     latencies.insert(latencies.end(), r.latencies_ms.begin(), r.latencies_ms.end());
     steps.insert(steps.end(), r.server_step_ms.begin(), r.server_step_ms.end());
@@ -246,6 +342,7 @@ LoadReport run_load(const LoadOptions& o) {
   report.server_step_ms_p95 = infer::percentile(steps, 0.95);
   report.latency_ms_p50 = infer::percentile(latencies, 0.5);
   report.latency_ms_p95 = infer::percentile(latencies, 0.95);
+  report.latency_ms_p99 = infer::percentile(latencies, 0.99);
   report.server_rss_mib_before = metric(before, "process_resident_memory_bytes") / (1 << 20);
   report.server_rss_mib_after = metric(after, "process_resident_memory_bytes") / (1 << 20);
   report.frames_dropped = static_cast<int64_t>(metric(after, "dojo_frames_dropped_total") -
@@ -261,10 +358,17 @@ nlohmann::json LoadReport::to_json() const {
           {"frames_per_second", frames_per_second},
           {"latency_ms_p50", latency_ms_p50},
           {"latency_ms_p95", latency_ms_p95},
+          {"latency_ms_p99", latency_ms_p99},
           {"server_step_ms_p50", server_step_ms_p50},
           {"server_step_ms_p95", server_step_ms_p95},
           {"errors", errors},
           {"failed_sessions", failed_sessions},
+          {"refused_sessions", refused_sessions},
+          {"refusals", refusals},
+          {"votes_acknowledged", votes_acknowledged},
+          {"votes_per_second", votes_acknowledged / options.seconds},
+          {"answers_acknowledged", answers_acknowledged},
+          {"server_alive_after", server_alive_after},
           {"failures", failures},
           {"frames_dropped", frames_dropped},
           {"server_rss_mib_before", server_rss_mib_before},

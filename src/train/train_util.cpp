@@ -17,19 +17,17 @@
 #include "train/train_loop.h"
 
 namespace dojo::train {
-namespace {
-
 // The optimizer keys its state by the parameter's TensorImpl address.
-std::string param_key(const torch::Tensor& p) { return c10::guts::to_string(p.unsafeGetTensorImpl()); }
-
-}  // namespace
+std::string optimizer_state_key(const torch::Tensor& p) {
+  return c10::guts::to_string(p.unsafeGetTensorImpl());
+}
 
 NamedTensors adamw_state(const torch::optim::AdamW& optimizer, const torch::nn::Module& module,
                          const std::string& prefix) {
   NamedTensors out;
   const auto& state = optimizer.state();
   for (const auto& item : module.named_parameters()) {
-    auto it = state.find(param_key(item.value()));
+    auto it = state.find(optimizer_state_key(item.value()));
     if (it == state.end()) continue;
     const auto& st = static_cast<const torch::optim::AdamWParamState&>(*it->second);
     const auto base = prefix + item.key();
@@ -53,7 +51,7 @@ void load_adamw_state(torch::optim::AdamW& optimizer, const torch::nn::Module& m
     st->exp_avg(avg->second.clone().to(p.device()));
     st->exp_avg_sq(by_name.at(base + ".exp_avg_sq").clone().to(p.device()));
     st->step(by_name.at(base + ".step").item<int64_t>());
-    state[param_key(p)] = std::move(st);
+    state[optimizer_state_key(p)] = std::move(st);
   }
 }
 

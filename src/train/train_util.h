@@ -18,6 +18,9 @@
 
 namespace dojo::train {
 
+// The key torch::optim's per-parameter state map files a parameter under.
+std::string optimizer_state_key(const torch::Tensor& param);
+
 // AdamW moments of `module`'s parameters as "<prefix><param>.{exp_avg,exp_avg_sq,step}".
 // Parameters the optimizer has not stepped yet are left out.
 NamedTensors adamw_state(const torch::optim::AdamW& optimizer, const torch::nn::Module& module,

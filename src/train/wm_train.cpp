@@ -164,6 +164,7 @@ WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options, torch::Devic
     if (item.value().requires_grad()) ema_params_.push_back(ema_->named_parameters()[item.key()]);
   optimizer_ = std::make_unique<torch::optim::AdamW>(
       params_, torch::optim::AdamWOptions(options_.lr).weight_decay(options_.weight_decay));
+  fused_ = std::make_unique<FusedAdamW>(*optimizer_, params_, ema_params_);
   ema_gamma_ = diffusion::power_ema_gamma(options_.ema_sigma_rel);
 }
 
@@ -205,9 +206,7 @@ WmStepStats WmTrainer::step_loss(
   net_->train();
   WmStepStats s;
   s.lr = lr_at(steps_);
-  for (auto& group : optimizer_->param_groups())
-    static_cast<torch::optim::AdamWOptions&>(group.options()).lr(s.lr);
-  optimizer_->zero_grad();
+  fused_->zero_grad();
   double loss_sum = 0;
   for (int64_t j = 0; j < count; ++j) {
     const auto loss = loss_fn(*net_, j);
@@ -217,11 +216,9 @@ WmStepStats WmTrainer::step_loss(
   }
   auto& group = data_parallel();
   group.average_gradients(params_);
-  const double clip = options_.grad_clip > 0 ? options_.grad_clip : std::numeric_limits<double>::infinity();
-  s.grad_norm = torch::nn::utils::clip_grad_norm_(params_, clip);
-  optimizer_->step();
+  // Clipping, AdamW and the EMA in one pass over flat buffers (fused_adamw.h).
+  s.grad_norm = fused_->step(options_.grad_clip, s.lr, diffusion::power_ema_beta(steps_ + 1, ema_gamma_));
   ++steps_;
-  diffusion::ema_update(ema_params_, params_, diffusion::power_ema_beta(steps_, ema_gamma_));
   s.loss = s.mse = group.mean({loss_sum / static_cast<double>(count)})[0];
   return s;
 }
@@ -272,6 +269,7 @@ void WmTrainer::resume(const fs::path& dir) {
   raw_opts.prefix = "train.";
   load_state_dict(*net_, tensors, raw_opts);
   load_adamw_state(*optimizer_, *net_, tensors);
+  fused_->adopt_state();
   restore_rng_state(tensors);
 }
 
@@ -445,6 +443,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   // LoRA post-training trains the adapters and the action MLPs (re-initialised for the new action
   // space, as the release does); the rest keeps the pretrained weights.
   if ((*net)->config.lora.enabled()) freeze_all_but_adapters(**net, /*train_action_mlps=*/true, "wm train");
+  (*net)->recompute_blocks = job.checkpoint_activations;
   WmTrainer trainer(*net, job.options, job.device, job.precision);
   nlohmann::json extras = nlohmann::json::object();
   if (!action_ranges.empty()) extras["actions"] = action_ranges;

@@ -22,6 +22,7 @@
 #include "core/autocast.h"
 #include "diffusion/flow_matching.h"
 #include "models/dit.h"
+#include "train/fused_adamw.h"
 #include "train/latent_cache.h"
 
 namespace dojo::train {
@@ -108,6 +109,7 @@ class WmTrainer {
   Precision precision_;
   std::vector<torch::Tensor> params_, ema_params_;
   std::unique_ptr<torch::optim::AdamW> optimizer_;
+  std::unique_ptr<FusedAdamW> fused_;  // flat parameters, gradients, moments and EMA over optimizer_
   double ema_gamma_;
   int64_t steps_ = 0;
   nlohmann::json config_extras_ = nlohmann::json::object();
@@ -156,6 +158,8 @@ struct WmTrainJob {
   // them is convolution-bound and runs on the caller's threads; the steps are matmul-bound
   // (core/runtime.h, matmul_bound_threads).
   int matmul_threads = 0;
+  // Activation checkpointing (models::ActionDitImpl::recompute_blocks): less memory, more compute.
+  bool checkpoint_activations = false;
 };
 
 struct WmTrainResult {

@@ -650,7 +650,8 @@ TEST(DitSmall, ActionScaleFollowsTheConfig) {
   auto with_grad = in;  // actions that need a gradient: the product saves the scale for backward
   with_grad.actions = in.actions.clone().requires_grad_(true);
   const auto trained = net->forward(with_grad);  // the same scale with autograd, after inference mode
-  EXPECT_TRUE(torch::equal(trained.detach(), unscaled));
+  // (with gradients the network takes the plain kernels, without them the fused ones: models/dit_kernels.h)
+  EXPECT_LT(max_abs(trained.detach(), unscaled), 1e-5);
   trained.pow(2).mean().backward();
   net->config.action_scale.assign(static_cast<size_t>(c.action_dim), 1.0);
   torch::NoGradGuard no_grad;
