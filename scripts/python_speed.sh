@@ -46,7 +46,8 @@ for name in ("eager", "eager_heap", "scripted"):
         c = run["checks"]
         if c["sample_velocity_max_abs_diff"] > 1e-4 or c["stream_latents_max_abs_diff"] > 1e-4 \
                 or c["train_loss_rel_diff"] > 1e-5 or c["train_grad_norm_rel_diff"] > 1e-4 \
-                or c["train_weights_max_abs_diff"] > 1e-2 * c["train_update_max_abs"]:
+                or c["train_weights_max_abs_diff"] > 1e-2 * c["train_update_max_abs"] \
+                or c["train_ema_max_abs_diff"] > 1e-2 * c["train_update_max_abs"]:
             bad.append(f"{name} round {r}: {c}")
 if bad:
     sys.exit("python_speed.sh: the Python reference does not compute the engine's numbers:\n" + "\n".join(bad))

@@ -65,9 +65,16 @@ constexpr int64_t kRowsPerTask = 64;
 
 }  // namespace
 
+namespace {
+thread_local int plain_scopes = 0;
+}  // namespace
+
+PlainDitKernelsScope::PlainDitKernelsScope() { ++plain_scopes; }
+PlainDitKernelsScope::~PlainDitKernelsScope() { --plain_scopes; }
+
 bool fused_dit_kernels_apply(const torch::Tensor& x) {
   return x.is_cpu() && x.scalar_type() == torch::kFloat32 && !torch::GradMode::is_enabled() &&
-         !plain_kernels();
+         plain_scopes == 0 && !plain_kernels();
 }
 
 torch::Tensor modulate_plain(const torch::Tensor& x, const torch::Tensor& shift, const torch::Tensor& scale) {

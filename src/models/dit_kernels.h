@@ -20,6 +20,16 @@ namespace dojo::models {
 // DOJO_PLAIN_KERNELS=1.
 bool fused_dit_kernels_apply(const torch::Tensor& x);
 
+// Holds this thread on the plain paths for a scope: activation checkpointing runs a block without
+// gradients, then again with them, and both runs must compute the same function.
+class PlainDitKernelsScope {
+ public:
+  PlainDitKernelsScope();
+  ~PlainDitKernelsScope();
+  PlainDitKernelsScope(const PlainDitKernelsScope&) = delete;
+  PlainDitKernelsScope& operator=(const PlainDitKernelsScope&) = delete;
+};
+
 // x [B, T, S, D]; shift and scale broadcastable to [B, T, 1, D] (T may be 1, last dim contiguous):
 // layer_norm(x) * (1 + scale) + shift, [B, T, S, D].
 torch::Tensor modulate_plain(const torch::Tensor& x, const torch::Tensor& shift, const torch::Tensor& scale);

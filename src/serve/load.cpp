@@ -240,6 +240,10 @@ SessionResult run_voter(const LoadOptions& o, Sockets& sockets) {
         return answer.body;
       }
       ++r.refusals;
+      // Busy answers are retried until shortly past the deadline, then the voter gives up (a
+      // server that only ever answers 503 must not keep the run waiting).
+      DOJO_CHECK(Clock::now() < deadline + std::chrono::seconds(5),
+                 target + " still answered 503 (busy) 5 s past the deadline");
       std::this_thread::sleep_for(std::chrono::milliseconds(20));
     }
   };

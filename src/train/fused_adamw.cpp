@@ -186,7 +186,8 @@ double FusedAdamW::step(double max_norm, double lr, double ema_beta) {
   } else {
     norm = grad_.to(torch::kDouble).norm().item<double>();
   }
-  const double coef = max_norm / (norm + 1e-6);  // as clip_grad_norm_
+  // As clip_grad_norm_: scaled only when the coefficient is below 1 (a NaN norm scales nothing).
+  const double coef = max_norm / (norm + 1e-6);
   auto& o = adamw_options(optimizer_);
   o.lr(lr);
   ++step_;
@@ -195,7 +196,7 @@ double FusedAdamW::step(double max_norm, double lr, double ema_beta) {
                  std::get<1>(o.betas()),
                  o.eps(),
                  o.weight_decay(),
-                 std::min(coef, 1.0),
+                 coef < 1.0 ? coef : 1.0,
                  ema_beta,
                  step_};
   if (param_.is_cpu()) {

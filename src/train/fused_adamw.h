@@ -10,6 +10,10 @@
 // moments, so checkpoints (train_util.h: adamw_state / load_adamw_state) are unchanged; after a
 // resume replaced that state, adopt_state() copies it back into the flat buffers.
 //
+// One difference from torch::optim::AdamW: every parameter has a (zero-filled) gradient, so a
+// parameter that got no gradient in a step is still decayed and counted as stepped; the trainers
+// that use it (WmTrainer: world model, distillation) train every parameter they hand it.
+//
 // Reference path: with DOJO_PLAIN_KERNELS=1 (core/runtime.h, plain_kernels()) step() runs
 // clip_grad_norm_, AdamW::step and diffusion::ema_update instead, on the same tensors.
 #pragma once

@@ -36,6 +36,8 @@ TEST(PythonReference, ComputesTheEnginesNumbersEagerAndScripted) {
     EXPECT_LT(c["train_grad_norm_rel_diff"].get<double>(), 1e-4) << mode;
     EXPECT_LT(c["train_weights_max_abs_diff"].get<double>(), 1e-2 * c["train_update_max_abs"].get<double>())
         << mode;
+    EXPECT_LT(c["train_ema_max_abs_diff"].get<double>(), 1e-2 * c["train_update_max_abs"].get<double>())
+        << mode;
   }
 }
 
