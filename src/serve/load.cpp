@@ -71,6 +71,15 @@ struct Sockets {
     std::lock_guard<std::mutex> lock(mutex);
     fds.erase(std::remove(fds.begin(), fds.end(), fd), fds.end());
   }
+  // Registers a socket for its scope.
+  struct Registered {
+    Sockets& sockets;
+    int fd;
+    Registered(Sockets& s, int f) : sockets(s), fd(f) { sockets.add(fd); }
+    ~Registered() { sockets.remove(fd); }
+    Registered(const Registered&) = delete;
+    Registered& operator=(const Registered&) = delete;
+  };
   void shut_down_all() {
     std::lock_guard<std::mutex> lock(mutex);
     for (int fd : fds) ::shutdown(fd, SHUT_RDWR);
@@ -84,13 +93,7 @@ SessionResult run_session(const LoadOptions& o, int index, Sockets& sockets) {
     net::io_context ioc;
     websocket::stream<beast::tcp_stream> ws(ioc);
     beast::get_lowest_layer(ws).connect(tcp::endpoint(net::ip::make_address(o.host), o.port));
-    const int fd = beast::get_lowest_layer(ws).socket().native_handle();
-    sockets.add(fd);
-    struct Unregister {
-      Sockets& sockets;
-      int fd;
-      ~Unregister() { sockets.remove(fd); }
-    } unregister{sockets, fd};
+    const Sockets::Registered registered(sockets, beast::get_lowest_layer(ws).socket().native_handle());
     ws.set_option(websocket::stream_base::decorator([&](websocket::request_type& req) {
       if (!o.token.empty()) req.set(http::field::authorization, "Bearer " + o.token);
     }));
@@ -202,13 +205,7 @@ HttpAnswer request(const LoadOptions& o, http::verb verb, const std::string& tar
   net::io_context ioc;
   beast::tcp_stream stream(ioc);
   stream.connect(tcp::endpoint(net::ip::make_address(o.host), o.port));
-  const int fd = stream.socket().native_handle();
-  sockets.add(fd);
-  struct Unregister {
-    Sockets& sockets;
-    int fd;
-    ~Unregister() { sockets.remove(fd); }
-  } unregister{sockets, fd};
+  const Sockets::Registered registered(sockets, stream.socket().native_handle());
   http::request<http::string_body> req{verb, target, 11};
   req.set(http::field::host, o.host);
   if (!o.token.empty()) req.set(http::field::authorization, "Bearer " + o.token);
