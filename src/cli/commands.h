@@ -62,5 +62,6 @@ void register_serve_load(CLI::App& app);
 void register_launch(CLI::App& app);       // dojo launch: data-parallel processes
 void register_serve_check(CLI::App& app);  // DojoSim builds only
 void register_policy(CLI::App& app);       // DojoSim builds only
+void register_plan(CLI::App& app);         // `value train` and `plan`; DojoSim builds only
 
 }  // namespace dojo::cli

@@ -163,6 +163,7 @@ int main(int argc, char** argv) {
 #ifdef DOJO_WITH_SIM
   cli::register_demo(app);
   cli::register_policy(app);
+  cli::register_plan(app);
   cli::register_serve_check(app);
 #endif
   cli::register_lam(app);

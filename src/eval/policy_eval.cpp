@@ -2,14 +2,16 @@
 
 #include <torch/torch.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <fstream>
 #include <map>
+#include <optional>
 #include <set>
 
 #include "core/error.h"
 #include "core/json_file.h"
+#include "core/json_journal.h"
 #include "core/log.h"
 #include "core/timing.h"
 #include "eval/html_report.h"
@@ -157,6 +159,17 @@ EpisodeResult EpisodeResult::from_json(const nlohmann::json& j) {
   return r;
 }
 
+PolicyRates rates_of(const PolicyRates& rates, const std::vector<std::string>& names) {
+  PolicyRates out;
+  for (size_t i = 0; i < rates.names.size(); ++i) {
+    if (std::find(names.begin(), names.end(), rates.names[i]) == names.end()) continue;
+    out.names.push_back(rates.names[i]);
+    out.world_model.push_back(rates.world_model[i]);
+    out.real.push_back(rates.real[i]);
+  }
+  return out;
+}
+
 PolicyEvalReport summarize_policy_episodes(const std::vector<EpisodeResult>& episodes) {
   PolicyEvalReport report;
   report.episodes = episodes;
@@ -209,34 +222,6 @@ nlohmann::json PolicyEvalReport::to_json() const {
 
 namespace {
 
-std::vector<EpisodeResult> read_journal(const fs::path& journal, const nlohmann::json& fingerprint) {
-  std::vector<EpisodeResult> done;
-  std::ifstream in(journal);
-  std::string line;
-  int64_t number = 0;
-  while (std::getline(in, line)) {
-    ++number;
-    if (line.empty()) continue;
-    if (number == 1) {
-      const auto header = nlohmann::json::parse(line, nullptr, false);
-      DOJO_CHECK(!header.is_discarded() && header.contains("fingerprint"),
-                 journal.string() + ":1: not a policy evaluation journal (no 'fingerprint')");
-      DOJO_CHECK(header["fingerprint"] == fingerprint,
-                 journal.string() +
-                     ": written by another evaluation (other models, scenes or options); "
-                     "use another output directory or remove it");
-      continue;
-    }
-    try {
-      done.push_back(EpisodeResult::from_json(nlohmann::json::parse(line)));
-    } catch (const std::exception& e) {
-      // A line cut short by a crash is the only one that can be bad; it is rerun.
-      LOG_WARN(journal.string(), ":", number, ": skipped an unreadable line (", e.what(), ")");
-    }
-  }
-  return done;
-}
-
 std::string outcome(double success) { return success > 0.5 ? "success" : "failure"; }
 
 fs::path episode_video(const fs::path& dir, const std::string& policy, int64_t scene) {
@@ -269,24 +254,20 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
     DOJO_CHECK(names.insert(p->name()).second, "policy eval: two policies are named '" + p->name() + "'");
   std::vector<EpisodeResult> results;
   std::set<std::pair<std::string, int64_t>> finished;
-  const bool resuming = !journal.empty() && fs::exists(journal) && fs::file_size(journal) > 0;
-  if (resuming)
-    for (auto& r : read_journal(journal, fingerprint))
+  std::optional<JsonJournal> out;
+  if (!journal.empty()) {
+    out.emplace(journal, fingerprint, "policy evaluation");
+    for (const auto& record : out->records()) {
+      EpisodeResult r;
+      try {
+        r = EpisodeResult::from_json(record);
+      } catch (const std::exception& e) {
+        LOG_WARN(journal.string(), ": skipped an unreadable episode (", e.what(), ")");  // it is rerun
+        continue;
+      }
       if (names.count(r.policy) && finished.insert({r.policy, r.scene}).second)
         results.push_back(std::move(r));
-  // A crash can leave the last line torn: the next record starts on a line of its own.
-  bool torn = false;
-  if (resuming) {
-    std::ifstream in(journal, std::ios::binary);
-    in.seekg(-1, std::ios::end);
-    torn = in.get() != '\n';
-  }
-  std::ofstream out;
-  if (!journal.empty()) {
-    out.open(journal, std::ios::app);
-    DOJO_CHECK(out.good(), journal.string() + ": cannot append to the evaluation journal");
-    if (torn) out << "\n";
-    if (!resuming) out << nlohmann::json{{"fingerprint", fingerprint}}.dump() << "\n" << std::flush;
+    }
   }
   const int64_t total = static_cast<int64_t>(policies.size() * scenes.size());
   int64_t done = static_cast<int64_t>(results.size());
@@ -309,7 +290,7 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
       if (filmed)
         write_episode_video(options.video_dir, r, real.name(), world_model.name(), real_frames,
                             world_model_frames);
-      if (out.is_open()) out << r.to_json().dump() << "\n" << std::flush;
+      if (out) out->append(r.to_json());
       results.push_back(r);
       if (on_episode) on_episode(++done, total);
     }

@@ -157,6 +157,9 @@ PolicyEvalReport evaluate_policies(const std::vector<Policy*>& policies,
                                    const nlohmann::json& fingerprint = nlohmann::json::object(),
                                    const std::function<void(int64_t, int64_t)>& on_episode = {});
 
+// The rates of the policies named in `names` only, in the order of `rates`.
+PolicyRates rates_of(const PolicyRates& rates, const std::vector<std::string>& names);
+
 // Aggregates episode results (policies in first-seen order).
 PolicyEvalReport summarize_policy_episodes(const std::vector<EpisodeResult>& episodes);
 

@@ -11,6 +11,7 @@
 #include "core/json_file.h"
 #include "core/log.h"
 #include "core/stable_hash.h"
+#include "recipes/vision_policies.h"
 #include "sim/episode.h"
 #include "sim/renderer.h"
 #include "sim/skills.h"
@@ -190,25 +191,33 @@ std::vector<PolicySpec> read_policy_set(const fs::path& path) {
     PolicySpec s;
     s.name = p["name"].get<std::string>();
     DOJO_CHECK(names.insert(s.name).second, where + ": the name '" + s.name + "' is used twice");
-    const int kinds =
-        p.contains("checkpoint") + p.contains("command") + (p.contains("behavior") || p.contains("quality"));
-    DOJO_CHECK(kinds <= 1, where +
-                               ": give one of 'behavior'/'quality' (scripted), 'checkpoint' (learned) "
-                               "or 'command' (external)");
-    for (const char* key : {"behavior", "checkpoint", "command"})
+    const bool reader = p.contains("reader");
+    const int kinds = p.contains("checkpoint") + p.contains("command") + reader +
+                      (!reader && (p.contains("behavior") || p.contains("quality")));
+    DOJO_CHECK(kinds <= 1 && !(reader && p.contains("behavior")),
+               where +
+                   ": give one of 'behavior'/'quality' (scripted), 'checkpoint' (learned), 'reader' "
+                   "(+ 'quality': a reader policy) or 'command' (external)");
+    for (const char* key : {"behavior", "checkpoint", "command", "reader"})
       DOJO_CHECK(!p.contains(key) || (p[key].is_string() && !p[key].get<std::string>().empty()),
                  where + ": '" + key + "' must be a non-empty string");
     for (const auto& [key, value] : p.items())
-      DOJO_CHECK(
-          key == "name" || key == "behavior" || key == "quality" || key == "checkpoint" || key == "command",
-          where + ": unknown field '" + key + "'");
+      DOJO_CHECK(key == "name" || key == "behavior" || key == "quality" || key == "checkpoint" ||
+                     key == "command" || key == "reader",
+                 where + ": unknown field '" + key + "'");
     if (p.contains("behavior")) s.behavior = p["behavior"].get<std::string>();
     if (p.contains("quality")) s.quality = p["quality"];
     if (p.contains("command")) s.command = p["command"].get<std::string>();
-    if (p.contains("checkpoint")) {
-      s.checkpoint = p["checkpoint"].get<std::string>();
-      if (s.checkpoint.is_relative()) s.checkpoint = path.parent_path() / s.checkpoint;
-      DOJO_CHECK(checkpoint_exists(s.checkpoint), where + ": no checkpoint at " + s.checkpoint.string());
+    for (auto [key, field] :
+         {std::pair<const char*, fs::path*>{"checkpoint", &s.checkpoint}, {"reader", &s.reader}}) {
+      if (!p.contains(key)) continue;
+      *field = p[key].get<std::string>();
+      if (field->is_relative()) *field = path.parent_path() / *field;
+      DOJO_CHECK(checkpoint_exists(*field), where + ": no checkpoint at " + field->string());
+    }
+    if (reader) {
+      if (!p.contains("quality")) s.quality = nlohmann::json::object();
+      ReaderKnobs::from_json(s.quality, where + " ('" + s.name + "')");
     }
     if (s.scripted()) {
       try {

@@ -67,8 +67,11 @@ struct PolicySpec {
   nlohmann::json quality = "expert";  // a preset name or {noise_std, delay_steps, miss_prob, ...}
   std::filesystem::path checkpoint;   // non-empty: a learned policy
   std::string command;                // non-empty: an external policy
+  // Non-empty: a reader policy (recipes/vision_policies.h) with this scene reader; `quality` then
+  // holds its controller's knobs (ReaderKnobs).
+  std::filesystem::path reader;
 
-  bool scripted() const { return checkpoint.empty() && command.empty(); }
+  bool scripted() const { return checkpoint.empty() && command.empty() && reader.empty(); }
 };
 // Throws dojo::Error unless `spec` is scripted.
 std::unique_ptr<eval::Policy> make_scripted_policy(const PolicySpec& spec);
@@ -79,7 +82,8 @@ sim::RobotPolicyOptions scripted_policy_options(const PolicySpec& spec);
 // The built-in policy set: 13 scripted policies from expert to idle.
 std::vector<PolicySpec> default_policy_set();
 // {"policies": [{"name": ..., "behavior": ..., "quality": ...} | {"name": ..., "checkpoint": DIR} |
-// {"name": ..., "command": "..."}, ...]}; a relative checkpoint is relative to the file. Throws
+// {"name": ..., "reader": DIR, "quality": {knobs}} | {"name": ..., "command": "..."}, ...]}; a
+// relative checkpoint or reader is relative to the file. Throws
 // dojo::Error naming the file and the entry.
 std::vector<PolicySpec> read_policy_set(const std::filesystem::path& path);
 

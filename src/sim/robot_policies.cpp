@@ -18,14 +18,8 @@
 namespace dojo::sim {
 namespace {
 
-double wrap_angle(double a) {
-  while (a > M_PI) a -= 2.0 * M_PI;
-  while (a < -M_PI) a += 2.0 * M_PI;
-  return a;
-}
-
-constexpr double kCarryZ = 0.16;  // grasp-point height while carrying
-constexpr double kHoverZ = 0.10;  // approach height above the grasp height
+constexpr double kCarryZ = kBinCarryZ;
+constexpr double kHoverZ = kBinHoverZ;
 constexpr double kTipBelow = arm::kGripLen - arm::kFingerStart - arm::kFingerLen;  // negative
 
 class RobotController : public Controller {
@@ -105,19 +99,6 @@ class RobotController : public Controller {
     const double dist =
         std::sqrt(std::pow(p[0] - from[0], 2) + std::pow(p[1] - from[1], 2) + std::pow(p[2] - from[2], 2));
     script_.add(p, std::clamp(dist / (base_speed * s()), 0.6, 2.0));
-  }
-  // Wrist roll that aligns the fingers with a box's faces (or zero for round objects).
-  static double roll_for(const ObjInfo& o, double x, double y) {
-    if (o.shape != Shape::kBox && o.shape != Shape::kDumbbell) return 0.0;
-    const arm::Point p{x, y, 0.0};
-    const double psi = arm::box_closing_yaw(p, o.yaw + (o.shape == Shape::kDumbbell ? M_PI / 2 : 0.0));
-    return wrap_angle(arm::neutral_closing_yaw(p) - psi);
-  }
-  // Grasp-point height: the object's centre, but high enough that the fingertips clear the
-  // table and low enough that the palm clears the object's top.
-  static double grasp_height(const ObjInfo& o) {
-    const double palm_gap = arm::kGripLen - arm::kFingerStart;  // grasp point -> palm underside
-    return std::max({0.018, std::min(o.pos[2], o.top - 0.025), o.top - palm_gap + 0.005});
   }
   void go_home() {
     Pose h = home_;
@@ -209,8 +190,8 @@ class RobotController : public Controller {
       gx += d * std::cos(a);
       gy += d * std::sin(a);
     }
-    const double gz = grasp_height(o);
-    const double roll = roll_for(o, gx, gy);
+    const double gz = bin_grasp_height(o);
+    const double roll = bin_grasp_roll(o, gx, gy);
     move(cart(gx, gy, gz + kHoverZ, roll, 1.0));
     timed(cart(gx, gy, gz, roll, 1.0), 0.8);
     timed(cart(gx, gy, gz, roll, 0.0), 0.5);
@@ -300,7 +281,7 @@ class RobotController : public Controller {
         text_ = "reach for the " + o.name + " and miss";
         const double a = rng_.uniform(-M_PI, M_PI), d = o.radius + rng_.uniform(0.04, 0.07);
         const double gx = o.pos[0] + d * std::cos(a), gy = o.pos[1] + d * std::sin(a);
-        const double gz = grasp_height(o);
+        const double gz = bin_grasp_height(o);
         move(cart(gx, gy, gz + kHoverZ, 0.0, 1.0));
         timed(cart(gx, gy, gz, 0.0, 1.0), 0.8);
         timed(cart(gx, gy, gz, 0.0, 0.0), 0.5);

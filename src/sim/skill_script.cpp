@@ -1,8 +1,11 @@
 // Scripting helpers shared by the human skills and the robot policies (see skill_script.h).
 #include "sim/skill_script.h"
 
+#include <algorithm>
 #include <array>
 #include <cmath>
+
+#include "sim/robot_arm.h"
 
 namespace dojo::sim {
 namespace {
@@ -38,6 +41,21 @@ std::string direction_words(double dx, double dy) {
   if (a > -150 && a <= -120) return "back and to the left";
   if (a > -120 && a <= -60) return "toward me";
   return "back and to the right";
+}
+
+double bin_grasp_height(const ObjInfo& o) {
+  const double palm_gap = arm::kGripLen - arm::kFingerStart;  // grasp point -> palm underside
+  return std::max({0.018, std::min(o.pos[2], o.top - 0.025), o.top - palm_gap + 0.005});
+}
+
+double bin_grasp_roll(const ObjInfo& o, double x, double y) {
+  if (o.shape != Shape::kBox && o.shape != Shape::kDumbbell) return 0.0;
+  const arm::Point p{x, y, 0.0};
+  const double psi = arm::box_closing_yaw(p, o.yaw + (o.shape == Shape::kDumbbell ? M_PI / 2 : 0.0));
+  double roll = arm::neutral_closing_yaw(p) - psi;
+  while (roll > M_PI) roll -= 2.0 * M_PI;
+  while (roll < -M_PI) roll += 2.0 * M_PI;
+  return roll;
 }
 
 bool on_table(double x, double y) { return std::fabs(x) < 0.4 && y > -0.28 && y < 0.34; }

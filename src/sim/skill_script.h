@@ -77,6 +77,17 @@ struct ObjInfo {
 
 ObjInfo object_info(const World& w, int i);
 
+// The bin policy's grasp (robot_policies.cpp; the belief controller of bin_belief.h plans the
+// same attempt from a reading of the frame). Heights of the grasp point, metres above the table.
+constexpr double kBinCarryZ = 0.16;  // while carrying
+constexpr double kBinHoverZ = 0.10;  // approach height above the grasp height
+// The grasp point's height that takes `o`: its centre, but high enough that the fingertips clear
+// the table and low enough that the palm clears its top.
+double bin_grasp_height(const ObjInfo& o);
+// The wrist roll that aligns the fingers with a box's faces when grasping at (x, y) (0 for round
+// objects).
+double bin_grasp_roll(const ObjInfo& o, double x, double y);
+
 // "to the right", "forward and to the left", "toward me", ... for a horizontal direction.
 std::string direction_words(double dx, double dy);
 

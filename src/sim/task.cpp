@@ -75,4 +75,22 @@ nlohmann::json object_outcomes(const World& world, const std::vector<ObjectPose>
   return out;
 }
 
+int bin_task_stage(const World& world) {
+  DOJO_CHECK(world.spec().bin.enabled && world.num_objects() > 0,
+             "bin task stage: the scene needs a bin and an object");
+  if (bin_success(world) > 0.5) return 4;
+  const auto z = world.object_z_range(0);
+  const ObjectPose pose = world.object_pose(0);
+  const bool lifted = z[0] > 0.015 && world.touching(0) && !object_in_bin(world, 0);
+  const BinSpec& bin = world.spec().bin;
+  const bool over_bin = std::fabs(pose.pos[0] - bin.center[0]) < bin.half_x &&
+                        std::fabs(pose.pos[1] - bin.center[1]) < bin.half_y;
+  if (lifted && over_bin) return 3;
+  if (lifted) return 2;
+  const Vec3 g = world.grasp_point();
+  const double d = std::sqrt(std::pow(g[0] - pose.pos[0], 2) + std::pow(g[1] - pose.pos[1], 2) +
+                             std::pow(g[2] - pose.pos[2], 2));
+  return d < 0.04 ? 1 : 0;
+}
+
 }  // namespace dojo::sim

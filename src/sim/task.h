@@ -28,6 +28,15 @@ bool object_resting(const World& world, int index);
 // Throws dojo::Error if the scene has no bin.
 double bin_success(const World& world);
 
+// The bin task's subtasks for object 0, in order: reach (the grasp point within 4 cm of the
+// object's centre), lift (the object's lowest point 1.5 cm above the table, held), over the bin
+// (lifted and its centre within the bin's walls), release (bin_success). The stage is how many of
+// them the state shows, the last one reached counting: 0-4. The value model's subtask boundaries
+// are the frames at which an episode first reaches a higher stage (policy planning,
+// recipes/planning.h). Throws dojo::Error without a bin or an object.
+constexpr int kBinTaskStages = 4;
+int bin_task_stage(const World& world);
+
 // Horizontal distance an object moved from `initial`.
 double object_displacement(const ObjectPose& initial, const ObjectPose& now);
 // Angle in degrees between the object's up axis now and initially.

@@ -110,27 +110,7 @@ torch::Tensor random_shift(const torch::Tensor& images, int64_t shift, torch::Ge
   return torch::stack(out);
 }
 
-fs::path snapshot_dir(const fs::path& out, int64_t step) {
-  char name[32];
-  std::snprintf(name, sizeof(name), "step-%06lld", static_cast<long long>(step));
-  return out / "snapshots" / name;
-}
-
 }  // namespace
-
-std::vector<fs::path> list_bc_snapshots(const fs::path& out) {
-  std::set<fs::path> found;
-  if (fs::exists(out / "snapshots"))
-    for (const auto& entry : fs::directory_iterator(out / "snapshots")) {
-      auto name = entry.path().filename().string();
-      // A save interrupted between its renames leaves only NAME.dojo-old (core/checkpoint.h).
-      if (name.size() > 9 && name.compare(name.size() - 9, 9, ".dojo-old") == 0) name.resize(name.size() - 9);
-      const bool step_name = name.size() == 11 && name.rfind("step-", 0) == 0 &&
-                             name.find_first_not_of("0123456789", 5) == std::string::npos;
-      if (step_name && checkpoint_exists(out / "snapshots" / name)) found.insert(out / "snapshots" / name);
-    }
-  return {found.begin(), found.end()};
-}
 
 double bc_loss(models::BcPolicy& policy, const Demonstrations& data, const torch::Tensor& which) {
   torch::NoGradGuard no_grad;
@@ -171,7 +151,7 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
   torch::manual_seed(job.seed);
   models::BcPolicy policy(config);
   const auto save_snapshot = [&](int64_t step) {
-    save_checkpoint(snapshot_dir(job.out, step), models::bc_policy_checkpoint(*policy));
+    save_checkpoint(step_snapshot_dir(job.out, step), models::bc_policy_checkpoint(*policy));
   };
   if (!resuming && std::count(job.snapshots.begin(), job.snapshots.end(), 0)) save_snapshot(0);
   AdamwLoop loop;
@@ -206,14 +186,14 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
   // The finished policy is a snapshot too; a run stopped early by its time budget leaves none
   // (it would become a policy of its own).
   if (run.end_step == job.steps && data_parallel().main() &&
-      !checkpoint_exists(snapshot_dir(job.out, run.end_step)))
+      !checkpoint_exists(step_snapshot_dir(job.out, run.end_step)))
     save_snapshot(run.end_step);
   BcTrainResult r;
   r.steps = run.end_step;
   r.loss = run.loss;  // NaN when this call had nothing left to train
   r.seconds = run.seconds;
   r.heldout_loss = bc_loss(policy, data, data.heldout);
-  r.snapshots = list_bc_snapshots(job.out);
+  r.snapshots = list_step_snapshots(job.out);
   return r;
 }
 

@@ -55,9 +55,6 @@ struct BcTrainResult {
 // Trains, resuming from out/checkpoint when it exists.
 BcTrainResult run_bc_training(const BcTrainJob& job);
 
-// The snapshots a run into `out` kept (out/snapshots/step-NNNNNN), in step order.
-std::vector<std::filesystem::path> list_bc_snapshots(const std::filesystem::path& out);
-
 // Mean squared offset error of `policy` on episodes `which` [E] (bool) of `data`.
 double bc_loss(models::BcPolicy& policy, const Demonstrations& data, const torch::Tensor& which);
 

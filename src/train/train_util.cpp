@@ -4,12 +4,15 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <deque>
 #include <fstream>
 #include <map>
+#include <set>
 #include <sstream>
 
 #include "core/atomic_file.h"
+#include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "core/state_dict.h"
@@ -288,6 +291,26 @@ nlohmann::json MixtureIndex::record(const std::vector<std::string>& names) const
                    {"weight", weights_.empty() ? nlohmann::json(nullptr) : nlohmann::json(weights_[d])},
                    {"share", share[d]}});
   return out;
+}
+
+std::filesystem::path step_snapshot_dir(const std::filesystem::path& out, int64_t step) {
+  char name[32];
+  std::snprintf(name, sizeof(name), "step-%06lld", static_cast<long long>(step));
+  return out / "snapshots" / name;
+}
+
+std::vector<std::filesystem::path> list_step_snapshots(const std::filesystem::path& out) {
+  std::set<std::filesystem::path> found;
+  if (std::filesystem::exists(out / "snapshots"))
+    for (const auto& entry : std::filesystem::directory_iterator(out / "snapshots")) {
+      auto name = entry.path().filename().string();
+      // A save interrupted between its renames leaves only NAME.dojo-old (core/checkpoint.h).
+      if (name.size() > 9 && name.compare(name.size() - 9, 9, ".dojo-old") == 0) name.resize(name.size() - 9);
+      const bool step_name = name.size() == 11 && name.rfind("step-", 0) == 0 &&
+                             name.find_first_not_of("0123456789", 5) == std::string::npos;
+      if (step_name && checkpoint_exists(out / "snapshots" / name)) found.insert(out / "snapshots" / name);
+    }
+  return {found.begin(), found.end()};
 }
 
 }  // namespace dojo::train

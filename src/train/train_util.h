@@ -72,6 +72,11 @@ torch::Tensor gaussian_blur(const torch::Tensor& images, const torch::Tensor& si
 torch::Tensor soften_like_generated(const torch::Tensor& images, double blur_probability, double brightness,
                                     torch::Generator& gen);
 
+// Snapshots kept along a run as models of their own (the policies and readers of policy
+// evaluation): out/snapshots/step-NNNNNN, and those a run into `out` kept, in step order.
+std::filesystem::path step_snapshot_dir(const std::filesystem::path& out, int64_t step);
+std::vector<std::filesystem::path> list_step_snapshots(const std::filesystem::path& out);
+
 // Checkpoints of the plain AdamW loops (probe, fast decoder): `data` is the model's checkpoint
 // (config and weights), to which the step and the AdamW moments are added as trainer state.
 void save_with_adamw(const std::filesystem::path& dir, CheckpointData data,

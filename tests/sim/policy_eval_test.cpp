@@ -88,7 +88,7 @@ TEST(PolicyEval, SimulatorAsTheWorldModelAgreesExactlyAndJournalsResume) {
     eval::evaluate_policies(pointers(owned), starts, real, again, options, tmp / "journal.jsonl",
                             {{"test", 2}});
   });
-  EXPECT_NE(message.find("another evaluation"), std::string::npos) << message;
+  EXPECT_NE(message.find("written by another policy evaluation"), std::string::npos) << message;
   // A crash while writing the last record leaves it torn: that episode is run again, once, and
   // the journal reads whole afterwards.
   auto text = test::read_file(tmp / "journal.jsonl");

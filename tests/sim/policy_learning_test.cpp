@@ -253,6 +253,50 @@ TEST(PolicyCli, TrainThenEvaluateWithTheSimulatorAsTheWorldModel) {
            "policy 'x' (" + (tmp / "seven").string() + "): its commands have 7 values; the robot takes 6");
 }
 
+// `policy reader` trains the scene reader; its snapshots and the knob variants join an evaluation
+// as reader policies, reported apart from the scripted ones the detector learnt from; scenes shared
+// with the reader's frames or the detector's episodes are refused before anything runs.
+TEST(PolicyCli, ReaderPoliciesAreHeldOutAndSharedScenesAreRefused) {
+  test::TempDir tmp;
+  const auto reader = tmp / "reader";
+  auto r = test::run_dojo("--threads 1 policy reader --out " + reader.string() +
+                          " --episodes 4 --frames 16 --steps 6 --batch 8 --snapshots 0,3");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(fs::exists(reader / "snapshots" / "step-000006" / "config.json"));
+  const auto made = nlohmann::json::parse(test::read_file(reader / "data.json"));
+  EXPECT_EQ(made.at("seed"), 30000);
+  EXPECT_EQ(made.at("scenes"), 4);
+  EXPECT_TRUE(
+      nlohmann::json::parse(test::read_file(reader / "result.json")).at("heldout").contains("object_cm"));
+
+  std::ofstream(tmp / "set.json")
+      << R"({"policies": [{"name": "expert"}, {"name": "idle", "behavior": "idle"}]})";
+  const auto out = tmp / "eval";
+  r = test::run_dojo("--threads 1 policy eval --sim-as-world-model --scenes 1 --videos 0 --policies " +
+                     (tmp / "set.json").string() + " --reader " + reader.string() + " --out " + out.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto report = nlohmann::json::parse(test::read_file(out / "report.json"));
+  ASSERT_EQ(report.at("policies").size(), 2u + 3u + 6u);
+  EXPECT_EQ(report.at("policies")[2].at("name"), "reader-0");
+  EXPECT_EQ(report.at("seen").at("policies"), (nlohmann::json{"expert", "idle"}));
+  EXPECT_EQ(report.at("held_out").at("policies").size(), 9u);
+  EXPECT_EQ(report.at("held_out").at("policies")[0], "reader-0");
+
+  r = test::run_dojo("policy eval --sim-as-world-model --no-bc --reader " + reader.string() +
+                     " --seed 30002 --scenes 2 --out " + (tmp / "e2").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("the evaluation's scenes (seeds 30002-30003) and the scene reader's frames (seeds "
+                          "30000-30003) share scenes"),
+            std::string::npos)
+      << r.output;
+  r = test::run_dojo("policy eval --seed 9010 --scenes 4 --out " + (tmp / "e3").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("and the success detector's episodes (seeds 9000-9023) share scenes"),
+            std::string::npos)
+      << r.output;
+  EXPECT_FALSE(fs::exists(tmp / "e3"));
+}
+
 TEST(PolicyCli, DetectorLearnsFromWorldModelReplaysAndTheEvaluationUsesIt) {
   test::TempDir tmp;
   const fs::path reference = fs::path(DOJO_SOURCE_DIR) / "models" / "reference";
