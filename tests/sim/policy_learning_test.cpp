@@ -297,6 +297,27 @@ TEST(PolicyCli, ReaderPoliciesAreHeldOutAndSharedScenesAreRefused) {
   EXPECT_FALSE(fs::exists(tmp / "e3"));
 }
 
+// The Gymnasium-style environment (examples/gym_env.py) with a LeRobot-style policy on it
+// (examples/gym_policy.py) is evaluated as an external policy in both worlds, held out.
+TEST(PolicyCli, AGymnasiumStylePolicyIsEvaluatedInBothWorlds) {
+  test::TempDir tmp;
+  std::ofstream(tmp / "set.json") << R"({"policies": [{"name": "idle", "behavior": "idle"}]})";
+  const auto summary = tmp / "summary.json";
+  const auto r = test::run_dojo(
+      "--threads 1 policy eval --sim-as-world-model --scenes 1 --frames 8 --settle-frames 4 --videos 0 "
+      "--policies " +
+      (tmp / "set.json").string() + " --external \"sway=python3 " + example("gym_policy.py").string() +
+      " --summary " + summary.string() + "\" --out " + (tmp / "eval").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto report = nlohmann::json::parse(test::read_file(tmp / "eval" / "report.json"));
+  EXPECT_EQ(report.at("held_out").at("policies"), (nlohmann::json{"sway"}));
+  EXPECT_EQ(report.at("seen").at("policies"), (nlohmann::json{"idle"}));
+  const auto counts = nlohmann::json::parse(test::read_file(summary));
+  EXPECT_EQ(counts.at("episodes"), 2);          // 1 scene x 2 worlds
+  EXPECT_EQ(counts.at("steps"), 2 * 2);         // 8 frames: 2 decisions of 4 commands
+  EXPECT_EQ(counts.at("frames"), 2 * (1 + 4));  // the start frame + the first step's frames
+}
+
 TEST(PolicyCli, DetectorLearnsFromWorldModelReplaysAndTheEvaluationUsesIt) {
   test::TempDir tmp;
   const fs::path reference = fs::path(DOJO_SOURCE_DIR) / "models" / "reference";
