@@ -24,8 +24,8 @@ ValueModel make_value_model(int64_t horizon) {
 }
 
 std::vector<double> window_values(ValueModel& model, const torch::Tensor& video_u8) {
-  const int64_t w = model.window(), T = video_u8.size(0);
-  DOJO_CHECK(video_u8.dim() == 4 && T >= w,
+  const int64_t w = model.window();
+  DOJO_CHECK(video_u8.dim() == 4 && video_u8.size(0) >= w,
              "value model: a video of at least " + std::to_string(w) + " frames [T, H, W, 3] is needed");
   const auto windows = video_u8.unfold(0, w, 1).permute({0, 4, 1, 2, 3});  // [T - w + 1, w, H, W, 3]
   const auto values = success_probability(model.network, windows.contiguous()).to(torch::kFloat64);
@@ -71,6 +71,8 @@ ValueModel load_value_model(const std::filesystem::path& dir) {
     model.horizon = backbone["horizon"].get<int64_t>();
     backbone.erase("horizon");
     model.network = SuccessDetector(SuccessDetectorConfig::from_json(backbone));
+    DOJO_CHECK(model.network->config().stride == 1,
+               "field 'stride' must be 1 (values are read from consecutive frames)");
   } catch (const Error& e) {
     throw Error(file + ": " + e.what());
   }

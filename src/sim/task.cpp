@@ -81,7 +81,7 @@ int bin_task_stage(const World& world) {
   if (bin_success(world) > 0.5) return 4;
   const auto z = world.object_z_range(0);
   const ObjectPose pose = world.object_pose(0);
-  const bool lifted = z[0] > 0.015 && world.touching(0) && !object_in_bin(world, 0);
+  const bool lifted = z[0] > 0.015 && world.touching(0);  // held, also while lowered into the bin
   const BinSpec& bin = world.spec().bin;
   const bool over_bin = std::fabs(pose.pos[0] - bin.center[0]) < bin.half_x &&
                         std::fabs(pose.pos[1] - bin.center[1]) < bin.half_y;

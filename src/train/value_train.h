@@ -12,8 +12,8 @@
 namespace dojo::train {
 
 // One file: "frames" [E, T, H, W, 3] uint8, "steps_to_boundary" [E, T] float (control steps from
-// each frame to the episode's next subtask boundary; past the last one, the steps to its end plus
-// the horizon), "heldout" [E] uint8.
+// each frame to the episode's next subtask boundary; 0 once the task is done, the horizon when no
+// boundary is ahead), "heldout" [E] uint8.
 struct ValueData {
   torch::Tensor frames, steps_to_boundary, heldout;
   static ValueData load(const std::filesystem::path& path);  // throws dojo::Error naming file and tensor

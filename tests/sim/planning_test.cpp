@@ -197,11 +197,11 @@ TEST(PlanCli, ValueTrainThenPlanWithTheSimulatorResumesAndRefusesBadInput) {
   EXPECT_EQ(report.at("single").size(), 2u);
   EXPECT_NE(test::read_file(tmp / "plan" / "report.html").find("<video"), std::string::npos);
   EXPECT_NE(r.output.find("over the best single proposer"), std::string::npos) << r.output;
-  // A rerun finds every episode in the journal and reports the same.
+  // A rerun finds every episode in the journal: nothing is run again (the timing would differ).
   r = test::run_dojo(common + " --proposers " + (tmp / "a").string() + "," + (tmp / "b").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  EXPECT_EQ(nlohmann::json::parse(test::read_file(tmp / "plan" / "report.json")).at("plan"),
-            report.at("plan"));
+  EXPECT_EQ(nlohmann::json::parse(test::read_file(tmp / "plan" / "report.json")).at("decision_seconds"),
+            report.at("decision_seconds"));
 
   const auto refused = [](const test::CommandResult& res, const std::string& expected) {
     EXPECT_NE(res.exit_code, 0);

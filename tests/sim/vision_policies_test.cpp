@@ -113,7 +113,8 @@ TEST(VisionPolicies, FollowTheFrameNotTheScene) {
   const auto starts = scenes(2);
   auto a = starts[0], a_described_as_b = starts[0], b_shown = starts[1];
   a_described_as_b.scene = starts[1].scene;
-  b_shown.seed = a.seed;  // only the frame differs
+  b_shown.scene = a.scene;  // only the frame differs
+  b_shown.seed = a.seed;    // only the frame differs
   b_shown.command = a.command;
   const auto commands = [](eval::Policy& p, const eval::EpisodeStart& s) {
     p.reset(s);
