@@ -13,8 +13,6 @@
 #include "recipes/plan_run.h"
 #include "train/train_util.h"
 
-namespace fs = std::filesystem;
-
 namespace dojo::cli {
 namespace {
 

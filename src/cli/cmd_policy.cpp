@@ -8,15 +8,11 @@
 #include "cli/commands.h"
 #include "cli/options.h"
 #include "cli/world_model_args.h"
-#include "core/checkpoint.h"
-#include "core/error.h"
 #include "core/log.h"
 #include "core/runtime.h"
 #include "eval/metrics.h"
 #include "recipes/policy_eval.h"
 #include "serve/external_policy.h"
-
-namespace fs = std::filesystem;
 
 namespace dojo::cli {
 namespace {

@@ -8,42 +8,11 @@
 #include "core/error.h"
 #include "core/json_file.h"
 #include "core/state_dict.h"
-#include "io/frame_ops.h"
+#include "models/coord_conv.h"
 
 namespace dojo::models {
 
 namespace nn = torch::nn;
-
-namespace {
-
-std::vector<double> read_stats(const nlohmann::json& j, const char* key, int64_t width) {
-  if (!j.contains(key)) return {};
-  const auto& v = j[key];
-  DOJO_CHECK(v.is_array() && static_cast<int64_t>(v.size()) == width,
-             std::string("bc policy config: field '") + key + "' must be an array of action_dim numbers");
-  std::vector<double> out;
-  for (const auto& x : v) {
-    DOJO_CHECK(x.is_number(), std::string("bc policy config: field '") + key + "' must hold numbers");
-    out.push_back(x.get<double>());
-  }
-  return out;
-}
-
-// The config's statistics as a [A] tensor; `fill` where the config has none.
-torch::Tensor stats_tensor(const std::vector<double>& v, int64_t width, double fill) {
-  if (v.empty()) return torch::full({width}, fill);
-  return torch::tensor(std::vector<float>(v.begin(), v.end()));
-}
-
-// conv 3x3 (stride 2) -> SiLU -> conv 3x3 -> SiLU.
-void add_stage(nn::Sequential& seq, int64_t in, int64_t out) {
-  seq->push_back(nn::Conv2d(nn::Conv2dOptions(in, out, 3).stride(2).padding(1)));
-  seq->push_back(nn::SiLU());
-  seq->push_back(nn::Conv2d(nn::Conv2dOptions(out, out, 3).padding(1)));
-  seq->push_back(nn::SiLU());
-}
-
-}  // namespace
 
 nlohmann::json BcPolicyConfig::to_json() const {
   nlohmann::json j = {
@@ -70,9 +39,9 @@ BcPolicyConfig BcPolicyConfig::from_json(const nlohmann::json& j) {
                                                               {"chunk", c.chunk}})
     check_positive("bc policy config", key, value);
   DOJO_CHECK(c.size % 8 == 0, "bc policy config: field 'size' must be a multiple of 8");
-  c.command_mean = read_stats(j, "command_mean", c.action_dim);
-  c.command_scale = read_stats(j, "command_scale", c.action_dim);
-  c.step_scale = read_stats(j, "step_scale", c.action_dim);
+  c.command_mean = read_config_stats(j, "command_mean", c.action_dim, "bc policy", "action_dim");
+  c.command_scale = read_config_stats(j, "command_scale", c.action_dim, "bc policy", "action_dim");
+  c.step_scale = read_config_stats(j, "step_scale", c.action_dim, "bc policy", "action_dim");
   for (const auto* scale : {&c.command_scale, &c.step_scale})
     for (const double v : *scale)
       DOJO_CHECK(std::isfinite(v) && v > 0, "bc policy config: scales must be finite and positive");
@@ -81,10 +50,7 @@ BcPolicyConfig BcPolicyConfig::from_json(const nlohmann::json& j) {
 
 BcPolicyImpl::BcPolicyImpl(BcPolicyConfig config) : config_(std::move(config)) {
   const int64_t w = config_.width, A = config_.action_dim, cells = (config_.size / 8) * (config_.size / 8);
-  features = nn::Sequential();
-  add_stage(features, 3 + 2, w);      // S/2; the pixel's own (x, y) as two more channels
-  add_stage(features, w, 2 * w);      // S/4
-  add_stage(features, 2 * w, 4 * w);  // S/8
+  features = coord_conv_features(w);
   register_module("features", features);
   head = nn::Sequential(nn::Linear(4 * w * cells + A, config_.hidden), nn::SiLU(),
                         nn::Linear(config_.hidden, config_.hidden), nn::SiLU(),
@@ -103,12 +69,9 @@ torch::Tensor BcPolicyImpl::forward(const torch::Tensor& images, const torch::Te
       last_normalised.dim() == 2 && last_normalised.size(0) == images.size(0) && last_normalised.size(1) == A,
       "bc policy: expected last commands [B, " + std::to_string(A) + "]");
   const int64_t B = images.size(0);
-  const auto grid = torch::linspace(-1, 1, s, images.options());
-  const auto gy = grid.view({1, 1, s, 1}).expand({B, 1, s, s}),
-             gx = grid.view({1, 1, 1, s}).expand({B, 1, s, s});
-  const auto f = features->forward(torch::cat({images * 2 - 1, gx, gy}, 1));  // [B, 4w, s/8, s/8]
-  const auto x = torch::cat({f.flatten(1), last_normalised}, 1);              // [B, 4w (s/8)^2 + A]
-  return head->forward(x).view({B, config_.chunk, A});                        // [B, chunk, A]
+  const auto f = features->forward(with_pixel_coordinates(images));  // [B, 4w, s/8, s/8]
+  const auto x = torch::cat({f.flatten(1), last_normalised}, 1);     // [B, 4w (s/8)^2 + A]
+  return head->forward(x).view({B, config_.chunk, A});               // [B, chunk, A]
 }
 
 torch::Tensor BcPolicyImpl::normalise_command(const torch::Tensor& command) const {
@@ -126,12 +89,7 @@ torch::Tensor BcPolicyImpl::commands_to_offsets(const torch::Tensor& commands,
 }
 
 torch::Tensor bc_input(const BcPolicy& policy, const torch::Tensor& frames_u8) {
-  DOJO_CHECK(frames_u8.dim() == 4 && frames_u8.size(3) == 3 && frames_u8.scalar_type() == torch::kUInt8,
-             "bc policy: frames must be [N, H, W, 3] uint8");
-  const int64_t s = policy->config().size;
-  auto f = frames_u8;
-  if (f.size(1) != s || f.size(2) != s) f = io::resize_center_crop(f, s, s);
-  return f.permute({0, 3, 1, 2}).to(torch::kFloat32).div(255.0);  // [N, 3, s, s]
+  return frames_to_unit_images(frames_u8, policy->config().size, "bc policy");
 }
 
 torch::Tensor bc_act(BcPolicy& policy, const torch::Tensor& frame_u8, const torch::Tensor& last_command) {

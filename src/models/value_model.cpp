@@ -7,7 +7,6 @@
 
 #include "core/checkpoint.h"
 #include "core/error.h"
-#include "core/json_file.h"
 #include "core/state_dict.h"
 
 namespace dojo::models {

@@ -7,7 +7,6 @@
 #include <random>
 
 #include "core/error.h"
-#include "core/log.h"
 #include "recipes/dojosim_policies.h"
 #include "sim/task.h"
 #include "train/value_train.h"

@@ -2,12 +2,9 @@
 
 #include <torch/torch.h>
 
-#include <algorithm>
 #include <cmath>
 
-#include "core/checkpoint.h"
 #include "core/error.h"
-#include "core/json_file.h"
 #include "core/stable_hash.h"
 #include "models/scene_reader.h"
 #include "sim/bin_belief.h"

@@ -150,10 +150,9 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
 
   torch::manual_seed(job.seed);
   models::BcPolicy policy(config);
-  const auto save_snapshot = [&](int64_t step) {
-    save_checkpoint(step_snapshot_dir(job.out, step), models::bc_policy_checkpoint(*policy));
-  };
-  if (!resuming && std::count(job.snapshots.begin(), job.snapshots.end(), 0)) save_snapshot(0);
+  const StepSnapshots snapshots(job.out, job.snapshots,
+                                [&] { return models::bc_policy_checkpoint(*policy); });
+  snapshots.before(resuming);
   AdamwLoop loop;
   loop.name = "bc train";
   loop.unit = "frames";
@@ -180,14 +179,8 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
         return AdamwStep{
             torch::mse_loss(predicted, policy->commands_to_offsets(b.target, b.last)), images.size(0), {}};
       },
-      [&](int64_t steps_done) {
-        if (std::count(job.snapshots.begin(), job.snapshots.end(), steps_done)) save_snapshot(steps_done);
-      });
-  // The finished policy is a snapshot too; a run stopped early by its time budget leaves none
-  // (it would become a policy of its own).
-  if (run.end_step == job.steps && data_parallel().main() &&
-      !checkpoint_exists(step_snapshot_dir(job.out, run.end_step)))
-    save_snapshot(run.end_step);
+      [&](int64_t steps_done) { snapshots.after_step(steps_done); });
+  snapshots.at_end(run.end_step, job.steps);  // the finished policy is a snapshot too
   BcTrainResult r;
   r.steps = run.end_step;
   r.loss = run.loss;  // NaN when this call had nothing left to train

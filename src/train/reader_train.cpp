@@ -3,13 +3,11 @@
 #include <torch/torch.h>
 
 #include <algorithm>
-#include <cmath>
 
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/log.h"
 #include "core/safetensors.h"
-#include "train/data_parallel.h"
 #include "train/train_util.h"
 
 namespace fs = std::filesystem;
@@ -102,10 +100,9 @@ ReaderTrainResult run_reader_training(const ReaderTrainJob& job) {
 
   torch::manual_seed(job.seed);
   models::SceneReader reader(config);
-  const auto save_snapshot = [&](int64_t step) {
-    save_checkpoint(step_snapshot_dir(job.out, step), models::scene_reader_checkpoint(*reader));
-  };
-  if (!resuming && std::count(job.snapshots.begin(), job.snapshots.end(), 0)) save_snapshot(0);
+  const StepSnapshots snapshots(job.out, job.snapshots,
+                                [&] { return models::scene_reader_checkpoint(*reader); });
+  snapshots.before(resuming);
   AdamwLoop loop;
   loop.name = "reader train";
   loop.unit = "frames";
@@ -127,12 +124,8 @@ ReaderTrainResult run_reader_training(const ReaderTrainJob& job) {
         const auto target = reader->normalise(data.values.index_select(0, pick));  // [B, V]
         return AdamwStep{torch::mse_loss(reader->forward(images), target), images.size(0), {}};
       },
-      [&](int64_t steps_done) {
-        if (std::count(job.snapshots.begin(), job.snapshots.end(), steps_done)) save_snapshot(steps_done);
-      });
-  if (run.end_step == job.steps && data_parallel().main() &&
-      !checkpoint_exists(step_snapshot_dir(job.out, run.end_step)))
-    save_snapshot(run.end_step);
+      [&](int64_t steps_done) { snapshots.after_step(steps_done); });
+  snapshots.at_end(run.end_step, job.steps);  // the finished reader is a snapshot too
   ReaderTrainResult r;
   r.steps = run.end_step;
   r.loss = run.loss;

@@ -313,4 +313,27 @@ std::vector<std::filesystem::path> list_step_snapshots(const std::filesystem::pa
   return {found.begin(), found.end()};
 }
 
+StepSnapshots::StepSnapshots(std::filesystem::path out, std::vector<int64_t> at,
+                             std::function<CheckpointData()> checkpoint)
+    : out_(std::move(out)), at_(std::move(at)), checkpoint_(std::move(checkpoint)) {}
+
+bool StepSnapshots::kept(int64_t step) const { return std::count(at_.begin(), at_.end(), step) > 0; }
+
+void StepSnapshots::save(int64_t step) const {
+  save_checkpoint(step_snapshot_dir(out_, step), checkpoint_());
+}
+
+void StepSnapshots::before(bool resuming) const {
+  if (!resuming && kept(0)) save(0);
+}
+
+void StepSnapshots::after_step(int64_t steps_done) const {
+  if (kept(steps_done)) save(steps_done);
+}
+
+void StepSnapshots::at_end(int64_t end_step, int64_t steps) const {
+  if (end_step == steps && data_parallel().main() && !checkpoint_exists(step_snapshot_dir(out_, end_step)))
+    save(end_step);
+}
+
 }  // namespace dojo::train

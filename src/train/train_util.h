@@ -76,6 +76,25 @@ torch::Tensor soften_like_generated(const torch::Tensor& images, double blur_pro
 // evaluation): out/snapshots/step-NNNNNN, and those a run into `out` kept, in step order.
 std::filesystem::path step_snapshot_dir(const std::filesystem::path& out, int64_t step);
 std::vector<std::filesystem::path> list_step_snapshots(const std::filesystem::path& out);
+// Keeps a run's snapshots at the steps in `at`: step 0 before a fresh run starts (before()), the
+// others as their step ends (after_step(), run_adamw_loop's after_step), and the last step of a run
+// that finished (at_end(); a run stopped early by its time budget leaves none: it would become a
+// model of its own). `checkpoint` makes the model's inference checkpoint.
+class StepSnapshots {
+ public:
+  StepSnapshots(std::filesystem::path out, std::vector<int64_t> at,
+                std::function<CheckpointData()> checkpoint);
+  void before(bool resuming) const;
+  void after_step(int64_t steps_done) const;
+  void at_end(int64_t end_step, int64_t steps) const;
+
+ private:
+  bool kept(int64_t step) const;
+  void save(int64_t step) const;
+  std::filesystem::path out_;
+  std::vector<int64_t> at_;
+  std::function<CheckpointData()> checkpoint_;
+};
 
 // Checkpoints of the plain AdamW loops (probe, fast decoder): `data` is the model's checkpoint
 // (config and weights), to which the step and the AdamW moments are added as trainer state.
