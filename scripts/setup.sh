@@ -46,7 +46,9 @@ if [[ ! -d tests/browser/node_modules/playwright-core ]] && command -v npm >/dev
 fi
 
 JOBS="${JOBS:-$(nproc)}"
-# DOJO_WERROR=ON (CI) makes every compiler warning an error.
-cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=Release -DDOJO_WARNINGS_AS_ERRORS="${DOJO_WERROR:-OFF}"
+# DOJO_WERROR=ON (CI) makes every compiler warning an error. A cold build compiles the sources in
+# batches (DOJO_UNITY_BUILD, docs/architecture.md): about half the time on 2 cores.
+cmake -S . -B build -G Ninja -DCMAKE_BUILD_TYPE=Release -DDOJO_WARNINGS_AS_ERRORS="${DOJO_WERROR:-OFF}" \
+  -DDOJO_UNITY_BUILD="${DOJO_UNITY:-ON}"
 cmake --build build -j "$JOBS"
 echo "[setup] built ./build/dojo"

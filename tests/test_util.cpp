@@ -11,6 +11,7 @@
 #include <cstdlib>
 #include <fstream>
 #include <iterator>
+#include <limits>
 #include <random>
 
 #include "core/error.h"
@@ -34,6 +35,12 @@ std::filesystem::path golden_dir() { return std::filesystem::path(DOJO_SOURCE_DI
 std::filesystem::path sample_video(const std::string& name) {
   const std::filesystem::path path = "/usr/share/doc/opencv-doc/examples/data/" + name;
   return std::filesystem::exists(path) ? path : std::filesystem::path();
+}
+
+double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
+  EXPECT_EQ(a.sizes(), b.sizes());
+  if (a.sizes() != b.sizes()) return std::numeric_limits<double>::infinity();
+  return (a.to(torch::kDouble) - b.to(torch::kDouble)).abs().max().item<double>();
 }
 
 std::string read_file(const std::filesystem::path& path) {

@@ -30,6 +30,10 @@ std::filesystem::path golden_dir();
 // A real camera clip shipped by Debian's opencv-doc, or "" when not installed.
 std::filesystem::path sample_video(const std::string& name = "vtest.avi");
 
+// The largest absolute difference between two tensors, in double; a failure (and infinity) when
+// their shapes differ.
+double max_abs(const torch::Tensor& a, const torch::Tensor& b);
+
 // The whole content of a file ("" when it cannot be read).
 std::string read_file(const std::filesystem::path& path);
 // The message of the dojo::Error that `fn` throws, or "(no error)" when it throws none.

@@ -23,7 +23,7 @@ struct DetectorArgs {
   WorldModelArgs wm;
 };
 
-struct EvalArgs {
+struct PolicyEvalArgs {
   recipes::PolicyEvalRun run;
   WorldModelArgs wm;
   bool sim_as_world_model = false;
@@ -39,7 +39,7 @@ int run_detector(DetectorArgs a) {
   return recipes::train_detector(a.run).is_object() ? 0 : 1;
 }
 
-int run_eval(EvalArgs a) {
+int eval_policies(PolicyEvalArgs a) {
   recipes::check_scenes_held_out(a.run);  // before the models are resolved: a refusal costs nothing
   if (!a.sim_as_world_model) a.run.world_model = resolve_world_model(a.wm, "policy eval");
   a.run.make_external = [timeout = a.external_timeout](const recipes::PolicySpec& spec) {
@@ -179,7 +179,7 @@ void register_policy(CLI::App& app) {
   add_world_model_options(detector, d->wm);
   detector->callback([d] { set_action([d] { return run_detector(*d); }); });
 
-  auto e = std::make_shared<EvalArgs>();
+  auto e = std::make_shared<PolicyEvalArgs>();
   auto* ev =
       policy->add_subcommand("eval",
                              "Run every policy closed loop in DojoSim and in the world model; Pearson r, "
@@ -244,7 +244,7 @@ void register_policy(CLI::App& app) {
       ->capture_default_str();
   ev->add_flag("--sim-as-world-model", e->sim_as_world_model,
                "Plug DojoSim in as the world model too (checks the harness: r = 1, MMRV = 0)");
-  ev->callback([e] { set_action([e] { return run_eval(*e); }); });
+  ev->callback([e] { set_action([e] { return eval_policies(*e); }); });
 }
 
 }  // namespace dojo::cli

@@ -49,7 +49,7 @@ struct TrainArgs {
   }
 };
 
-struct EvalArgs {
+struct TokenizerEvalArgs {
   std::string ckpt, data, video, out;
   eval::TokenizerEvalOptions options;
   bool json = false;
@@ -110,7 +110,7 @@ int run_train(const TrainArgs& a) {
   return 0;
 }
 
-int run_eval(const EvalArgs& a) {
+int run_tokenizer_eval(const TokenizerEvalArgs& a) {
   auto vae = models::load_tokenizer(a.ckpt);
   const auto r = eval::evaluate_tokenizer(vae, a.data, a.options);
   nlohmann::json j = r.to_json();
@@ -283,7 +283,7 @@ void register_tokenizer(CLI::App& app) {
 
   auto* eval_cmd =
       tok->add_subcommand("eval", "Reconstruction PSNR/SSIM on a split, optional side-by-side video");
-  auto ea = std::make_shared<EvalArgs>();
+  auto ea = std::make_shared<TokenizerEvalArgs>();
   add_checkpoint_option(eval_cmd, ea->ckpt, "the tokenizer")->required();
   add_data_option(eval_cmd, ea->data)->required();
   add_split_option(eval_cmd, ea->options.split);
@@ -294,7 +294,7 @@ void register_tokenizer(CLI::App& app) {
   add_out_option(eval_cmd, ea->out, "JSON file for the result");
   add_seed_option(eval_cmd, ea->options.seed);
   add_json_option(eval_cmd, ea->json);
-  eval_cmd->callback([=] { set_action([=] { return run_eval(*ea); }); });
+  eval_cmd->callback([=] { set_action([=] { return run_tokenizer_eval(*ea); }); });
 
   auto* enc_cmd =
       tok->add_subcommand("encode", "Cache normalised latents of every episode (one .safetensors each)");

@@ -175,7 +175,7 @@ int run_rollout(RolloutArgs a) {
   return 0;
 }
 
-struct EvalArgs {
+struct WmEvalArgs {
   ModelArgs model;
   std::string out, probe, fast_decoder, device = "cpu", precision = "fp32";
   std::vector<std::string> splits = {"val"};
@@ -186,7 +186,7 @@ struct EvalArgs {
   SinkArgs sink;
 };
 
-int run_eval(EvalArgs a) {
+int run_wm_eval(WmEvalArgs a) {
   if (!a.student && (a.sink.frames >= 0 || !a.sink.position.empty()))
     throw UsageError("--sink-frames and --sink-position stream a student: add --student");
   const auto device = parse_device(a.device);
@@ -392,7 +392,7 @@ void register_wm(CLI::App& app) {
   add_device_options(roll, r->device, r->precision);
   roll->callback([r] { set_action([r] { return run_rollout(*r); }); });
 
-  auto e = std::make_shared<EvalArgs>();
+  auto e = std::make_shared<WmEvalArgs>();
   auto* ev =
       app.add_subcommand("eval", "Evaluate a world model: PSNR/SSIM of rollouts vs ground truth per split");
   e->model.add_options(ev);
@@ -425,7 +425,7 @@ void register_wm(CLI::App& app) {
                  "LPIPS-VGG weights (safetensors; see docs/evaluation.md); adds LPIPS to the metrics");
   add_json_option(ev, e->json);
   add_device_options(ev, e->device, e->precision);
-  ev->callback([e] { set_action([e] { return run_eval(*e); }); });
+  ev->callback([e] { set_action([e] { return run_wm_eval(*e); }); });
 }
 
 }  // namespace dojo::cli

@@ -8,6 +8,7 @@
 #include "core/error.h"
 #include "core/json_file.h"
 #include "core/log.h"
+#include "core/text.h"
 #include "data/episode_clip.h"
 
 namespace dojo::data {
@@ -24,12 +25,6 @@ const std::vector<std::string>& reserved_names() {
 std::deque<EmbodimentSpec>& registry() {  // a deque: find_user_embodiment's pointers stay valid
   static std::deque<EmbodimentSpec> specs;
   return specs;
-}
-
-std::string lower(std::string s) {
-  std::transform(s.begin(), s.end(), s.begin(),
-                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
-  return s;
 }
 
 bool valid_name(const std::string& name) {
@@ -75,7 +70,7 @@ EmbodimentSpec EmbodimentSpec::from_json(const nlohmann::json& j, const std::str
   const std::string at = where + " (" + s.name + ")";
   if (j.contains("robot_types"))
     for (const auto& t : field<std::vector<std::string>>(j, "robot_types", at, "a list of strings"))
-      s.robot_types.push_back(lower(t));
+      s.robot_types.push_back(ascii_lower(t));
   if (s.robot_types.empty()) s.robot_types = {s.name};
   const auto slot = field<std::vector<int>>(j, "slot", at, "[begin, end] of the 384-d action vector");
   if (slot.size() != 2) throw Error(at + ".slot: needs [begin, end] of the 384-d action vector");
@@ -169,7 +164,7 @@ const EmbodimentSpec* find_user_embodiment(const std::string& name) {
 }
 
 std::string user_robot_for(const std::string& robot_type) {
-  const auto type = lower(robot_type);
+  const auto type = ascii_lower(robot_type);
   for (const auto& s : registry())
     if (std::find(s.robot_types.begin(), s.robot_types.end(), type) != s.robot_types.end()) return s.name;
   return "";

@@ -11,6 +11,7 @@
 #include <deque>
 
 #include "core/error.h"
+#include "core/text.h"
 #include "data/embodiments.h"
 #include "io/parquet.h"
 #include "io/video.h"
@@ -69,12 +70,6 @@ std::vector<RobotLayout> make_layouts() {
   out.push_back({"agibot", slots::kAgibot, "top_head", agibot_action,
                  layout_modality(agibot_state, agibot_action, "top_head")});
   return out;
-}
-
-std::string lower(std::string s) {
-  std::transform(s.begin(), s.end(), s.begin(),
-                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
-  return s;
 }
 
 }  // namespace
@@ -146,7 +141,7 @@ const RobotLayout* find_robot_layout(const std::string& name) {
 std::string detect_robot(const std::string& robot_type) {
   // A robot of the user's table is named exactly, ahead of the built-in robots' substrings.
   if (auto user = user_robot_for(robot_type); !user.empty()) return user;
-  const std::string text = lower(robot_type);
+  const std::string text = ascii_lower(robot_type);
   if (text.find("gr1") != std::string::npos || text.find("gr-1") != std::string::npos ||
       text.find("fourier") != std::string::npos)
     return "gr1";

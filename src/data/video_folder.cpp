@@ -7,6 +7,7 @@
 
 #include "core/error.h"
 #include "core/log.h"
+#include "core/text.h"
 #include "io/video.h"
 
 namespace fs = std::filesystem;
@@ -14,12 +15,6 @@ namespace fs = std::filesystem;
 namespace dojo::data {
 
 namespace {
-
-std::string lower(std::string s) {
-  std::transform(s.begin(), s.end(), s.begin(),
-                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
-  return s;
-}
 
 std::string read_text(const fs::path& path) {
   std::ifstream in(path);
@@ -31,7 +26,7 @@ std::string read_text(const fs::path& path) {
 }  // namespace
 
 bool is_video_file(const fs::path& path, const VideoFolderOptions& options) {
-  const std::string ext = lower(path.extension().string());
+  const std::string ext = ascii_lower(path.extension().string());
   return std::find(options.extensions.begin(), options.extensions.end(), ext) != options.extensions.end();
 }
 

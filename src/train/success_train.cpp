@@ -43,27 +43,15 @@ void SuccessData::save(const fs::path& path) const {
 
 namespace {
 
-// All (episode, last frame) pairs of episodes `which` whose window fits, and their labels.
+// The windows of episodes `which` and their labels.
 struct Windows {
   torch::Tensor episode, end, label;  // [N] long, [N] long, [N] float
 };
 
 Windows windows_of(const SuccessData& data, const torch::Tensor& which, int64_t span) {
-  const int64_t T = data.frames.size(1);
-  std::vector<int64_t> episode, end;
-  const auto mask = which.to(torch::kBool);
-  for (int64_t e = 0; e < data.frames.size(0); ++e) {
-    if (!mask[e].item<bool>()) continue;
-    for (int64_t t = span - 1; t < T; ++t) {
-      episode.push_back(e);
-      end.push_back(t);
-    }
-  }
-  Windows w;
-  w.episode = torch::tensor(episode, torch::kLong);
-  w.end = torch::tensor(end, torch::kLong);
-  w.label = w.episode.numel() ? data.labels.index({w.episode, w.end}) : torch::zeros({0});
-  return w;
+  const auto ends = window_ends(which, data.frames.size(1), span);
+  const auto label = ends.episode.numel() ? data.labels.index({ends.episode, ends.end}) : torch::zeros({0});
+  return {ends.episode, ends.end, label};
 }
 
 // uint8 windows [N, k, H, W, 3] ending at the given frames.

@@ -336,4 +336,18 @@ void StepSnapshots::at_end(int64_t end_step, int64_t steps) const {
     save(end_step);
 }
 
+WindowEnds window_ends(const torch::Tensor& which, int64_t frames, int64_t span) {
+  std::vector<int64_t> episode, end;
+  const auto take = which.to(torch::kBool).contiguous();
+  const auto* selected = take.data_ptr<bool>();
+  for (int64_t e = 0; e < take.numel(); ++e) {
+    if (!selected[e]) continue;
+    for (int64_t t = span - 1; t < frames; ++t) {
+      episode.push_back(e);
+      end.push_back(t);
+    }
+  }
+  return {torch::tensor(episode, torch::kLong), torch::tensor(end, torch::kLong)};
+}
+
 }  // namespace dojo::train

@@ -35,6 +35,14 @@ void load_adamw_state(torch::optim::AdamW& optimizer, const torch::nn::Module& m
 NamedTensors named_adamw_state(NamedTensors tensors, const torch::nn::Module& module,
                                const std::string& prefix = "adamw.");
 
+// Every (episode, last frame) of a whole window of `span` frames in the episodes that `which`
+// ([E], nonzero = take) selects out of E episodes of `frames` frames each: episode-major, ends
+// ascending. The windowed trainers (success detector, value model) draw their batches from these.
+struct WindowEnds {
+  torch::Tensor episode, end;  // [N] long each
+};
+WindowEnds window_ends(const torch::Tensor& which, int64_t frames, int64_t span);
+
 // A CPU generator (so a seed gives the same draws on every device), and the one every trainer
 // draws step k's batch and noise from: it depends on (seed, k) only, so a resumed run sees the
 // same stream as an unbroken one. Draw i of a per-item stream (e.g. clip i's noise) uses the same.

@@ -42,24 +42,6 @@ void ValueData::save(const fs::path& path) const {
 
 namespace {
 
-// Every (episode, last frame) of a whole window in episodes `which`.
-struct Windows {
-  torch::Tensor episode, end;  // [N] long each
-};
-
-Windows windows_of(const ValueData& data, const torch::Tensor& which, int64_t window) {
-  std::vector<int64_t> episode, end;
-  const auto mask = which.to(torch::kBool);
-  for (int64_t e = 0; e < data.frames.size(0); ++e) {
-    if (!mask[e].item<bool>()) continue;
-    for (int64_t t = window - 1; t < data.frames.size(1); ++t) {
-      episode.push_back(e);
-      end.push_back(t);
-    }
-  }
-  return {torch::tensor(episode, torch::kLong), torch::tensor(end, torch::kLong)};
-}
-
 torch::Tensor gather(const ValueData& data, const torch::Tensor& episode, const torch::Tensor& end,
                      int64_t window) {
   std::vector<torch::Tensor> out;
@@ -70,14 +52,14 @@ torch::Tensor gather(const ValueData& data, const torch::Tensor& episode, const 
 }
 
 // Targets in [0, 1]: steps to the boundary over the horizon, capped.
-torch::Tensor targets(const ValueData& data, const Windows& w, int64_t horizon) {
+torch::Tensor targets(const ValueData& data, const WindowEnds& w, int64_t horizon) {
   return (data.steps_to_boundary.index({w.episode, w.end}) / static_cast<double>(horizon)).clamp_max(1.0);
 }
 
 }  // namespace
 
 ValueErrors value_errors(models::ValueModel& model, const ValueData& data, const torch::Tensor& which) {
-  const auto w = windows_of(data, which, model.window());
+  const auto w = window_ends(which, data.frames.size(1), model.window());
   ValueErrors e;
   e.windows = w.episode.numel();
   if (e.windows == 0) return e;
@@ -114,7 +96,7 @@ ValueTrainResult run_value_training(const ValueTrainJob& job) {
   auto model = checkpoint_exists(ckpt_dir) ? models::load_value_model(ckpt_dir)
                                            : models::make_value_model(job.horizon);
   model.network->train();
-  const auto train = windows_of(data, data.heldout.logical_not(), model.window());
+  const auto train = window_ends(data.heldout.logical_not(), data.frames.size(1), model.window());
   DOJO_CHECK(train.episode.numel() > 0, job.data.string() + ": no training window");
   LOG_INFO("value train: ", train.episode.numel(), " training windows, horizon ", model.horizon, " steps");
   AdamwLoop loop;
@@ -133,7 +115,7 @@ ValueTrainResult run_value_training(const ValueTrainJob& job) {
       *model.network, loop, [&] { return models::value_model_checkpoint(model); },
       [&](const LoopStep&, int64_t batch, torch::Generator& gen) {
         const auto pick = torch::randint(train.episode.numel(), {batch}, gen);
-        const Windows w{train.episode.index_select(0, pick), train.end.index_select(0, pick)};
+        const WindowEnds w{train.episode.index_select(0, pick), train.end.index_select(0, pick)};
         auto input = models::success_input(model.network, gather(data, w.episode, w.end, model.window()));
         input = soften_like_generated(input, job.blur_probability, job.brightness, gen);
         const auto value = torch::sigmoid(model.network->forward(input));  // [B]

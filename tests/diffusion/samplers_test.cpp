@@ -13,11 +13,6 @@ namespace dojo::diffusion {
 
 namespace {
 
-double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
-  EXPECT_EQ(a.sizes(), b.sizes());
-  return (a.to(torch::kDouble) - b.to(torch::kDouble)).abs().max().item<double>();
-}
-
 // A missing fixture fails the test that asks for it, naming the file: golden tests never skip
 // (tests/golden/README.md).
 std::optional<SafetensorsFile> open_fixture() {
@@ -89,10 +84,10 @@ TEST(Sampler, UniPCMatchesFixtureTrajectory) {
   double err_latent = 0, err_x0 = 0, err_v = 0;
   for (int i = 0; i < sampler.num_steps(); ++i) {
     const auto v = velocity(x, sampler.sigma(i), sampler.timestep(i));
-    err_v = std::max(err_v, max_abs(v, v_ref[i]));
+    err_v = std::max(err_v, test::max_abs(v, v_ref[i]));
     x = sampler.step(x, v);
-    err_x0 = std::max(err_x0, max_abs(sampler.last_x0_pred(), x0_ref[i]));
-    err_latent = std::max(err_latent, max_abs(x, latents[i + 1]));
+    err_x0 = std::max(err_x0, test::max_abs(sampler.last_x0_pred(), x0_ref[i]));
+    err_latent = std::max(err_latent, test::max_abs(x, latents[i + 1]));
   }
   EXPECT_LE(err_v, 2e-5);
   EXPECT_LE(err_x0, 2e-5);
@@ -115,7 +110,7 @@ TEST(Sampler, EulerMatchesFixtureTrajectory) {
   EXPECT_EQ(calls, 35);
   ASSERT_EQ(trajectory.size(), 36u);
   double err = 0;
-  for (int i = 0; i < 36; ++i) err = std::max(err, max_abs(trajectory[i], latents[i]));
+  for (int i = 0; i < 36; ++i) err = std::max(err, test::max_abs(trajectory[i], latents[i]));
   EXPECT_LE(err, 2e-5);
   EXPECT_TRUE(out.equal(trajectory.back()));
   std::cout << "Euler parity max abs: " << err << "\n";
@@ -137,11 +132,11 @@ TEST(Sampler, BatchedUniPCEqualsPerSampleRuns) {
   for (int b = 0; b < 3; ++b) {
     const auto single = sample_flow(fixture_velocity(batch_k.narrow(0, b, 1)), batch_noise.narrow(0, b, 1),
                                     schedule, Solver::kUniPC);
-    EXPECT_LE(max_abs(single, batched.narrow(0, b, 1)), 1e-6) << b;
+    EXPECT_LE(test::max_abs(single, batched.narrow(0, b, 1)), 1e-6) << b;
   }
   // The full fixture run through sample_flow ends at the fixture's final latent.
   const auto full = sample_flow(fixture_velocity(k), noise, flow_sigma_schedule(35, 5.0), Solver::kUniPC);
-  EXPECT_LE(max_abs(full, f->tensor("unipc_latents")[35]), 2e-5);
+  EXPECT_LE(test::max_abs(full, f->tensor("unipc_latents")[35]), 2e-5);
 }
 
 TEST(Sampler, SolversRecoverX0OfAStraightFlow) {
@@ -155,7 +150,7 @@ TEST(Sampler, SolversRecoverX0OfAStraightFlow) {
   const auto start = schedule.sigmas[0] * eps + (1 - schedule.sigmas[0]) * x0;
   for (auto solver : {Solver::kEuler, Solver::kUniPC}) {
     const auto out = sample_flow(exact, start, schedule, solver);
-    EXPECT_LE(max_abs(out, x0), 1e-5);
+    EXPECT_LE(test::max_abs(out, x0), 1e-5);
   }
 }
 

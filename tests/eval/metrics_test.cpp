@@ -31,11 +31,6 @@ std::optional<SafetensorsFile> open_images() {
   return SafetensorsFile::open(path);
 }
 
-double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
-  EXPECT_EQ(a.sizes(), b.sizes());
-  return (a.to(torch::kDouble) - b.to(torch::kDouble)).abs().max().item<double>();
-}
-
 // The fixture stores uint8 [N, C, H, W]; the reader layout is [N, H, W, 3].
 torch::Tensor nhwc(const torch::Tensor& nchw) { return nchw.permute({0, 2, 3, 1}).contiguous(); }
 
@@ -63,12 +58,12 @@ TEST(Metrics, PsnrSsimMatchFixture) {
     const auto ssim = ssim_per_frame(nhwc(x), nhwc(y));
     const auto psnr_f = psnr_per_frame(x.to(torch::kFloat) / 255.0, y.to(torch::kFloat) / 255.0);
     const auto ssim_f = ssim_per_frame(x.to(torch::kFloat) / 255.0, y.to(torch::kFloat) / 255.0);
-    const double psnr_err = max_abs(psnr, f->tensor(set + "_psnr_per_image"));
-    const double ssim_err = max_abs(ssim, f->tensor(set + "_ssim_per_image"));
+    const double psnr_err = test::max_abs(psnr, f->tensor(set + "_psnr_per_image"));
+    const double ssim_err = test::max_abs(ssim, f->tensor(set + "_ssim_per_image"));
     EXPECT_LE(psnr_err, 1e-4) << set;
     EXPECT_LE(ssim_err, 2e-5) << set;
-    EXPECT_LE(max_abs(psnr_f, psnr), 1e-5) << set;
-    EXPECT_LE(max_abs(ssim_f, ssim), 1e-6) << set;
+    EXPECT_LE(test::max_abs(psnr_f, psnr), 1e-5) << set;
+    EXPECT_LE(test::max_abs(ssim_f, ssim), 1e-6) << set;
     // Per-video value = mean of per-frame values (what the eval logs).
     const auto video = video_metrics(nhwc(x), nhwc(y), nullptr, 3);
     EXPECT_EQ(video.num_frames, x.size(0));
@@ -176,7 +171,7 @@ TEST(Metrics, LpipsRandomNetProperties) {
   const auto d = metric.per_frame(x, y);
   ASSERT_EQ(d.sizes(), torch::IntArrayRef({2}));
   EXPECT_GT(d.min().item<double>(), 0.0);
-  EXPECT_LE(max_abs(metric.per_frame(y, x), d), 1e-5);                 // symmetric
+  EXPECT_LE(test::max_abs(metric.per_frame(y, x), d), 1e-5);           // symmetric
   EXPECT_LE(metric.per_frame(x, x).abs().max().item<double>(), 1e-7);  // identical -> 0
   // Larger perturbations are further away.
   const auto far = (x + 0.5 * torch::randn_like(x)).clamp(0, 1);
@@ -223,7 +218,7 @@ TEST(Metrics, LpipsLoaderAcceptsTorchvisionAndOfficialNames) {
 
   // One file with torchvision / official-head names.
   save_safetensors(dir / "all.safetensors", state_dict(*net));
-  EXPECT_LE(max_abs(Lpips::load({dir / "all.safetensors"}).per_frame(x, y), expected), 1e-6);
+  EXPECT_LE(test::max_abs(Lpips::load({dir / "all.safetensors"}).per_frame(x, y), expected), 1e-6);
 
   // Official lpips model names (net.slice<k>.<i>.*, lin<k>.weight) split over two files, plus a
   // VGG classifier tensor that is ignored.
@@ -244,9 +239,9 @@ TEST(Metrics, LpipsLoaderAcceptsTorchvisionAndOfficialNames) {
   trunk.emplace_back("classifier.0.weight", torch::zeros({2, 2}));
   save_safetensors(dir / "trunk.safetensors", trunk);
   save_safetensors(dir / "heads.safetensors", heads);
-  EXPECT_LE(
-      max_abs(Lpips::load({dir / "trunk.safetensors", dir / "heads.safetensors"}).per_frame(x, y), expected),
-      1e-6);
+  EXPECT_LE(test::max_abs(Lpips::load({dir / "trunk.safetensors", dir / "heads.safetensors"}).per_frame(x, y),
+                          expected),
+            1e-6);
 
   // Heads forgotten: the error names them.
   const auto msg = test::error_message([&] { Lpips::load({dir / "trunk.safetensors"}); });

@@ -12,11 +12,6 @@
 namespace dojo::models {
 namespace {
 
-double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
-  EXPECT_EQ(a.sizes(), b.sizes());
-  return (a.to(torch::kDouble) - b.to(torch::kDouble)).abs().max().item<double>();
-}
-
 TEST(DitKernels, ModulateEqualsLayerNormScaleShift) {
   torch::manual_seed(0);
   torch::NoGradGuard no_grad;
@@ -25,11 +20,11 @@ TEST(DitKernels, ModulateEqualsLayerNormScaleShift) {
   // per frame (T) or one for all frames (1); and a D that is no multiple of 8 (40 is).
   for (int64_t frames : {3, 1}) {
     const auto mod = torch::randn({2, frames, 1, 120}).chunk(3, -1);
-    EXPECT_LT(max_abs(modulate_fused(x, mod[0], mod[1]), modulate_plain(x, mod[0], mod[1])), 2e-6);
+    EXPECT_LT(test::max_abs(modulate_fused(x, mod[0], mod[1]), modulate_plain(x, mod[0], mod[1])), 2e-6);
   }
   const auto odd = torch::randn({1, 2, 3, 13});
   const auto mod = torch::randn({1, 2, 1, 26}).chunk(2, -1);
-  EXPECT_LT(max_abs(modulate_fused(odd, mod[0], mod[1]), modulate_plain(odd, mod[0], mod[1])), 2e-6);
+  EXPECT_LT(test::max_abs(modulate_fused(odd, mod[0], mod[1]), modulate_plain(odd, mod[0], mod[1])), 2e-6);
 }
 
 TEST(DitKernels, RmsNormRopeEqualsNormThenRotateHalf) {
@@ -41,18 +36,19 @@ TEST(DitKernels, RmsNormRopeEqualsNormThenRotateHalf) {
   const auto angles = rope_angles_3d(d, 2, 3, 4, /*frame_offset=*/5).flatten(1, 2);  // [L, 1, d]
   const auto cos = angles.cos(), sin = angles.sin();
   for (double factor : {1.0, 0.125}) {
-    EXPECT_LT(max_abs(rms_norm_rope_fused(x, weight, 1e-6, cos, sin, factor),
-                      rms_norm_rope_plain(x, weight, 1e-6, cos, sin, factor)),
+    EXPECT_LT(test::max_abs(rms_norm_rope_fused(x, weight, 1e-6, cos, sin, factor),
+                            rms_norm_rope_plain(x, weight, 1e-6, cos, sin, factor)),
               2e-6)
         << "factor " << factor;
-    EXPECT_LT(max_abs(rms_norm_rope_fused(x, weight, 1e-6, {}, {}, factor),
-                      rms_norm_rope_plain(x, weight, 1e-6, {}, {}, factor)),
+    EXPECT_LT(test::max_abs(rms_norm_rope_fused(x, weight, 1e-6, {}, {}, factor),
+                            rms_norm_rope_plain(x, weight, 1e-6, {}, {}, factor)),
               2e-6)
         << "no rotation, factor " << factor;
   }
   // The plain path is the network's own: norm, then apply_rope.
   const auto normed = x * torch::rsqrt(x.pow(2).mean(-1, true) + 1e-6) * weight;
-  EXPECT_LT(max_abs(rms_norm_rope_plain(x, weight, 1e-6, cos, sin), apply_rope(normed, cos, sin)), 1e-6);
+  EXPECT_LT(test::max_abs(rms_norm_rope_plain(x, weight, 1e-6, cos, sin), apply_rope(normed, cos, sin)),
+            1e-6);
 }
 
 TEST(DitKernels, ApplyOnlyToCpuFloatWithoutGradients) {
@@ -90,7 +86,7 @@ TEST(DitKernels, ForwardWithoutGradientsEqualsThePlainPath) {
     torch::NoGradGuard no_grad;
     fused = net->forward(in);
   }
-  EXPECT_LT(max_abs(fused, plain), 2e-5 * plain.abs().max().item<double>());
+  EXPECT_LT(test::max_abs(fused, plain), 2e-5 * plain.abs().max().item<double>());
 
   // One more frame attending the first three through a KV cache.
   std::vector<DitKvCache> plain_cache(c.num_blocks), fused_cache(c.num_blocks);
@@ -114,7 +110,7 @@ TEST(DitKernels, ForwardWithoutGradientsEqualsThePlainPath) {
     torch::NoGradGuard no_grad;
     fused_frame = run(fused_cache);
   }
-  EXPECT_LT(max_abs(fused_frame, plain_frame), 2e-5 * plain_frame.abs().max().item<double>());
+  EXPECT_LT(test::max_abs(fused_frame, plain_frame), 2e-5 * plain_frame.abs().max().item<double>());
 }
 
 // Activation checkpointing recomputes each block in the backward pass: the loss and every
@@ -149,7 +145,7 @@ TEST(DitCheckpointing, RecomputedBlocksGiveTheGradientsOfStoredOnes) {
   ASSERT_EQ(stored.size(), recomputed.size());
   for (size_t i = 0; i < stored.size(); ++i) {
     const double scale = std::max(stored[i].abs().max().item<double>(), 1e-12);
-    EXPECT_LT(max_abs(recomputed[i], stored[i]), 1e-5 * scale) << "gradient " << i;
+    EXPECT_LT(test::max_abs(recomputed[i], stored[i]), 1e-5 * scale) << "gradient " << i;
   }
   EXPECT_GT(stored[0].abs().max().item<double>(), 0);  // the input's gradient flowed through the blocks
 }

@@ -16,12 +16,6 @@ namespace dojo::models {
 
 namespace {
 
-double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
-  EXPECT_EQ(a.sizes(), b.sizes());
-  if (a.sizes() != b.sizes()) return std::numeric_limits<double>::infinity();
-  return (a.to(torch::kDouble) - b.to(torch::kDouble)).abs().max().item<double>();
-}
-
 // A missing fixture fails the test that asks for it, naming the file: golden tests never skip
 // (tests/golden/README.md).
 std::optional<SafetensorsFile> open_fixture(const std::string& name) {
@@ -129,8 +123,8 @@ DitInputs frame_step(const DitInputs& in, int64_t t, int64_t k, std::vector<DitK
 TEST(DitRope, TablesMatchGolden) {
   auto g = open_fixture("dit_rope_temb.safetensors");
   ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
-  EXPECT_LE(max_abs(rope_dim_range(42, false), g->tensor("rope128_dim_spatial_range")), 0.0);
-  EXPECT_LE(max_abs(rope_dim_range(44, false), g->tensor("rope128_dim_temporal_range")), 0.0);
+  EXPECT_LE(test::max_abs(rope_dim_range(42, false), g->tensor("rope128_dim_spatial_range")), 0.0);
+  EXPECT_LE(test::max_abs(rope_dim_range(44, false), g->tensor("rope128_dim_temporal_range")), 0.0);
   const auto axes = rope_axis_dims(128);
   EXPECT_EQ(axes.t, 44);
   EXPECT_EQ(axes.h, 42);
@@ -153,7 +147,7 @@ TEST(DitRope, TablesMatchGolden) {
       {"rope128_480x640_angles_at_index", full.index_select(0, idx), 1e-5}};
   std::string report = "rope max abs:";
   for (const auto& [name, ours, tol] : checks) {
-    const double err = max_abs(ours, g->tensor(name));
+    const double err = test::max_abs(ours, g->tensor(name));
     EXPECT_LE(err, tol) << name;
     char buf[96];
     std::snprintf(buf, sizeof(buf), " %s %.2g", name.c_str(), err);
@@ -165,10 +159,10 @@ TEST(DitRope, TablesMatchGolden) {
 TEST(DitRope, FrameOffsetIsAbsolutePosition) {
   const auto full = rope_angles_3d(64, 6, 3, 4);
   const auto tail = rope_angles_3d(64, 2, 3, 4, /*frame_offset=*/4);
-  EXPECT_EQ(max_abs(tail, full.slice(0, 4 * 12)), 0.0);
+  EXPECT_EQ(test::max_abs(tail, full.slice(0, 4 * 12)), 0.0);
   // bf16-rounded exponents differ from the exact ones, and only in the frequencies.
   const auto rounded = rope_angles_3d(128, 2, 3, 4, 0, 3.0, 3.0, 1.0, /*bf16_ranges=*/true);
-  EXPECT_GT(max_abs(rounded, rope_angles_3d(128, 2, 3, 4)), 1e-4);
+  EXPECT_GT(test::max_abs(rounded, rope_angles_3d(128, 2, 3, 4)), 1e-4);
   EXPECT_NEAR(rope_dim_range(42, true)[1].item<double>(), 0.047607, 1e-6);
 }
 
@@ -181,11 +175,11 @@ TEST(DitRope, ApplyRopeIsRotateHalf) {
   const auto pair_norm = [](const torch::Tensor& t) {
     return t.slice(-1, 0, 16).pow(2) + t.slice(-1, 16).pow(2);
   };
-  EXPECT_LE(max_abs(pair_norm(y), pair_norm(x)), 1e-4);
+  EXPECT_LE(test::max_abs(pair_norm(y), pair_norm(x)), 1e-4);
   const auto a = angles.flatten(1, 2);  // [12, 1, 32]
   const auto expect_lo =
       x.slice(-1, 0, 16) * a.slice(-1, 0, 16).cos() - x.slice(-1, 16) * a.slice(-1, 0, 16).sin();
-  EXPECT_LE(max_abs(y.slice(-1, 0, 16), expect_lo), 1e-5);
+  EXPECT_LE(test::max_abs(y.slice(-1, 0, 16), expect_lo), 1e-5);
 }
 
 TEST(DitTimestep, SinusoidMatchesGolden) {
@@ -193,15 +187,15 @@ TEST(DitTimestep, SinusoidMatchesGolden) {
   ASSERT_TRUE(g) << "golden fixture missing from " << test::golden_dir();
   const auto raw = g->tensor("temb_timesteps_raw");
   const auto scaled = raw * 0.001;
-  EXPECT_EQ(max_abs(scaled, g->tensor("temb_timesteps_scaled")), 0.0);
+  EXPECT_EQ(test::max_abs(scaled, g->tensor("temb_timesteps_scaled")), 0.0);
   for (int64_t dim : {2048, 64, 80}) {
-    const double err = max_abs(timestep_sinusoid(scaled, dim), g->tensor("temb" + std::to_string(dim)));
+    const double err = test::max_abs(timestep_sinusoid(scaled, dim), g->tensor("temb" + std::to_string(dim)));
     EXPECT_LE(err, 2e-6) << dim;
     std::printf("temb%ld max abs %.2g\n", static_cast<long>(dim), err);
   }
   // Cosine half first: t = 0 gives [1..1, 0..0].
   const auto zero = timestep_sinusoid(torch::zeros({1}), 8);
-  EXPECT_EQ(max_abs(zero, torch::tensor({{1.f, 1.f, 1.f, 1.f, 0.f, 0.f, 0.f, 0.f}})), 0.0);
+  EXPECT_EQ(test::max_abs(zero, torch::tensor({{1.f, 1.f, 1.f, 1.f, 0.f, 0.f, 0.f, 0.f}})), 0.0);
 }
 
 // --- config and parameter inventory -----------------------------------------------------------
@@ -380,7 +374,7 @@ TEST(DitGolden, TinyForwardAndIntermediates) {
         {"velocity", name + "_velocity", 1e-4}};
     std::string report = name + " max abs:";
     for (const auto& [ours, theirs, tol] : checks) {
-      const double err = max_abs(out.at(ours), io.tensor(theirs));
+      const double err = test::max_abs(out.at(ours), io.tensor(theirs));
       EXPECT_LE(err, tol) << theirs;
       char buf[96];
       std::snprintf(buf, sizeof(buf), " %s %.2g", ours.c_str(), err);
@@ -388,12 +382,12 @@ TEST(DitGolden, TinyForwardAndIntermediates) {
     }
     std::printf("%s\n", report.c_str());
     // forward() is the same computation without the captures.
-    EXPECT_EQ(max_abs(net->forward(tiny_inputs(*g, name)), out.at("velocity")), 0.0) << name;
+    EXPECT_EQ(test::max_abs(net->forward(tiny_inputs(*g, name)), out.at("velocity")), 0.0) << name;
     // A context projected once up front gives the same result.
     auto pre = tiny_inputs(*g, name);
     pre.projected_context = net->project_context(pre.context);
     pre.context = torch::Tensor();
-    EXPECT_EQ(max_abs(net->forward(pre), out.at("velocity")), 0.0) << name;
+    EXPECT_EQ(test::max_abs(net->forward(pre), out.at("velocity")), 0.0) << name;
   }
 }
 
@@ -406,7 +400,7 @@ TEST(DitGolden, TinyActionsMatter) {
   torch::NoGradGuard no_grad;
   auto in = tiny_inputs(*g, "tshared");
   in.actions = torch::Tensor();
-  EXPECT_GT(max_abs(net->forward(in), g->io.tensor("tshared_velocity")), 0.1);
+  EXPECT_GT(test::max_abs(net->forward(in), g->io.tensor("tshared_velocity")), 0.1);
 }
 
 TEST(DitGolden, TinyDenoiseVelocity) {
@@ -417,11 +411,11 @@ TEST(DitGolden, TinyDenoiseVelocity) {
   const auto base = tiny_inputs(*g, "tshared");
   const auto gt = g->io.tensor("denoise_gt_x0"), noise = g->io.tensor("denoise_noise");
   const auto v = denoise_velocity(*net, base, g->io.tensor("x_t"), gt, noise, g->io.tensor("condition_mask"));
-  const double err = max_abs(v, g->io.tensor("denoise_velocity"));
+  const double err = test::max_abs(v, g->io.tensor("denoise_velocity"));
   EXPECT_LE(err, 1e-4);
   std::printf("denoise_velocity max abs %.2g\n", err);
   // Conditioning frame 0 carries exactly noise - gt.
-  EXPECT_EQ(max_abs(v.select(2, 0), (noise - gt).select(2, 0)), 0.0);
+  EXPECT_EQ(test::max_abs(v.select(2, 0), (noise - gt).select(2, 0)), 0.0);
 }
 
 // --- behaviour on the small config --------------------------------------------------------------
@@ -446,7 +440,8 @@ TEST(DitSmall, WholeClipActionInjectionAblation) {
   // depends on the last action too.
   EXPECT_EQ(a.at("t_emb_normed").sizes(), (std::vector<int64_t>{1, 1, 64}));
   in.actions[0][11][0] += 1.0;
-  EXPECT_GT(max_abs(net->forward_with_intermediates(in).at("t_emb_normed"), a.at("t_emb_normed")), 1e-6);
+  EXPECT_GT(test::max_abs(net->forward_with_intermediates(in).at("t_emb_normed"), a.at("t_emb_normed")),
+            1e-6);
   in.actions = torch::randn({1, 8, 384});
   EXPECT_THROW(net->forward(in), std::exception);
   EXPECT_EQ(DitConfig::from_json(c.to_json()).whole_clip_actions, 12);
@@ -482,7 +477,7 @@ TEST(DitSmall, BatchIndependence) {
     one.condition_mask = in.condition_mask.slice(0, b, b + 1);
     one.actions = in.actions.slice(0, b, b + 1);
     one.context = in.context.slice(0, b, b + 1);
-    const double err = max_abs(net->forward(one), all.slice(0, b, b + 1));
+    const double err = test::max_abs(net->forward(one), all.slice(0, b, b + 1));
     EXPECT_LE(err, 1e-5) << "sample " << b;
     std::printf("sample %ld alone vs in batch max abs %.2g\n", static_cast<long>(b), err);
   }
@@ -504,7 +499,7 @@ TEST(DitSmall, BlockCausalMaskEqualsKvCacheStreaming) {
 
   // Without the mask, later frames leak into earlier ones (so the test can fail).
   const auto v_bidir = net->forward(in);
-  EXPECT_GT(max_abs(v_bidir.select(2, 0), v_full.select(2, 0)), 1e-3);
+  EXPECT_GT(test::max_abs(v_bidir.select(2, 0), v_full.select(2, 0)), 1e-3);
 
   std::vector<DitKvCache> cache(c.num_blocks);
   std::vector<torch::Tensor> frames;
@@ -512,7 +507,7 @@ TEST(DitSmall, BlockCausalMaskEqualsKvCacheStreaming) {
     frames.push_back(net->forward(frame_step(in, t, k, cache)));
     EXPECT_EQ(cache[0].tokens(), (t + 1) * S);
   }
-  const double err = max_abs(torch::cat(frames, 2), v_full);
+  const double err = test::max_abs(torch::cat(frames, 2), v_full);
   EXPECT_LT(err, 1e-5);
   std::printf("block-causal mask vs KV cache max abs %.2g (output max %.2g)\n", err,
               v_full.abs().max().item<double>());
@@ -527,7 +522,7 @@ TEST(DitSmall, BlockCausalMaskEqualsKvCacheStreaming) {
     frames.push_back(net->forward(frame_step(in, t, k, cache)));
     for (auto& e : cache) e.keep_last(S);
   }
-  EXPECT_LT(max_abs(torch::cat(frames, 2), v_win), 1e-5);
+  EXPECT_LT(test::max_abs(torch::cat(frames, 2), v_win), 1e-5);
 }
 
 // An attention sink in the ring: frame 0 stays in view of every later frame while the window
@@ -554,10 +549,10 @@ TEST(DitSmall, RingSinkKeepsTheFirstFrameAndMovesByRotation) {
   const auto with_sink = stream(cache, /*window=*/2, /*sink=*/1);
   DitInputs masked = in;
   masked.self_attn_mask = dit_block_causal_mask(T, S, 0, /*window_frames=*/3, /*sink_frames=*/1);
-  EXPECT_LT(max_abs(with_sink, net->forward(masked)), 1e-5);
+  EXPECT_LT(test::max_abs(with_sink, net->forward(masked)), 1e-5);
   const auto without = stream(cache, 2, 0);  // frame 0 leaves the window at frame 3
-  EXPECT_LT(max_abs(with_sink.narrow(2, 0, 3), without.narrow(2, 0, 3)), 1e-6);
-  EXPECT_GT(max_abs(with_sink.narrow(2, 3, 3), without.narrow(2, 3, 3)), 1e-3);
+  EXPECT_LT(test::max_abs(with_sink.narrow(2, 0, 3), without.narrow(2, 0, 3)), 1e-6);
+  EXPECT_GT(test::max_abs(with_sink.narrow(2, 3, 3), without.narrow(2, 3, 3)), 1e-3);
 
   const auto store_first = [&](std::vector<DitKvCache>& into, int64_t position) {
     for (auto& e : into) e.set_ring(2, S, 1);
@@ -580,9 +575,9 @@ TEST(DitSmall, RingSinkKeepsTheFirstFrameAndMovesByRotation) {
       const auto [cos, sin] = temporal_rope_shift(*net, shift);
       moved[b].place_sink(cos, sin);
     }
-    worst = std::max(worst, max_abs(moved[b].k.narrow(2, 0, S), stored[b].k.narrow(2, 0, S)));
-    moved_by = std::max(moved_by, max_abs(before, stored[b].k.narrow(2, 0, S)));
-    worst = std::max(worst, max_abs(moved[b].v.narrow(2, 0, S), stored[b].v.narrow(2, 0, S)));
+    worst = std::max(worst, test::max_abs(moved[b].k.narrow(2, 0, S), stored[b].k.narrow(2, 0, S)));
+    moved_by = std::max(moved_by, test::max_abs(before, stored[b].k.narrow(2, 0, S)));
+    worst = std::max(worst, test::max_abs(moved[b].v.narrow(2, 0, S), stored[b].v.narrow(2, 0, S)));
   }
   EXPECT_LT(worst, 1e-5);
   EXPECT_GT(moved_by, 1e-2) << "the position is in the keys";
@@ -651,11 +646,11 @@ TEST(DitSmall, ActionScaleFollowsTheConfig) {
   with_grad.actions = in.actions.clone().requires_grad_(true);
   const auto trained = net->forward(with_grad);  // the same scale with autograd, after inference mode
   // (with gradients the network takes the plain kernels, without them the fused ones: models/dit_kernels.h)
-  EXPECT_LT(max_abs(trained.detach(), unscaled), 1e-5);
+  EXPECT_LT(test::max_abs(trained.detach(), unscaled), 1e-5);
   trained.pow(2).mean().backward();
   net->config.action_scale.assign(static_cast<size_t>(c.action_dim), 1.0);
   torch::NoGradGuard no_grad;
-  EXPECT_GT(max_abs(net->forward(in), unscaled), 1e-4);
+  EXPECT_GT(test::max_abs(net->forward(in), unscaled), 1e-4);
   EXPECT_TRUE(net->action_embedder_B_D->fc1->weight.grad().defined());
   EXPECT_TRUE(with_grad.actions.grad().defined());
 }
@@ -705,13 +700,13 @@ TEST(DitSmall, InitZeroActionFc2AndReinit) {
   auto in = random_inputs(c, 1, 2, 8, 8, 32);
   const auto with = net->forward(in);
   in.actions = torch::Tensor();
-  EXPECT_EQ(max_abs(net->forward(in), with), 0.0);
+  EXPECT_EQ(test::max_abs(net->forward(in), with), 0.0);
 
   const auto fc1_before = net->action_embedder_B_D->fc1->weight.clone();
   const auto other_before = net->t_embedding->linear_1->weight.clone();
   net->reinit_action_input_layer();
-  EXPECT_GT(max_abs(net->action_embedder_B_D->fc1->weight, fc1_before), 0.0);
-  EXPECT_EQ(max_abs(net->t_embedding->linear_1->weight, other_before), 0.0);
+  EXPECT_GT(test::max_abs(net->action_embedder_B_D->fc1->weight, fc1_before), 0.0);
+  EXPECT_EQ(test::max_abs(net->t_embedding->linear_1->weight, other_before), 0.0);
 }
 
 TEST(DitSmall, InputValidationNamesTheField) {
@@ -737,8 +732,8 @@ TEST(DitSmall, PaddingMaskIsResizedToTheLatentGrid) {
   in.padding_mask = torch::ones({1, 1, 8, 8});
   const auto ones_latent = net->forward(in);
   in.padding_mask = torch::ones({1, 1, 64, 64});
-  EXPECT_EQ(max_abs(net->forward(in), ones_latent), 0.0);
-  EXPECT_GT(max_abs(ones_latent, zeros), 1e-3);
+  EXPECT_EQ(test::max_abs(net->forward(in), ones_latent), 0.0);
+  EXPECT_GT(test::max_abs(ones_latent, zeros), 1e-3);
 }
 
 TEST(DitSmall, TrainsOnFixedTarget) {

@@ -13,11 +13,6 @@ namespace dojo::models {
 
 namespace {
 
-double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
-  EXPECT_EQ(a.sizes(), b.sizes());
-  return (a.to(torch::kDouble) - b.to(torch::kDouble)).abs().max().item<double>();
-}
-
 struct Golden {
   SafetensorsFile weights, io;
 };
@@ -83,10 +78,10 @@ TEST(Lam, GoldenParityBatch1And3) {
   torch::NoGradGuard no_grad;
   for (const std::string b : {"b1_", "b3_"}) {
     const auto out = model->forward(g->io.tensor(b + "videos"));
-    EXPECT_LE(max_abs(out.z_mu, g->io.tensor(b + "mu")), 2e-5) << b;
-    EXPECT_LE(max_abs(out.z_logvar, g->io.tensor(b + "logvar")), 2e-5) << b;
-    EXPECT_LE(max_abs(out.z_rep, g->io.tensor(b + "z_rep")), 2e-5) << b;
-    EXPECT_LE(max_abs(out.recon, g->io.tensor(b + "recon")), 1e-5) << b;
+    EXPECT_LE(test::max_abs(out.z_mu, g->io.tensor(b + "mu")), 2e-5) << b;
+    EXPECT_LE(test::max_abs(out.z_logvar, g->io.tensor(b + "logvar")), 2e-5) << b;
+    EXPECT_LE(test::max_abs(out.z_rep, g->io.tensor(b + "z_rep")), 2e-5) << b;
+    EXPECT_LE(test::max_abs(out.recon, g->io.tensor(b + "recon")), 1e-5) << b;
   }
 }
 
@@ -97,19 +92,19 @@ TEST(Lam, GoldenWorldModelLatentActionsPerSample) {
   torch::NoGradGuard no_grad;
   const auto video = g->io.tensor("wm_lam_video");  // [3, 4, H, W, 3]: 2 pairs per sample
   const auto correct = lam_latent_actions(model, video);
-  EXPECT_LE(max_abs(correct, g->io.tensor("wm_latent_action_correct")), 2e-5);
+  EXPECT_LE(test::max_abs(correct, g->io.tensor("wm_latent_action_correct")), 2e-5);
   const auto published = lam_latent_actions(model, video, /*published_order=*/true);
-  EXPECT_LE(max_abs(published, g->io.tensor("wm_latent_action_published")), 2e-5);
+  EXPECT_LE(test::max_abs(published, g->io.tensor("wm_latent_action_published")), 2e-5);
   // The two orders really differ for B > 1, so the test above tells them apart.
-  EXPECT_GT(max_abs(correct, published), 1e-3);
+  EXPECT_GT(test::max_abs(correct, published), 1e-3);
   // Injection into the action vector's last 32 dims.
   auto action = g->io.tensor("wm_action_in", true);
   action.slice(2, action.size(2) - 32).mul_(correct);
-  EXPECT_LE(max_abs(action, g->io.tensor("wm_action_out_correct")), 2e-5);
+  EXPECT_LE(test::max_abs(action, g->io.tensor("wm_action_out_correct")), 2e-5);
   // Each sample's latent actions equal those of that sample encoded alone.
   for (int64_t b = 0; b < video.size(0); ++b) {
     const auto alone = lam_latent_actions(model, video.slice(0, b, b + 1));
-    EXPECT_LE(max_abs(alone[0], correct[b]), 1e-5) << "sample " << b;
+    EXPECT_LE(test::max_abs(alone[0], correct[b]), 1e-5) << "sample " << b;
   }
 }
 
@@ -123,20 +118,20 @@ TEST(Lam, SampleOutputDoesNotDependOnBatchMates) {
   const auto full = model->forward(videos);
   // Alone.
   const auto alone = model->forward(videos.slice(0, 2, 3));
-  EXPECT_LE(max_abs(alone.z_mu, full.z_mu.slice(0, 4, 6)), 1e-5);
-  EXPECT_LE(max_abs(alone.recon[0], full.recon[2]), 1e-5);
+  EXPECT_LE(test::max_abs(alone.z_mu, full.z_mu.slice(0, 4, 6)), 1e-5);
+  EXPECT_LE(test::max_abs(alone.recon[0], full.recon[2]), 1e-5);
   // Batch reversed and batch mates replaced: sample 2's rows are unchanged.
   auto other = videos.flip({0}).clone();
   other[0] = torch::rand({3, 48, 64, 3});
   const auto rev = model->forward(other);  // original sample 2 sits at index 1
-  EXPECT_LE(max_abs(rev.z_mu.slice(0, 2, 4), full.z_mu.slice(0, 4, 6)), 1e-5);
-  EXPECT_LE(max_abs(rev.recon[1], full.recon[2]), 1e-5);
+  EXPECT_LE(test::max_abs(rev.z_mu.slice(0, 2, 4), full.z_mu.slice(0, 4, 6)), 1e-5);
+  EXPECT_LE(test::max_abs(rev.recon[1], full.recon[2]), 1e-5);
   // Changing one sample's second frame changes its own latent.
   auto changed = videos.clone();
   changed[2][1] = torch::rand({48, 64, 3});
   const auto ch = model->encode(changed);
-  EXPECT_GT(max_abs(ch.z_mu.slice(0, 4, 5), full.z_mu.slice(0, 4, 5)), 1e-6);
-  EXPECT_LE(max_abs(ch.z_mu.slice(0, 0, 4), full.z_mu.slice(0, 0, 4)), 1e-6);
+  EXPECT_GT(test::max_abs(ch.z_mu.slice(0, 4, 5), full.z_mu.slice(0, 4, 5)), 1e-6);
+  EXPECT_LE(test::max_abs(ch.z_mu.slice(0, 0, 4), full.z_mu.slice(0, 0, 4)), 1e-6);
 }
 
 TEST(Lam, PatchifyRoundTripAndLayout) {
@@ -159,8 +154,9 @@ TEST(Lam, RotaryMatchesInterleavedFormula) {
     for (int64_t j = 0; j < 4; ++j) {
       const double f = std::pow(10000.0, -2.0 * j / 8), a = t * f;
       const auto x0 = x.select(1, t).select(1, 2 * j), x1 = x.select(1, t).select(1, 2 * j + 1);
-      EXPECT_LE(max_abs(y.select(1, t).select(1, 2 * j), x0 * std::cos(a) - x1 * std::sin(a)), 1e-6);
-      EXPECT_LE(max_abs(y.select(1, t).select(1, 2 * j + 1), x1 * std::cos(a) + x0 * std::sin(a)), 1e-6);
+      EXPECT_LE(test::max_abs(y.select(1, t).select(1, 2 * j), x0 * std::cos(a) - x1 * std::sin(a)), 1e-6);
+      EXPECT_LE(test::max_abs(y.select(1, t).select(1, 2 * j + 1), x1 * std::cos(a) + x0 * std::sin(a)),
+                1e-6);
     }
   // Position 0 is the identity.
   EXPECT_TRUE(torch::allclose(y.select(1, 0), x.select(1, 0)));

@@ -19,11 +19,13 @@ namespace {
 
 namespace fs = std::filesystem;
 
-SafetensorsFile golden(const std::string& name) { return SafetensorsFile::open(test::golden_dir() / name); }
+SafetensorsFile open_golden(const std::string& name) {
+  return SafetensorsFile::open(test::golden_dir() / name);
+}
 
 // The golden tiny DiT's velocity for the shared-timestep case, and the converted model's.
 double golden_forward_error(const fs::path& checkpoint) {
-  const auto io = golden("dit_tiny_io.safetensors");
+  const auto io = open_golden("dit_tiny_io.safetensors");
   ActionDit net = load_world_model(checkpoint);
   DitInputs in;
   in.x = io.tensor("x_t");
@@ -48,7 +50,7 @@ TEST(ReleasedImport, DcpFolderGivesTheGoldenForwardFromItsEmaWeights) {
   EXPECT_LE(golden_forward_error(tmp / "dit"), 1e-4);
   // Every weight is the golden one, bit for bit.
   const auto ours = Checkpoint::open(tmp / "dit");
-  const auto want = golden("dit_tiny_weights.safetensors");
+  const auto want = open_golden("dit_tiny_weights.safetensors");
   for (const auto& name : want.keys())
     EXPECT_TRUE(torch::equal(ours.model().tensor(name), want.tensor(name))) << name;
 
@@ -67,7 +69,7 @@ TEST(ReleasedImport, TheReleaseConvertersBf16FileHoldsTheGoldenWeightsInBf16) {
   EXPECT_EQ(report.source_format, "zip");
   const auto expected = nlohmann::json::parse(test::read_file(test::dcp_fixture_dir() / "EXPECTED.json"));
   const auto ours = Checkpoint::open(tmp / "dit");
-  const auto want = golden("dit_tiny_weights.safetensors");
+  const auto want = open_golden("dit_tiny_weights.safetensors");
   for (const auto& [name, e] : expected["keys"].items()) {
     const auto t = ours.model().tensor(name);
     const auto g = want.tensor(name);
@@ -127,7 +129,7 @@ TEST(ReleasedImport, LightningLamCheckpointGivesTheGoldenLam) {
   EXPECT_EQ(config.enc_blocks, tiny.enc_blocks);
   EXPECT_EQ(config.dec_blocks, tiny.dec_blocks);
   const auto ours = Checkpoint::open(tmp / "lam");
-  const auto want = golden("lam_tiny_weights.safetensors");
+  const auto want = open_golden("lam_tiny_weights.safetensors");
   EXPECT_EQ(ours.model().keys().size(), want.keys().size());
   for (const auto& name : want.keys())
     EXPECT_TRUE(torch::equal(ours.model().tensor(name), want.tensor(name))) << name;
@@ -142,7 +144,7 @@ TEST(ReleasedImport, WanVaeStateDictGivesTheGoldenTokenizer) {
   EXPECT_EQ(report.source_format, "legacy");
   EXPECT_EQ(report.config["config"], WanVaeConfig::tiny().to_json());
   const auto ours = Checkpoint::open(tmp / "vae");
-  const auto want = golden("wan21_vae_tiny_weights.safetensors");
+  const auto want = open_golden("wan21_vae_tiny_weights.safetensors");
   for (const auto& name : want.keys())
     EXPECT_TRUE(torch::equal(ours.model().tensor(name), want.tensor(name))) << name;
   EXPECT_NO_THROW(load_tokenizer(tmp / "vae"));

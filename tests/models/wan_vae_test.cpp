@@ -14,11 +14,6 @@ namespace {
 
 std::filesystem::path golden(const std::string& name) { return test::golden_dir() / name; }
 
-double max_abs(const torch::Tensor& a, const torch::Tensor& b) {
-  EXPECT_EQ(a.sizes(), b.sizes());
-  return (a - b).abs().max().item<double>();
-}
-
 // The tiny fixture model with its weights loaded strictly.
 WanVae load_fixture_model() {
   const auto weights = SafetensorsFile::open(golden("wan21_vae_tiny_weights.safetensors"));
@@ -48,17 +43,17 @@ TEST(WanVae, GoldenParity) {
   }
 
   const auto head = vae->encode_head(x);
-  EXPECT_LE(max_abs(head, io.tensor("enc_head_out")), 1e-5);
+  EXPECT_LE(test::max_abs(head, io.tensor("enc_head_out")), 1e-5);
   const auto enc = vae->encode(x);
-  EXPECT_LE(max_abs(enc.mu, io.tensor("mu")), 1e-5);
-  EXPECT_LE(max_abs(enc.log_var, io.tensor("log_var")), 1e-5);
+  EXPECT_LE(test::max_abs(enc.mu, io.tensor("mu")), 1e-5);
+  EXPECT_LE(test::max_abs(enc.log_var, io.tensor("log_var")), 1e-5);
   const auto z = vae->encode_latents(x);
-  EXPECT_LE(max_abs(z, io.tensor("z")), 1e-5);
+  EXPECT_LE(test::max_abs(z, io.tensor("z")), 1e-5);
 
   const auto dec = vae->decode(io.tensor("mu"));
-  EXPECT_LE(max_abs(dec, io.tensor("x_dec_from_mu")), 1e-4);
+  EXPECT_LE(test::max_abs(dec, io.tensor("x_dec_from_mu")), 1e-4);
   const auto pub = vae->decode_latents(io.tensor("z"));
-  EXPECT_LE(max_abs(pub, io.tensor("x_dec_published")), 1e-4);
+  EXPECT_LE(test::max_abs(pub, io.tensor("x_dec_published")), 1e-4);
 }
 
 TEST(WanVae, WholeClipEqualsChunkedOnFixture) {
@@ -67,8 +62,8 @@ TEST(WanVae, WholeClipEqualsChunkedOnFixture) {
   auto vae = load_fixture_model();
   const auto io = SafetensorsFile::open(golden("wan21_vae_tiny_io.safetensors"));
   const auto x = io.tensor("x");
-  EXPECT_LE(max_abs(vae->encode_head(x, /*chunked=*/false), io.tensor("enc_head_out")), 1e-5);
-  EXPECT_LE(max_abs(vae->decode(io.tensor("mu"), /*chunked=*/false), io.tensor("x_dec_from_mu")), 1e-4);
+  EXPECT_LE(test::max_abs(vae->encode_head(x, /*chunked=*/false), io.tensor("enc_head_out")), 1e-5);
+  EXPECT_LE(test::max_abs(vae->decode(io.tensor("mu"), /*chunked=*/false), io.tensor("x_dec_from_mu")), 1e-4);
 }
 
 TEST(WanVae, StreamingEqualsWholeClip) {
@@ -84,7 +79,7 @@ TEST(WanVae, StreamingEqualsWholeClip) {
 
   const auto mu_whole = vae->encode(x, false).mu;  // [2, 16, 5, 2, 3]
   ASSERT_EQ(mu_whole.sizes(), (std::vector<int64_t>{2, 16, 5, 2, 3}));
-  EXPECT_LE(max_abs(vae->encode(x, true).mu, mu_whole), 1e-5);
+  EXPECT_LE(test::max_abs(vae->encode(x, true).mu, mu_whole), 1e-5);
 
   // Frames arrive in uneven groups; latents come out when their chunk completes.
   WanVaeStreamEncoder enc(vae);
@@ -96,7 +91,7 @@ TEST(WanVae, StreamingEqualsWholeClip) {
   }
   EXPECT_EQ(mus[0].size(2), 1);
   EXPECT_EQ(mus[1].size(2), 0);
-  EXPECT_LE(max_abs(torch::cat(mus, 2), mu_whole), 1e-5);
+  EXPECT_LE(test::max_abs(torch::cat(mus, 2), mu_whole), 1e-5);
 
   const auto dec_whole = vae->decode(mu_whole, false);  // [2, 3, 17, 16, 24]
   ASSERT_EQ(dec_whole.sizes(), x.sizes());
@@ -114,8 +109,8 @@ TEST(WanVae, StreamingEqualsWholeClip) {
       cache_bytes = dec.cache().bytes();
     }
   }
-  EXPECT_LE(max_abs(torch::cat(frames, 2), dec_whole), 1e-4);
-  EXPECT_LE(max_abs(vae->decode(mu_whole, true), dec_whole), 1e-4);
+  EXPECT_LE(test::max_abs(torch::cat(frames, 2), dec_whole), 1e-4);
+  EXPECT_LE(test::max_abs(vae->decode(mu_whole, true), dec_whole), 1e-4);
 }
 
 TEST(WanVae, SingleFrameShortcutEqualsConv3dReference) {
@@ -132,7 +127,7 @@ TEST(WanVae, SingleFrameShortcutEqualsConv3dReference) {
       conv3d_reference_path() = true;
       const auto ref = conv->forward(x, c);
       conv3d_reference_path() = false;
-      EXPECT_LE(max_abs(fast, ref), 1e-5);
+      EXPECT_LE(test::max_abs(fast, ref), 1e-5);
     }
   }
 }
@@ -148,13 +143,14 @@ TEST(WanVae, FrameByFrameInitActsPerFrame) {
   vae->eval();
   const auto clip = torch::rand({2, 3, 5, 16, 16}) * 2 - 1;  // [B, 3, T, H, W]
   const auto mu = vae->encode(clip, false).mu;               // [B, z, 2, 2, 2]
-  EXPECT_LE(max_abs(mu.narrow(2, 0, 1), vae->encode(clip.narrow(2, 0, 1), false).mu), 1e-5);
-  EXPECT_LE(max_abs(mu.narrow(2, 1, 1), vae->encode(clip.narrow(2, 4, 1), false).mu), 1e-5);
+  EXPECT_LE(test::max_abs(mu.narrow(2, 0, 1), vae->encode(clip.narrow(2, 0, 1), false).mu), 1e-5);
+  EXPECT_LE(test::max_abs(mu.narrow(2, 1, 1), vae->encode(clip.narrow(2, 4, 1), false).mu), 1e-5);
   const auto frames = vae->decode(mu, false);                 // [B, 3, 5, 16, 16]
   const auto image = vae->decode(mu.narrow(2, 1, 1), false);  // [B, 3, 1, 16, 16]
-  for (int64_t t = 1; t < 5; ++t) EXPECT_LE(max_abs(frames.narrow(2, t, 1), image), 1e-5) << "frame " << t;
+  for (int64_t t = 1; t < 5; ++t)
+    EXPECT_LE(test::max_abs(frames.narrow(2, t, 1), image), 1e-5) << "frame " << t;
   // The chunked path agrees (the caches carry zeros through the zeroed past taps).
-  EXPECT_LE(max_abs(vae->decode(mu, true), frames), 1e-5);
+  EXPECT_LE(test::max_abs(vae->decode(mu, true), frames), 1e-5);
 }
 
 TEST(WanVae, FullSizeKeyListMatchesRelease) {

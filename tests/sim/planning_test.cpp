@@ -14,6 +14,7 @@
 #include "models/value_model.h"
 #include "recipes/dojosim_policies.h"
 #include "recipes/planning.h"
+#include "sim/policy_scenes.h"
 #include "sim/task.h"
 #include "sim/world.h"
 #include "test_util.h"
@@ -23,13 +24,6 @@ namespace dojo::recipes {
 namespace {
 
 namespace fs = std::filesystem;
-
-std::vector<eval::EpisodeStart> scenes(int64_t count, uint64_t seed = 7000) {
-  PolicySceneOptions o;
-  o.count = count;
-  o.seed = seed;
-  return make_policy_scenes(o);
-}
 
 TEST(Planning, VideoValueStopsAtTheRiseAfterADip) {
   EXPECT_DOUBLE_EQ(models::video_value({0.5, 0.4, 0.3, 0.8, 0.7}), 0.4);
@@ -151,7 +145,7 @@ TEST(Planning, WithTheSimulatorAndTheTrueValueBeatsARandomChoice) {
   PlanningOptions options;
   options.decide_every = 16;  // 4 decisions: each imagines by replaying the episode so far
   double planned = 0, random = 0;
-  const auto starts = scenes(4);
+  const auto starts = test::policy_scenes(4);
   for (const auto& start : starts) {
     const auto plan = plan_episode(start, proposers, &truth, &truth, Choice::kPlan, -1, options, start.seed);
     EXPECT_EQ(plan.decisions, 4);

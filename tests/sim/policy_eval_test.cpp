@@ -12,6 +12,7 @@
 #include "infer/generator.h"
 #include "infer/streaming.h"
 #include "recipes/dojosim_policies.h"
+#include "sim/policy_scenes.h"
 #include "test_util.h"
 #include "train/success_train.h"
 
@@ -19,13 +20,6 @@ namespace dojo::recipes {
 namespace {
 
 namespace fs = std::filesystem;
-
-std::vector<eval::EpisodeStart> scenes(int64_t count, uint64_t seed = 7000) {
-  PolicySceneOptions o;
-  o.count = count;
-  o.seed = seed;
-  return make_policy_scenes(o);
-}
 
 std::vector<std::unique_ptr<eval::Policy>> policies(const std::vector<std::string>& names) {
   std::vector<std::unique_ptr<eval::Policy>> out;
@@ -54,7 +48,7 @@ class CountingEnvironment : public DojoSimEnvironment {
 TEST(PolicyEval, SimulatorAsTheWorldModelAgreesExactlyAndJournalsResume) {
   test::OneThread one;
   test::TempDir tmp;
-  const auto starts = scenes(3);
+  const auto starts = test::policy_scenes(3);
   ASSERT_EQ(starts.size(), 3u);
   EXPECT_EQ(starts[0].frame.sizes(), (std::vector<int64_t>{64, 64, 3}));
   EXPECT_EQ(starts[0].command.numel(), 6);
@@ -120,7 +114,7 @@ class WidePolicy : public eval::Policy {
 
 TEST(PolicyEval, BadPoliciesAndPolicyFilesGetOneLineErrors) {
   test::TempDir tmp;
-  const auto starts = scenes(1);
+  const auto starts = test::policy_scenes(1);
   DojoSimEnvironment env;
   WidePolicy wide;
   auto message = test::error_message([&] { eval::run_policy_episode(wide, env, starts[0], {}); });
@@ -326,7 +320,7 @@ TEST(PolicyEval, WorldModelRunsAPolicyClosedLoop) {
   models::SuccessDetector detector(models::SuccessDetectorConfig{});  // random; shared with env
   eval::WorldModelEnvironment env("student", infer::make_student_generator(std::move(engine)),
                                   std::move(chunker), detector);
-  const auto starts = scenes(1);
+  const auto starts = test::policy_scenes(1);
   const auto owned = policies({"expert"});
   WatchedPolicy watched(*owned[0]);
   eval::PolicyEvalOptions options;

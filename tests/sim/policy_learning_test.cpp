@@ -13,6 +13,7 @@
 #include "eval/policy_eval.h"
 #include "recipes/dojosim_policies.h"
 #include "serve/external_policy.h"
+#include "sim/policy_scenes.h"
 #include "test_util.h"
 #include "train/bc_train.h"
 #include "train/success_train.h"
@@ -21,12 +22,6 @@ namespace dojo::recipes {
 namespace {
 
 namespace fs = std::filesystem;
-
-std::vector<eval::EpisodeStart> scenes(int64_t count) {
-  PolicySceneOptions o;
-  o.count = count;
-  return make_policy_scenes(o);
-}
 
 TEST(BcPolicy, LearnsFromDemonstrationsAndItsSnapshotsAct) {
   test::OneThread one;
@@ -67,7 +62,7 @@ TEST(BcPolicy, LearnsFromDemonstrationsAndItsSnapshotsAct) {
 
   // As a policy: 4 commands a decision, 12 for a teacher-sized step, finite, from the last command.
   const auto policy = eval::make_bc_policy("bc", trained);
-  const auto start = scenes(1)[0];
+  const auto start = test::policy_scenes(1)[0];
   policy->reset(start);
   const auto chunk = policy->act(start.frame.unsqueeze(0), start.command, 4);
   EXPECT_EQ(chunk.sizes(), (std::vector<int64_t>{4, 6}));
@@ -96,7 +91,7 @@ class RecordingEnvironment : public DojoSimEnvironment {
 TEST(PolicyEval, ExternalProcessSpeaksTheStepProtocolInBothWorlds) {
   test::OneThread one;
   test::TempDir tmp;
-  const auto starts = scenes(2);
+  const auto starts = test::policy_scenes(2);
   std::vector<std::unique_ptr<eval::Policy>> owned;
   for (const auto& spec : default_policy_set())
     if (spec.name == "expert" || spec.name == "idle") owned.push_back(make_scripted_policy(spec));
@@ -145,7 +140,8 @@ TEST(PolicyEval, ExternalProcessErrorsAreOneLineAndBadMessagesAreAnswered) {
   o.command = "exit 3";
   o.timeout_s = 20;
   // The process starts with the policy's first episode.
-  auto message = test::error_message([&] { serve::make_external_policy(o)->reset(scenes(1)[0]); });
+  auto message =
+      test::error_message([&] { serve::make_external_policy(o)->reset(test::policy_scenes(1)[0]); });
   EXPECT_NE(message.find("external policy 'quits': the process exited (status 3) before connecting"),
             std::string::npos)
       << message;
@@ -185,7 +181,7 @@ json.dump(errors, open(sys.argv[1], "w"))
     DojoSimEnvironment env;
     eval::PolicyEvalOptions options;
     options.steps = 3;
-    const auto start = scenes(1)[0];
+    const auto start = test::policy_scenes(1)[0];
     EXPECT_EQ(eval::run_policy_episode(*policy, env, start, options), 0.0);
   }
   const auto errors = nlohmann::json::parse(test::read_file(tmp / "errors.json"));

@@ -14,6 +14,7 @@
 #include "recipes/dojosim_policies.h"
 #include "recipes/vision_policies.h"
 #include "sim/bin_belief.h"
+#include "sim/policy_scenes.h"
 #include "sim/world.h"
 #include "test_util.h"
 #include "train/reader_train.h"
@@ -23,13 +24,6 @@ namespace dojo::recipes {
 namespace {
 
 namespace fs = std::filesystem;
-
-std::vector<eval::EpisodeStart> scenes(int64_t count, uint64_t seed = 7000) {
-  PolicySceneOptions o;
-  o.count = count;
-  o.seed = seed;
-  return make_policy_scenes(o);
-}
 
 std::vector<double> to_vector(const torch::Tensor& t) {
   const auto d = t.to(torch::kFloat64).contiguous();
@@ -82,7 +76,7 @@ TEST(BinBelief, ValuesRoundTripWithTheRollModuloPi) {
 // away from where it is, it fails everywhere: it acts on its belief alone.
 TEST(BeliefBinController, DoesTheTaskFromATrueBeliefAndFollowsAWrongOne) {
   test::OneThread one;
-  const auto starts = scenes(6);
+  const auto starts = test::policy_scenes(6);
   double right = 0, wrong = 0;
   for (const auto& start : starts) {
     right += belief_episode(start, [](const sim::World& w) { return sim::true_bin_belief(w); });
@@ -110,7 +104,7 @@ TEST(VisionPolicies, FollowTheFrameNotTheScene) {
   ASSERT_EQ(specs.size(), 1u + 1u + 6u);  // bc-0, reader-0 and the knob variants of the last reader
   EXPECT_EQ(specs[0].name, "bc-0");
   EXPECT_EQ(specs[1].name, "reader-0");
-  const auto starts = scenes(2);
+  const auto starts = test::policy_scenes(2);
   auto a = starts[0], a_described_as_b = starts[0], b_shown = starts[1];
   a_described_as_b.scene = starts[1].scene;
   b_shown.scene = a.scene;  // only the frame differs

@@ -25,7 +25,7 @@ using test_fixtures::action_driven_latents;
 using test_fixtures::gen;
 
 // The tiny DiT of wm_train_test, with the action path live from the start.
-models::DitConfig tiny_dit() { return test_fixtures::tiny_dit(/*live_actions=*/true); }
+models::DitConfig amp_dit() { return test_fixtures::tiny_dit(/*live_actions=*/true); }
 
 double relative_l2(const torch::Tensor& got, const torch::Tensor& want) {
   return ((got.to(torch::kFloat32) - want).norm() / want.norm()).item<double>();
@@ -34,7 +34,7 @@ double relative_l2(const torch::Tensor& got, const torch::Tensor& want) {
 TEST(WmAmp, DitForwardUnderBf16AutocastAgreesWithFloat32) {
   test::OneThread one;
   torch::manual_seed(0);
-  models::ActionDit net(tiny_dit());
+  models::ActionDit net(amp_dit());
   net->eval();
   auto g = gen(1);
   models::DitInputs in;
@@ -72,7 +72,7 @@ TEST(WmAmp, Bf16TrainingLearnsLikeFloat32AndSavesFloat32Checkpoints) {
   o.warmup_steps = 5;
   auto train = [&](Precision precision, double& before, double& after) {
     torch::manual_seed(0);
-    auto trainer = std::make_unique<WmTrainer>(models::ActionDit(tiny_dit()), o, torch::kCPU, precision);
+    auto trainer = std::make_unique<WmTrainer>(models::ActionDit(amp_dit()), o, torch::kCPU, precision);
     before = trainer->eval_loss(x0, actions, 7);
     for (int64_t step = 0; step < 40; ++step) {
       const auto s = trainer->step(x0, actions, gen(100 + step));
@@ -116,14 +116,14 @@ TEST(WmAmp, Bf16TrainingLearnsLikeFloat32AndSavesFloat32Checkpoints) {
     EXPECT_TRUE(got.equal(item.value())) << item.key();
   }
   // And resumes into a bf16 trainer.
-  WmTrainer resumed(models::ActionDit(tiny_dit()), o, torch::kCPU, Precision::kBFloat16);
+  WmTrainer resumed(models::ActionDit(amp_dit()), o, torch::kCPU, Precision::kBFloat16);
   resumed.resume(dir / "ckpt");
   EXPECT_EQ(resumed.steps_done(), 40);
   EXPECT_NEAR(resumed.eval_loss(x0, actions, 7), bf16_after, 1e-6);
 
   // fp16 would need loss scaling: refused in one line.
   EXPECT_NE(test::error_message([&] {
-              WmTrainer(models::ActionDit(tiny_dit()), o, torch::kCPU, Precision::kFloat16);
+              WmTrainer(models::ActionDit(amp_dit()), o, torch::kCPU, Precision::kFloat16);
             }).find("loss scaling"),
             std::string::npos);
 }
@@ -131,7 +131,7 @@ TEST(WmAmp, Bf16TrainingLearnsLikeFloat32AndSavesFloat32Checkpoints) {
 TEST(WmAmp, Bf16RolloutIsCloseToFloat32AndReturnsCpuFrames) {
   test::OneThread one;
   torch::manual_seed(0);
-  auto c = tiny_dit();
+  auto c = amp_dit();
   c.model_channels = 32;
   c.num_blocks = 1;
   c.num_heads = 1;
