@@ -243,4 +243,15 @@ void restore_rng_state(const NamedTensors& tensors) {
   }
 }
 
+nlohmann::json checkpoint_fingerprint(const fs::path& dir) {
+  if (dir.empty()) return nullptr;
+  auto weights = resolve_checkpoint_dir(dir) / "model.safetensors";
+  if (!fs::exists(weights) && checkpoint_exists(dir / "checkpoint"))
+    weights = resolve_checkpoint_dir(dir / "checkpoint") / "model.safetensors";
+  DOJO_CHECK(fs::exists(weights), weights.string() + ": missing (not a checkpoint directory)");
+  return {{"path", fs::absolute(dir).lexically_normal().string()},
+          {"bytes", static_cast<int64_t>(fs::file_size(weights))},
+          {"mtime", static_cast<int64_t>(fs::last_write_time(weights).time_since_epoch().count())}};
+}
+
 }  // namespace dojo

@@ -415,7 +415,7 @@ DemoSummary run_demo(const DemoOptions& o) {
     const auto from = fs::absolute(o.tokenizer).lexically_normal();
     // Its weights' path, size and time: another tokenizer of the same architecture has the same size.
     const nlohmann::json settings = {{"copied_from", from.string()},
-                                     {"checkpoint", train::checkpoint_fingerprint(from)}};
+                                     {"checkpoint", checkpoint_fingerprint(from)}};
     // Copied, not computed; a tokenizer trained here earlier is kept (copy_tokenizer), not discarded.
     const Stage tokenizer_stage{"tokenizer", settings, on_cpu, {}};
     stages["tokenizer"] = run_stage(out, tokenizer_stage, o.seed, [&] {
@@ -719,9 +719,9 @@ DemoSummary run_demo(const DemoOptions& o) {
     const auto ref = fs::absolute(o.reference).lexically_normal();
     // The reference set by its weights (path, size and time of each), not only its path.
     const nlohmann::json reference = {{"path", ref.string()},
-                                      {"tokenizer", train::checkpoint_fingerprint(ref / "tokenizer")},
-                                      {"probe", train::checkpoint_fingerprint(ref / "probe")},
-                                      {"wm", train::checkpoint_fingerprint(ref / "wm_posttrain")}};
+                                      {"tokenizer", checkpoint_fingerprint(ref / "tokenizer")},
+                                      {"probe", checkpoint_fingerprint(ref / "probe")},
+                                      {"wm", checkpoint_fingerprint(ref / "wm_posttrain")}};
     const Stage eval_reference_stage{
         "eval_reference",
         {{"reference", reference}, {"data", stages["data"]}, {"eval", eval_settings(/*sampler=*/true)}},

@@ -53,17 +53,16 @@ nlohmann::json train_value(const ValueRun& a) {
   const fs::path out = a.out;
   fs::create_directories(out);
   const auto data = out / "data.safetensors";
-  if (!fs::exists(data)) {
+  // The labels are steps to the next boundary capped at the horizon: another horizon, other data.
+  const nlohmann::json made = {{"seed", a.seed}, {"scenes", a.episodes}, {"horizon", a.horizon}};
+  render_training_data_once(data, made, "value train", [&] {
     ValueDataOptions o;
     o.episodes = a.episodes;
     o.seed = a.seed;
     o.horizon = a.horizon;
     LOG_INFO("value train: rendering ", a.episodes, " labelled demonstrator episodes in DojoSim");
     make_value_data(o, data);
-    write_file_atomic(
-        out / "data.json",
-        nlohmann::json{{"seed", a.seed}, {"scenes", a.episodes}, {"horizon", a.horizon}}.dump(2) + "\n");
-  }
+  });
   train::ValueTrainJob job;
   job.data = data;
   job.out = out;
@@ -106,9 +105,7 @@ PlanReport run_planning(const PlanRun& a) {
   const fs::path value_dir = a.value.empty() ? out / "value" : fs::path(a.value);
   std::vector<SeedRange> ranges = {{"the planning scenes", a.seed, a.scenes}};
   // data.json lies in the training run's directory, beside its checkpoint.
-  const auto made =
-      fs::exists(value_dir / "data.json") ? value_dir / "data.json" : value_dir.parent_path() / "data.json";
-  if (fs::exists(made)) {
+  if (const auto made = training_data_record(value_dir); !made.empty()) {
     const auto j = read_json_file(made);
     ranges.push_back(
         {"the value model's episodes", j.value("seed", uint64_t{0}), j.value("scenes", int64_t{0})});
@@ -116,6 +113,10 @@ PlanReport run_planning(const PlanRun& a) {
     ranges.push_back({"the value model's episodes", a.value_training.seed, a.value_training.episodes});
   }
   check_disjoint_seeds(ranges);
+  // What would stop the first decision is refused before the value model trains (minutes).
+  DOJO_CHECK(a.options.decide_every > 0 && a.options.proposal_length >= a.options.decide_every,
+             "plan: --proposal-length " + std::to_string(a.options.proposal_length) +
+                 " must be at least --decide-every " + std::to_string(a.options.decide_every));
   std::vector<std::unique_ptr<Proposer>> owned;
   std::vector<Proposer*> proposers;
   PlanReport report;
@@ -124,10 +125,27 @@ PlanReport run_planning(const PlanRun& a) {
     const auto name = proposer_name(dir);
     DOJO_CHECK(std::find(report.proposers.begin(), report.proposers.end(), name) == report.proposers.end(),
                "plan: two proposers are named '" + name + "' (" + dir.string() + ")");
-    owned.push_back(make_bc_proposer(name, models::load_bc_policy(dir)));
+    auto policy = models::load_bc_policy(dir);
+    DOJO_CHECK(policy->config().chunk >= a.options.proposal_length,
+               "plan: " + dir.string() + " predicts " + std::to_string(policy->config().chunk) +
+                   " commands at a time, fewer than --proposal-length " +
+                   std::to_string(a.options.proposal_length));
+    owned.push_back(make_bc_proposer(name, std::move(policy)));
     proposers.push_back(owned.back().get());
     report.proposers.push_back(name);
-    proposer_paths.push_back(fs::absolute(dir).lexically_normal().string());
+    proposer_paths.push_back(checkpoint_fingerprint(dir));
+  }
+  std::optional<LoadedWorldModel> loaded;
+  std::unique_ptr<Imagination> imagination;
+  if (a.world_model) {
+    loaded = load_world_model(*a.world_model, models::SuccessDetector{nullptr});
+    DOJO_CHECK(a.options.proposal_length % loaded->per_step == 0,
+               "plan: --proposal-length " + std::to_string(a.options.proposal_length) + " does not fill " +
+                   loaded->environment->name() + "'s steps of " + std::to_string(loaded->per_step) +
+                   " commands");
+    imagination = make_world_model_imagination(*loaded->environment);
+  } else {
+    imagination = make_simulator_imagination();
   }
   fs::create_directories(out);
   if (a.value.empty() &&
@@ -141,14 +159,6 @@ PlanReport run_planning(const PlanRun& a) {
              "plan: no value model at " + value_dir.string());
   auto scorer = make_value_scorer(models::load_value_model(
       checkpoint_exists(value_dir / "checkpoint") ? value_dir / "checkpoint" : value_dir));
-  std::optional<LoadedWorldModel> loaded;
-  std::unique_ptr<Imagination> imagination;
-  if (a.world_model) {
-    loaded = load_world_model(*a.world_model, models::SuccessDetector{nullptr});
-    imagination = make_world_model_imagination(*loaded->environment);
-  } else {
-    imagination = make_simulator_imagination();
-  }
   PolicySceneOptions scene_options;
   scene_options.count = a.scenes;
   scene_options.seed = a.seed;
@@ -156,7 +166,7 @@ PlanReport run_planning(const PlanRun& a) {
   const nlohmann::json fingerprint = {
       {"proposers", proposer_paths},
       {"imagination", a.world_model ? a.world_model->fingerprint() : nlohmann::json("dojosim")},
-      {"value", fs::absolute(value_dir).lexically_normal().string()},
+      {"value", checkpoint_fingerprint(value_dir)},
       {"scenes", {{"count", a.scenes}, {"seed", a.seed}}},
       {"options",
        {{"frames", a.options.frames},

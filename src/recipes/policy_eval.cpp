@@ -32,8 +32,13 @@ namespace fs = std::filesystem;
 namespace dojo::recipes {
 namespace {
 
-std::vector<PolicySpec> policy_set(const std::string& file) {
-  return file.empty() ? default_policy_set() : read_policy_set(file);
+// The policies a detector learns from: the set `file` names, or the demonstrators when it names
+// none (or none scripted: labelled episodes need scripted policies).
+std::vector<PolicySpec> detector_training_set(const std::string& file) {
+  auto specs = file.empty() ? default_policy_set() : read_policy_set(file);
+  if (std::none_of(specs.begin(), specs.end(), [](const auto& s) { return s.scripted(); }))
+    specs = default_policy_set();
+  return specs;
 }
 
 // The policy a spec names. DojoSim's robot takes 6-value commands; a learned policy of another
@@ -83,8 +88,9 @@ fs::path pick(const std::string& given, const fs::path& fallback) {
 // The frames a detector directory's data holds: data.json's "frames"; an older directory without
 // data.json holds DojoSim's.
 nlohmann::json detector_frames_in(const fs::path& dir) {
-  return fs::exists(dir / "data.json") ? read_json_file(dir / "data.json").value("frames", nlohmann::json())
-                                       : nlohmann::json("dojosim");
+  const auto record = training_data_record(dir);
+  return record.empty() ? nlohmann::json("dojosim")
+                        : read_json_file(record).value("frames", nlohmann::json());
 }
 
 // Refuses a detector directory whose data holds other frames than `frames`:
@@ -136,8 +142,8 @@ fs::path detector_directory(const PolicyEvalRun& a) {
 // it here will use); nothing when neither is known.
 std::optional<SeedRange> seeds_of(const std::string& what, const fs::path& dir,
                                   std::optional<SeedRange> fallback) {
-  if (fs::exists(dir / "data.json")) {
-    const auto j = read_json_file(dir / "data.json");
+  if (const auto record = training_data_record(dir); !record.empty()) {
+    const auto j = read_json_file(record);
     if (j.contains("seed") && j.contains("scenes"))
       return SeedRange{what, j["seed"].get<uint64_t>(), j["scenes"].get<int64_t>()};
     return std::nullopt;
@@ -161,10 +167,10 @@ bool seen_by_detector(const PolicySpec& spec, const std::vector<PolicySpec>& det
 }  // namespace
 
 nlohmann::json WorldModelSource::fingerprint() const {
-  const auto where = [](const fs::path& p) { return fs::absolute(p).lexically_normal().string(); };
-  nlohmann::json j = {{"world_model", where(checkpoint)},
-                      {"tokenizer", where(tokenizer)},
-                      {"fast_decoder", fast_decoder.empty() ? "" : where(fast_decoder)},
+  // Each model by path, size and time of its weights: one retrained in place is another model.
+  nlohmann::json j = {{"world_model", checkpoint_fingerprint(checkpoint)},
+                      {"tokenizer", checkpoint_fingerprint(tokenizer)},
+                      {"fast_decoder", checkpoint_fingerprint(fast_decoder)},
                       {"device", device},
                       {"precision", precision}};
   if (teacher_steps > 0) j["teacher_steps"] = teacher_steps;  // absent: the trained sampler (older data)
@@ -208,6 +214,30 @@ LoadedWorldModel load_world_model(const WorldModelSource& s, models::SuccessDete
   return loaded;
 }
 
+fs::path training_data_record(const fs::path& dir) {
+  if (fs::exists(dir / "data.json")) return dir / "data.json";
+  auto run = dir.lexically_normal();
+  if (run.filename().empty()) run = run.parent_path();  // "RUN/checkpoint/"
+  if (run.filename() != "checkpoint" || !fs::exists(run.parent_path() / "data.json")) return {};
+  return run.parent_path() / "data.json";
+}
+
+void render_training_data_once(const fs::path& data, const nlohmann::json& made, const std::string& who,
+                               const std::function<void()>& render) {
+  const auto record = data.parent_path() / "data.json";
+  if (fs::exists(data)) {
+    if (!fs::exists(record)) return;  // an older run: nothing to compare
+    const auto held = read_json_file(record);
+    for (const auto& [key, value] : made.items())
+      DOJO_CHECK(!held.contains(key) || held[key] == value,
+                 who + ": " + data.string() + " was made with " + key + " " + held[key].dump() + ", not " +
+                     value.dump() + ": give the same, or another --out");
+    return;
+  }
+  write_file_atomic(record, made.dump(2) + "\n");
+  render();
+}
+
 // Generates OUT/demos.safetensors once, then trains (or resumes) OUT/checkpoint with snapshots.
 nlohmann::json train_bc(const BcRun& a) {
   const fs::path out = a.out;
@@ -215,16 +245,17 @@ nlohmann::json train_bc(const BcRun& a) {
   const auto demos = out / "demos.safetensors";
   // Under data parallelism rank 0 renders the demonstrations; the others then read them.
   train::data_parallel().main_first("the demonstrations", [&] {
-    if (fs::exists(demos)) return;
-    DemonstrationOptions o;
-    o.episodes = a.episodes;
-    o.frames = a.frames;
-    o.noise_std = a.noise;
-    o.seed = a.seed;
-    LOG_INFO("policy train: rendering ", a.episodes, " expert demonstrations in DojoSim");
-    make_demonstrations(o, demos);
-    write_file_atomic(out / "data.json",
-                      nlohmann::json{{"seed", a.seed}, {"scenes", a.episodes}}.dump(2) + "\n");
+    const nlohmann::json made = {
+        {"seed", a.seed}, {"scenes", a.episodes}, {"frames", a.frames}, {"noise", a.noise}};
+    render_training_data_once(demos, made, "policy train", [&] {
+      DemonstrationOptions o;
+      o.episodes = a.episodes;
+      o.frames = a.frames;
+      o.noise_std = a.noise;
+      o.seed = a.seed;
+      LOG_INFO("policy train: rendering ", a.episodes, " expert demonstrations in DojoSim");
+      make_demonstrations(o, demos);
+    });
   });
   train::BcTrainJob job;
   job.data = demos;
@@ -255,15 +286,15 @@ nlohmann::json train_reader(const ReaderRun& a) {
   fs::create_directories(out);
   const auto readings = out / "readings.safetensors";
   train::data_parallel().main_first("the reader's frames", [&] {
-    if (fs::exists(readings)) return;
-    ReaderDataOptions o;
-    o.episodes = a.episodes;
-    o.frames = a.frames;
-    o.seed = a.seed;
-    LOG_INFO("policy reader: rendering ", a.episodes, " labelled demonstrator episodes in DojoSim");
-    make_reader_data(o, readings);
-    write_file_atomic(out / "data.json",
-                      nlohmann::json{{"seed", a.seed}, {"scenes", a.episodes}}.dump(2) + "\n");
+    const nlohmann::json made = {{"seed", a.seed}, {"scenes", a.episodes}, {"frames", a.frames}};
+    render_training_data_once(readings, made, "policy reader", [&] {
+      ReaderDataOptions o;
+      o.episodes = a.episodes;
+      o.frames = a.frames;
+      o.seed = a.seed;
+      LOG_INFO("policy reader: rendering ", a.episodes, " labelled demonstrator episodes in DojoSim");
+      make_reader_data(o, readings);
+    });
   });
   train::ReaderTrainJob job;
   job.data = readings;
@@ -335,15 +366,13 @@ nlohmann::json train_detector(const DetectorRun& a) {
       o.episode = episode_options(a.frames, a.settle_frames, world_model ? world_model->per_step : 4);
       LOG_INFO("policy detector: rendering ", a.scenes, " scenes per policy in DojoSim",
                world_model ? " and replaying them in the world model" : "");
-      auto specs = policy_set(a.policies);
-      if (std::none_of(specs.begin(), specs.end(), [](const auto& s) { return s.scripted(); }))
-        specs = default_policy_set();  // labelled episodes need scripted policies
+      const auto specs = detector_training_set(a.policies);
       const nlohmann::json made = {{"frames", frames},
                                    {"scenes", a.scenes},
                                    {"seed", a.seed},
                                    {"frames_per_episode", a.frames},
                                    {"settle_frames", a.settle_frames},
-                                   {"policies", a.policies}};
+                                   {"policies", a.policies.empty() ? "" : fs::absolute(a.policies).string()}};
       write_file_atomic(out / "data.json", made.dump(2) + "\n");  // first: data without it reads as DojoSim's
       make_success_data(specs, o, data, world_model ? world_model->environment.get() : nullptr);
     }
@@ -427,6 +456,7 @@ PolicyEvalOutcome run_policy_eval(const PolicyEvalRun& a) {
   std::optional<DojoSimEnvironment> sim_as_world_model;
   std::string world_model_name = "DojoSim (as the world model)";
   nlohmann::json fingerprint;
+  std::string detector_policies = a.detector_policies;  // what the detector learnt from
   int64_t per_step = infer::StreamingEngine::kActionsPerStep;
   if (!a.world_model) {
     world_model = &sim_as_world_model.emplace();
@@ -460,7 +490,17 @@ PolicyEvalOutcome run_policy_eval(const PolicyEvalRun& a) {
     world_model_name = world_model->name();
     per_step = loaded->per_step;
     fingerprint = source.fingerprint();
-    fingerprint["detector"] = fs::absolute(detector_dir).string();
+    fingerprint["detector"] = checkpoint_fingerprint(detector_dir);
+    // Seen or held out by what this detector learnt from: its own record, when it has one.
+    if (const auto record = training_data_record(detector_dir); !record.empty()) {
+      const auto made = read_json_file(record);
+      const auto learnt = made.value("policies", a.detector_policies);
+      if (learnt.empty() || fs::exists(learnt))
+        detector_policies = learnt;
+      else
+        LOG_WARN("policy eval: the detector learnt from ", learnt, ", which is gone; seen and held out by ",
+                 a.detector_policies.empty() ? "the demonstrators" : a.detector_policies);
+    }
   }
 
   PolicySceneOptions scene_options;
@@ -499,7 +539,7 @@ PolicyEvalOutcome run_policy_eval(const PolicyEvalRun& a) {
   nlohmann::json names = nlohmann::json::array();
   const int64_t width = scenes.front().command.numel();
   // Held out: policies the detector never saw (every vision-only one); seen: the detector's own.
-  const auto detector_set = policy_set(a.detector_policies);
+  const auto detector_set = detector_training_set(detector_policies);
   std::vector<std::string> held_out, seen;
   for (const auto& s : specs) {
     DOJO_CHECK(
@@ -508,8 +548,8 @@ PolicyEvalOutcome run_policy_eval(const PolicyEvalRun& a) {
     owned.push_back(make_policy(s, width, a));
     policies.push_back(owned.back().get());
     nlohmann::json entry = {{"name", s.name}};
-    if (!s.checkpoint.empty()) entry["checkpoint"] = fs::absolute(s.checkpoint).string();
-    if (!s.reader.empty()) entry["reader"] = fs::absolute(s.reader).string();
+    if (!s.checkpoint.empty()) entry["checkpoint"] = checkpoint_fingerprint(s.checkpoint);
+    if (!s.reader.empty()) entry["reader"] = checkpoint_fingerprint(s.reader);
     if (!s.command.empty()) entry["command"] = s.command;
     if (s.scripted()) entry["behavior"] = s.behavior;
     if (s.scripted() || !s.reader.empty()) entry["quality"] = s.quality;

@@ -53,6 +53,18 @@ struct LoadedWorldModel {
 // dojo::Error when the model's actions are not DojoSim's robot slot.
 LoadedWorldModel load_world_model(const WorldModelSource& source, models::SuccessDetector detector);
 
+// The data.json of the training run at DIR: DIR/data.json, or the run's own when DIR is its
+// checkpoint (RUN/checkpoint); empty when there is none.
+std::filesystem::path training_data_record(const std::filesystem::path& dir);
+
+// Training data rendered once: DATA's directory's data.json records `made` (the seeds, scenes and
+// settings it is made from) before `render` writes DATA, so an interrupted render still leaves the
+// seeds to check held-out sets against. When DATA exists and data.json records another value for a
+// key of `made`, refuses (dojo::Error naming the key, both values and `who`): a rerun with other
+// settings would otherwise train on the old data. Keys data.json lacks (older runs) are not checked.
+void render_training_data_once(const std::filesystem::path& data, const nlohmann::json& made,
+                               const std::string& who, const std::function<void()>& render);
+
 // The behaviour-cloning run (OUT/demos.safetensors rendered once, OUT/checkpoint, OUT/snapshots).
 struct BcRun {
   std::string out = "dojo_policy/bc";

@@ -52,15 +52,6 @@ torch::Tensor chunk_relative_motion(const torch::Tensor& motion /*[T, M]*/, int 
 
 }  // namespace
 
-nlohmann::json checkpoint_fingerprint(const fs::path& dir) {
-  if (dir.empty()) return nullptr;
-  const auto file = resolve_checkpoint_dir(dir) / "model.safetensors";
-  DOJO_CHECK(fs::exists(file), file.string() + ": missing (not a checkpoint directory)");
-  return {{"path", fs::absolute(dir).lexically_normal().string()},
-          {"bytes", static_cast<int64_t>(fs::file_size(file))},
-          {"mtime", static_cast<int64_t>(fs::last_write_time(file).time_since_epoch().count())}};
-}
-
 nlohmann::json LatentCacheSpec::to_json() const {
   nlohmann::json j = {
       {"dataset", fs::absolute(dataset).lexically_normal().string()},

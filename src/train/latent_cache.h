@@ -27,10 +27,6 @@ enum class ActionMode {
 ActionMode parse_action_mode(const std::string& text);  // dataset | latent | none | ground-truth
 std::string to_string(ActionMode mode);
 
-// Identifies a checkpoint's weights without hashing them (path, size and time of its
-// model.safetensors): a retrained model changes size or time. Null for an empty path.
-nlohmann::json checkpoint_fingerprint(const std::filesystem::path& dir);
-
 // Which clips to cache and how.
 struct LatentCacheSpec {
   std::filesystem::path dataset;

@@ -212,17 +212,17 @@ TEST_F(ReferenceStudent, PolicyEvaluationUsesTheStudent) {
   auto r = dojo("policy detector --world-model --scenes 2 --steps 10" + set + " --out det");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto made = nlohmann::json::parse(test::read_file(tmp_ / "det" / "data.json"));
-  EXPECT_EQ(made.at("frames").at("world_model"), student().string());
-  EXPECT_EQ(made.at("frames").at("tokenizer"), (ref_ / "tokenizer").string());
-  EXPECT_EQ(made.at("frames").at("fast_decoder"), fast_decoder().string());
+  EXPECT_EQ(made.at("frames").at("world_model").at("path"), student().string());
+  EXPECT_EQ(made.at("frames").at("tokenizer").at("path"), (ref_ / "tokenizer").string());
+  EXPECT_EQ(made.at("frames").at("fast_decoder").at("path"), fast_decoder().string());
 
   r = dojo("policy eval --no-bc --scenes 1 --videos 0 --detector det --frames 8 --settle-frames 4" + set +
            " --out pe");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto report = nlohmann::json::parse(test::read_file(tmp_ / "pe" / "report.json"));
   EXPECT_EQ(report.at("world_model"), "student");
-  EXPECT_EQ(report.at("fingerprint").at("world_model"), student().string());
-  EXPECT_EQ(report.at("fingerprint").at("fast_decoder"), fast_decoder().string());
+  EXPECT_EQ(report.at("fingerprint").at("world_model").at("path"), student().string());
+  EXPECT_EQ(report.at("fingerprint").at("fast_decoder").at("path"), fast_decoder().string());
 
   fs::remove_all(student());
   r = dojo("policy eval --no-bc --out pe2");

@@ -166,11 +166,12 @@ TEST(WmCli, CudaOnACpuMachineAndBadPrecisionsFailInOneLine) {
 TEST(WmCli, DemoRunsEndToEndOnTinyStepBudgetsAndReusesFinishedStages) {
   test::TempDir tmp;
   const auto out = (tmp / "demo").string();
+  // 16 streamed frames: 4 steps, of which the rate counts those after the first two.
   const std::string command =
       "--threads 1 demo --lam-steps 3 --probe-steps 3 --pretrain-steps 3 "
       "--posttrain-steps 3 --warmup-steps 3 --self-forcing-steps 3 --fast-decoder-steps 3 --episodes 2 "
       "--eval-episodes 2 --frames 50 --sampler-steps 2 --workers 1 --max-clips 4 --eval-chunks 1 "
-      "--stream-frames 8 --reference none --out " +
+      "--stream-frames 16 --reference none --out " +
       out;
   // A tokenizer that is not one fails at once, before anything is generated.
   auto r = test::run_dojo(command + " --tokenizer " + (tmp / "no_tokenizer").string());

@@ -211,6 +211,20 @@ TEST(PlanCli, ValueTrainThenPlanWithTheSimulatorResumesAndRefusesBadInput) {
                          " --proposers " + (tmp / "a").string() + "," + (tmp / "b").string() + " --out " +
                          (tmp / "p4").string()),
           "and the value model's episodes (seeds 40000-40002) share scenes");
+  // A proposal longer than a proposer predicts fails before anything runs.
+  refused(test::run_dojo("plan --imagination simulator --proposal-length 24 --value " +
+                         (tmp / "value").string() + " --proposers " + (tmp / "a").string() + "," +
+                         (tmp / "b").string() + " --out " + (tmp / "p5").string()),
+          "predicts 16 commands at a time, fewer than --proposal-length 24");
+  // Data made for another horizon is not trained on again.
+  refused(test::run_dojo("--threads 1 value train --episodes 3 --steps 3 --batch 4 --horizon 16 --out " +
+                         (tmp / "value").string()),
+          "was made with horizon 32, not 16: give the same, or another --out");
+  // A proposer retrained in place is another planner: the journal of the old one is not resumed.
+  torch::manual_seed(6);
+  save_checkpoint(tmp / "a", models::bc_policy_checkpoint(*models::BcPolicy()));
+  refused(test::run_dojo(common + " --proposers " + (tmp / "a").string() + "," + (tmp / "b").string()),
+          "journal.jsonl: written by another planning");
 }
 
 }  // namespace

@@ -12,6 +12,7 @@
 #include "core/checkpoint.h"
 #include "eval/policy_eval.h"
 #include "recipes/dojosim_policies.h"
+#include "recipes/policy_eval.h"
 #include "serve/external_policy.h"
 #include "sim/policy_scenes.h"
 #include "test_util.h"
@@ -264,6 +265,13 @@ TEST(PolicyCli, ReaderPoliciesAreHeldOutAndSharedScenesAreRefused) {
   EXPECT_EQ(made.at("scenes"), 4);
   EXPECT_TRUE(
       nlohmann::json::parse(test::read_file(reader / "result.json")).at("heldout").contains("object_cm"));
+  // The same directory with other data settings is refused, not trained on the old frames.
+  r = test::run_dojo("policy reader --out " + reader.string() + " --episodes 5 --frames 16 --steps 6");
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(
+      r.output.find("readings.safetensors was made with scenes 4, not 5: give the same, or another --out"),
+      std::string::npos)
+      << r.output;
 
   std::ofstream(tmp / "set.json")
       << R"({"policies": [{"name": "expert"}, {"name": "idle", "behavior": "idle"}]})";
@@ -291,6 +299,19 @@ TEST(PolicyCli, ReaderPoliciesAreHeldOutAndSharedScenesAreRefused) {
             std::string::npos)
       << r.output;
   EXPECT_FALSE(fs::exists(tmp / "e3"));
+}
+
+// A run's data.json is found from the run or from its checkpoint (what --detector and --value take).
+TEST(PolicyCli, TrainingDataRecordLiesInTheRunOrBesideItsCheckpoint) {
+  test::TempDir tmp;
+  fs::create_directories(tmp / "run" / "checkpoint");
+  EXPECT_EQ(recipes::training_data_record(tmp / "run"), fs::path());
+  std::ofstream(tmp / "run" / "data.json") << R"({"seed": 1, "scenes": 2})";
+  EXPECT_EQ(recipes::training_data_record(tmp / "run"), tmp / "run" / "data.json");
+  EXPECT_EQ(recipes::training_data_record(tmp / "run" / "checkpoint"), tmp / "run" / "data.json");
+  EXPECT_EQ(recipes::training_data_record(tmp / "run" / "checkpoint/"), tmp / "run" / "data.json");
+  fs::create_directories(tmp / "run" / "other");
+  EXPECT_EQ(recipes::training_data_record(tmp / "run" / "other"), fs::path());
 }
 
 // The Gymnasium-style environment (examples/gym_env.py) with a LeRobot-style policy on it
@@ -329,7 +350,8 @@ TEST(PolicyCli, DetectorLearnsFromWorldModelReplaysAndTheEvaluationUsesIt) {
                           " --out " + detector.string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const auto made = nlohmann::json::parse(test::read_file(detector / "data.json"));
-  EXPECT_EQ(made.at("frames").at("world_model"), fs::absolute(reference / "wm_posttrain").string());
+  EXPECT_EQ(made.at("frames").at("world_model").at("path"),
+            fs::absolute(reference / "wm_posttrain").string());
   const auto data = train::SuccessData::load(detector / "data.safetensors");
   EXPECT_EQ(data.frames.size(1), 1 + 64 + 12);
   EXPECT_GT(data.labels.sum().item<double>(), 0);  // the expert's endings: both classes to learn
