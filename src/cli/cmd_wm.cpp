@@ -42,6 +42,7 @@ struct WmTrainArgs {
   int batch = 8;
   int64_t accumulate = 1;
   bool checkpoint_activations = false;
+  bool zero1 = false;
   double lora_alpha = 32;
   std::string lora_targets = "q,k,v,o,mlp1,mlp2";
   double minutes = 0, lr = 1.6e-4, weight_decay = 0.1, grad_clip = 0.1, temporal_weight = 0.1, shift = 5.0,
@@ -111,6 +112,7 @@ int run_wm_train(const WmTrainArgs& a) {
   job.batch_size = a.batch;
   job.accumulate = a.accumulate;
   job.checkpoint_activations = a.checkpoint_activations;
+  job.zero1 = a.zero1;
   if (a.checkpoint_activations && job.precision != Precision::kFloat32)
     throw UsageError("--checkpoint-activations runs in float32 only (use --precision fp32)");
   job.steps = a.steps;
@@ -371,6 +373,9 @@ void register_wm(CLI::App& app) {
   train_cmd->add_flag("--checkpoint-activations", t->checkpoint_activations,
                       "Keep only each block's inputs and run it again in the backward pass: far less "
                       "activation memory for about a third more compute (docs/distributed.md, Memory)");
+  train_cmd->add_flag("--zero1", t->zero1,
+                      "Under data parallelism, each process keeps 1/N of the AdamW moments (ZeRO-1; "
+                      "same parameters bit for bit; docs/distributed.md, Memory)");
   train_cmd->add_option("--save-every", t->save_every, "Checkpoint interval in steps")->capture_default_str();
   add_seed_option(train_cmd, t->seed);
   add_device_options(train_cmd, t->device, t->precision);

@@ -228,6 +228,52 @@ void DataParallel::average_gradients(const std::vector<torch::Tensor>& params, i
 #endif
 }
 
+void DataParallel::all_gather_into(const torch::Tensor& mine, const std::vector<torch::Tensor>& out,
+                                   const std::string& what) {
+  DOJO_CHECK(static_cast<int>(out.size()) == world_.world, "all_gather_into: one output per rank");
+  if (!active()) {
+    out[0].copy_(mine);
+    return;
+  }
+#ifdef DOJO_HAVE_GLOO
+  torch::NoGradGuard no_grad;
+  try {
+    std::vector<torch::Tensor> input = {mine.contiguous()};
+    std::vector<std::vector<torch::Tensor>> output = {out};
+    group_->gloo->allgather(output, input)->wait();
+  } catch (const std::exception& e) {
+    peer_lost(world_, what, e);
+  }
+#else
+  (void)what;
+#endif
+}
+
+void DataParallel::gather_into_main(const torch::Tensor& mine, const std::vector<torch::Tensor>& out,
+                                    const std::string& what) {
+  DOJO_CHECK(static_cast<int>(out.size()) == (main() ? world_.world : 0),
+             "gather_into_main: one output per rank on rank 0, none elsewhere");
+  if (!active()) {
+    out[0].copy_(mine);
+    return;
+  }
+#ifdef DOJO_HAVE_GLOO
+  torch::NoGradGuard no_grad;
+  try {
+    std::vector<torch::Tensor> input = {mine.contiguous()};
+    std::vector<std::vector<torch::Tensor>> output;
+    if (main()) output.push_back(out);
+    c10d::GatherOptions options;
+    options.rootRank = 0;
+    group_->gloo->gather(output, input, options)->wait();
+  } catch (const std::exception& e) {
+    peer_lost(world_, what, e);
+  }
+#else
+  (void)what;
+#endif
+}
+
 std::vector<double> DataParallel::mean(std::vector<double> values) {
   if (!active() || values.empty()) return values;
 #ifdef DOJO_HAVE_GLOO

@@ -73,6 +73,13 @@ class DataParallel {
   // only counts as zero on the others.
   void average_gradients(const std::vector<torch::Tensor>& params, int64_t bucket_bytes = 32 << 20);
   std::vector<double> mean(std::vector<double> values);  // elementwise over the ranks
+  // Every rank's `mine` [n] (the same n and dtype on every rank) copied into out[r] (world tensors
+  // of n, e.g. views of one buffer), on every rank. `what` names the collective in a failure.
+  void all_gather_into(const torch::Tensor& mine, const std::vector<torch::Tensor>& out,
+                       const std::string& what);
+  // The same into rank 0's `out` only; the other ranks pass an empty `out` and receive nothing.
+  void gather_into_main(const torch::Tensor& mine, const std::vector<torch::Tensor>& out,
+                        const std::string& what);
   // Rank 0 runs `work` (e.g. writing a cache) before the others do, which then find its result.
   // Waits without the collective timeout: work may take long; a dead rank 0 still ends the wait.
   void main_first(const std::string& what, const std::function<void()>& work);

@@ -4,6 +4,7 @@
 #include <torch/nn/utils/clip_grad.h>
 #include <torch/torch.h>
 
+#include <algorithm>
 #include <cmath>
 #include <functional>
 #include <limits>
@@ -72,6 +73,15 @@ void fused_adamw_update(float* __restrict param, const float* __restrict grad, f
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 __attribute__((target_clones("avx2", "default")))
 #endif
+void fused_ema_update(float* __restrict ema, const float* __restrict param, int64_t n, double ema_beta) {
+  // The EMA line of fused_adamw_update, the same arithmetic (so the same bits) on its own.
+  const float keep = static_cast<float>(ema_beta), take = static_cast<float>(1.0 - ema_beta);
+  for (int64_t i = 0; i < n; ++i) ema[i] = ema[i] * keep + param[i] * take;
+}
+
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+__attribute__((target_clones("avx2", "default")))
+#endif
 double
 fused_squared_sum(const float* __restrict x, int64_t n) {
   // Double lanes: a float running sum over millions of squares drifts by parts per thousand
@@ -107,10 +117,13 @@ FusedAdamW::FusedAdamW(torch::optim::AdamW& optimizer, std::vector<torch::Tensor
   param_ = flatten_into_views(params_, offsets_, total, options);
   if (!ema_.empty()) ema_flat_ = flatten_into_views(ema_, offsets_, total, options);
   grad_ = torch::zeros({total}, options);
-  exp_avg_ = torch::zeros({total}, options);
-  exp_avg_sq_ = torch::zeros({total}, options);
+  // The moments are made at the first step or state adopted (make_moments): a trainer that
+  // shards before then never holds the whole of them.
+  exp_avg_ = exp_avg_sq_ = torch::zeros({0}, options);
   for (size_t i = 0; i < params_.size(); ++i)
     params_[i].mutable_grad() = grad_.narrow(0, offsets_[i], params_[i].numel()).view(params_[i].sizes());
+  begin_ = 0;
+  own_ = shard_ = total;
   adopt_state();
 }
 
@@ -123,13 +136,13 @@ void FusedAdamW::zero_grad() {
   grad_.zero_();
 }
 
-void FusedAdamW::point_state() {
+void FusedAdamW::point_state(const torch::Tensor& m, const torch::Tensor& v) {
   auto& state = optimizer_.state();
   for (size_t i = 0; i < params_.size(); ++i) {
     const auto& p = params_[i];
     auto st = std::make_unique<torch::optim::AdamWParamState>();
-    st->exp_avg(exp_avg_.narrow(0, offsets_[i], p.numel()).view(p.sizes()));
-    st->exp_avg_sq(exp_avg_sq_.narrow(0, offsets_[i], p.numel()).view(p.sizes()));
+    st->exp_avg(m.narrow(0, offsets_[i], p.numel()).view(p.sizes()));
+    st->exp_avg_sq(v.narrow(0, offsets_[i], p.numel()).view(p.sizes()));
     st->step(step_);
     state[optimizer_state_key(p)] = std::move(st);
   }
@@ -148,14 +161,91 @@ void FusedAdamW::adopt_state() {
     DOJO_CHECK(found == 0 || st.step() == step_,
                "FusedAdamW: the optimizer's parameters are at different steps");
     step_ = st.step();
-    exp_avg_.narrow(0, offsets_[i], p.numel()).copy_(st.exp_avg().reshape({p.numel()}));
-    exp_avg_sq_.narrow(0, offsets_[i], p.numel()).copy_(st.exp_avg_sq().reshape({p.numel()}));
+    make_moments();
+    // The part of this parameter that lies in the moments held here (all of it unsharded).
+    const int64_t from = std::max(offsets_[i], begin_), to = std::min(offsets_[i] + p.numel(), begin_ + own_);
+    if (from < to) {
+      exp_avg_.narrow(0, from - begin_, to - from)
+          .copy_(st.exp_avg().reshape({p.numel()}).narrow(0, from - offsets_[i], to - from));
+      exp_avg_sq_.narrow(0, from - begin_, to - from)
+          .copy_(st.exp_avg_sq().reshape({p.numel()}).narrow(0, from - offsets_[i], to - from));
+    }
     ++found;
   }
   DOJO_CHECK(found == 0 || found == static_cast<int64_t>(params_.size()),
              "FusedAdamW: optimizer state for " + std::to_string(found) + " of " +
                  std::to_string(params_.size()) + " parameters");
-  if (found > 0) point_state();
+  if (sharded())
+    state.clear();  // the whole moments of a resumed state: this rank keeps its slice only
+  else if (found > 0)
+    point_state(exp_avg_, exp_avg_sq_);
+}
+
+void FusedAdamW::shard(Collectives collectives) {
+  const int world = collectives.world, rank = collectives.rank;
+  DOJO_CHECK(world >= 1 && rank >= 0 && rank < world && collectives.all_gather && collectives.gather_to_main,
+             "FusedAdamW: rank " + std::to_string(rank) + " of " + std::to_string(world));
+  DOJO_CHECK(!plain_kernels() || world == 1,
+             "FusedAdamW: sharded optimizer state (ZeRO-1) has no plain path; unset DOJO_PLAIN_KERNELS");
+  DOJO_CHECK(!sharded(), "FusedAdamW: already sharded");
+  if (world == 1) return;
+  torch::NoGradGuard no_grad;
+  const int64_t total = param_.numel();
+  collectives_ = std::move(collectives);
+  shard_ = (total + world - 1) / world;
+  begin_ = std::min(total, rank * shard_);
+  own_ = std::min(total, begin_ + shard_) - begin_;
+  // Moments adopted so far (a resumed state) keep their slice; the rest of them is freed.
+  if (exp_avg_.numel() > 0) {
+    exp_avg_ = exp_avg_.narrow(0, begin_, own_).clone();
+    exp_avg_sq_ = exp_avg_sq_.narrow(0, begin_, own_).clone();
+  }
+  optimizer_.state().clear();
+}
+
+void FusedAdamW::make_moments() {
+  if (exp_avg_.numel() == own_) return;
+  exp_avg_ = torch::zeros({own_}, param_.options());
+  exp_avg_sq_ = torch::zeros({own_}, param_.options());
+}
+
+void FusedAdamW::gather_slices(const torch::Tensor& mine, const torch::Tensor& whole, bool into_main) {
+  // 2 Mi elements (8 MiB) a collective: Gloo stages each in a buffer of world x that size.
+  constexpr int64_t kChunk = int64_t{1} << 21;
+  const int64_t total = param_.numel();
+  const int world = collectives_.world;
+  const bool receives = !into_main || collectives_.rank == 0;
+  for (int64_t at = 0; at < shard_; at += kChunk) {
+    const int64_t n = std::min(kChunk, shard_ - at);
+    // This rank's part (zero-padded where its slice ends early: every rank sends n elements).
+    auto send = at + n <= own_ ? mine.narrow(0, at, n) : torch::zeros({n}, mine.options());
+    if (at < own_ && at + n > own_) send.narrow(0, 0, own_ - at).copy_(mine.narrow(0, at, own_ - at));
+    std::vector<torch::Tensor> out;
+    std::vector<std::pair<int, int64_t>> partial;  // (rank, elements) received into a temporary
+    for (int r = 0; receives && r < world; ++r) {
+      const int64_t from = r * shard_ + at, fits = std::max<int64_t>(0, std::min(n, total - from));
+      if (fits == n) {
+        out.push_back(whole.narrow(0, from, n));
+      } else {
+        out.push_back(torch::empty({n}, whole.options()));
+        partial.emplace_back(r, fits);
+      }
+    }
+    (into_main ? collectives_.gather_to_main : collectives_.all_gather)(send, out);
+    for (const auto& [r, fits] : partial)
+      if (fits > 0) whole.narrow(0, r * shard_ + at, fits).copy_(out[r].narrow(0, 0, fits));
+  }
+}
+
+void FusedAdamW::gather_state() {
+  if (!sharded() || step_ == 0) return;
+  torch::NoGradGuard no_grad;
+  const bool main = collectives_.rank == 0;
+  auto m = main ? torch::empty_like(param_) : torch::Tensor(),
+       v = main ? torch::empty_like(param_) : torch::Tensor();
+  gather_slices(exp_avg_, m, /*into_main=*/true);
+  gather_slices(exp_avg_sq_, v, /*into_main=*/true);
+  if (main) point_state(m, v);
 }
 
 void FusedAdamW::plain_step(double max_norm, double lr, double ema_beta, double& norm) {
@@ -168,7 +258,11 @@ void FusedAdamW::plain_step(double max_norm, double lr, double ema_beta, double&
 double FusedAdamW::step(double max_norm, double lr, double ema_beta) {
   torch::NoGradGuard no_grad;
   if (!(max_norm > 0)) max_norm = std::numeric_limits<double>::infinity();
-  if (step_ == 0) point_state();  // the moments exist from the first step on, as views
+  make_moments();
+  if (sharded())
+    optimizer_.state().clear();  // moments gathered for a save: this rank keeps its slice only
+  else if (step_ == 0)
+    point_state(exp_avg_, exp_avg_sq_);  // the moments exist from the first step on, as views
   double norm = 0;
   if (plain_kernels()) {
     plain_step(max_norm, lr, ema_beta, norm);
@@ -199,29 +293,53 @@ double FusedAdamW::step(double max_norm, double lr, double ema_beta) {
                  coef < 1.0 ? coef : 1.0,
                  ema_beta,
                  step_};
+  // The elements whose moments are held here: all of them, or this rank's slice.
   if (param_.is_cpu()) {
-    float* p = param_.data_ptr<float>();
-    const float* g = grad_.data_ptr<float>();
+    float* p = param_.data_ptr<float>() + begin_;
+    const float* g = grad_.data_ptr<float>() + begin_;
     float* m = exp_avg_.data_ptr<float>();
     float* v = exp_avg_sq_.data_ptr<float>();
-    float* e = ema_flat_.defined() ? ema_flat_.data_ptr<float>() : nullptr;
-    at::parallel_for(0, param_.numel(), 1 << 16, [&](int64_t begin, int64_t end) {
+    float* e = ema_flat_.defined() ? ema_flat_.data_ptr<float>() + begin_ : nullptr;
+    at::parallel_for(0, own_, 1 << 16, [&](int64_t begin, int64_t end) {
       fused_adamw_update(p + begin, g + begin, m + begin, v + begin, e != nullptr ? e + begin : nullptr,
                          end - begin, s);
     });
   } else {
     // Other devices: the same update as a few whole-buffer operations.
-    const auto g = grad_ * s.grad_scale;
-    param_.mul_(1 - lr * s.weight_decay);
+    auto param = param_.narrow(0, begin_, own_);
+    const auto g = grad_.narrow(0, begin_, own_) * s.grad_scale;
+    param.mul_(1 - lr * s.weight_decay);
     exp_avg_.mul_(s.beta1).add_(g, 1 - s.beta1);
     exp_avg_sq_.mul_(s.beta2).addcmul_(g, g, 1 - s.beta2);
     const double bc1 = 1 - std::pow(s.beta1, static_cast<double>(step_));
     const double bc2 = 1 - std::pow(s.beta2, static_cast<double>(step_));
-    param_.addcdiv_(exp_avg_, (exp_avg_sq_.sqrt() / std::sqrt(bc2)).add_(s.eps), -lr / bc1);
-    if (ema_flat_.defined()) ema_flat_.mul_(ema_beta).add_(param_, 1 - ema_beta);
+    param.addcdiv_(exp_avg_, (exp_avg_sq_.sqrt() / std::sqrt(bc2)).add_(s.eps), -lr / bc1);
+    if (ema_flat_.defined()) ema_flat_.narrow(0, begin_, own_).mul_(ema_beta).add_(param, 1 - ema_beta);
   }
-  for (const auto& p : params_)
-    static_cast<torch::optim::AdamWParamState&>(*optimizer_.state().at(optimizer_state_key(p))).step(step_);
+  if (sharded()) {
+    // Every rank's updated slice of the parameters, into place on every rank; then the EMA of the
+    // other ranks' elements here (the same arithmetic as the fused update: the same bits).
+    gather_slices(param_.narrow(0, begin_, own_), param_, /*into_main=*/false);
+    if (ema_flat_.defined()) {
+      const int64_t total = param_.numel(), end = begin_ + own_;
+      if (param_.is_cpu()) {
+        float* e = ema_flat_.data_ptr<float>();
+        const float* p = param_.data_ptr<float>();
+        for (const auto& [from, to] : {std::pair{int64_t{0}, begin_}, std::pair{end, total}})
+          at::parallel_for(from, to, 1 << 16,
+                           [&](int64_t b, int64_t f) { fused_ema_update(e + b, p + b, f - b, ema_beta); });
+      } else {
+        for (const auto& [from, to] : {std::pair{int64_t{0}, begin_}, std::pair{end, total}})
+          if (to > from)
+            ema_flat_.narrow(0, from, to - from)
+                .mul_(ema_beta)
+                .add_(param_.narrow(0, from, to - from), 1 - ema_beta);
+      }
+    }
+  } else {
+    for (const auto& p : params_)
+      static_cast<torch::optim::AdamWParamState&>(*optimizer_.state().at(optimizer_state_key(p))).step(step_);
+  }
   return norm;
 }
 

@@ -252,6 +252,23 @@ void WmTrainer::save(const fs::path& dir, const nlohmann::json& extra) const {
   save_checkpoint(dir, data);
 }
 
+void WmTrainer::shard_optimizer_state() {
+  auto& group = data_parallel();
+  if (!group.active()) return;
+  FusedAdamW::Collectives c;
+  c.rank = group.rank();
+  c.world = group.world();
+  c.all_gather = [&group](const torch::Tensor& mine, const std::vector<torch::Tensor>& out) {
+    group.all_gather_into(mine, out, "gathering the updated parameters (ZeRO-1)");
+  };
+  c.gather_to_main = [&group](const torch::Tensor& mine, const std::vector<torch::Tensor>& out) {
+    group.gather_into_main(mine, out, "gathering the optimizer state for a checkpoint (ZeRO-1)");
+  };
+  fused_->shard(std::move(c));
+}
+
+void WmTrainer::gather_optimizer_state() { fused_->gather_state(); }
+
 void WmTrainer::resume(const fs::path& dir) {
   auto ckpt = Checkpoint::open(resolve_checkpoint_dir(dir));
   LoadOptions net_opts;
@@ -454,6 +471,8 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
     LOG_INFO("wm train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
   }
   group.check_same("the step to resume from", std::to_string(trainer.steps_done()));
+  group.check_same("--zero1", job.zero1 ? "on" : "off");
+  if (job.zero1) trainer.shard_optimizer_state();
 
   // A fixed batch with fixed noise tracks progress without the noise of random batches.
   const int64_t probe = std::min<int64_t>(n, 16);
@@ -494,6 +513,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
         }
         const auto t0 = std::chrono::steady_clock::now();
         const auto s = trainer.step(micro);
+        if (info.saves) trainer.gather_optimizer_state();  // every rank, before rank 0 saves
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         recent.push_back(s.loss);
         if (recent.size() > 20) recent.pop_front();
@@ -523,21 +543,24 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
                   models::dit_forward_flops(trainer.net()->config, lat.size(2), lat.size(3), lat.size(4)) /
                   1e9;
   LOG_INFO("wm train: ", result.clips_per_second, " clips/s (", result.gflops, " GFLOP/s of matmul work)");
-  const nlohmann::json summary = {{"stage", to_string(job.stage)},
-                                  {"device", job.device.str()},
-                                  {"precision", dojo::to_string(job.precision)},
-                                  {"steps", result.steps},
-                                  {"clips", n},
-                                  {"first_loss", result.first_loss},
-                                  {"last_loss", result.last_loss},
-                                  {"fixed_batch_loss_start", result.heldout_loss_start},
-                                  {"fixed_batch_loss_end", result.heldout_loss_end},
-                                  {"seconds", result.seconds},
-                                  {"clips_per_second", result.clips_per_second},
-                                  {"gflops", result.gflops},
-                                  {"processes", group.world()},
-                                  {"accumulate", job.accumulate},
-                                  {"options", job.options.to_json()}};
+  const nlohmann::json summary = {
+      {"stage", to_string(job.stage)},
+      {"device", job.device.str()},
+      {"precision", dojo::to_string(job.precision)},
+      {"steps", result.steps},
+      {"clips", n},
+      {"first_loss", result.first_loss},
+      {"last_loss", result.last_loss},
+      {"fixed_batch_loss_start", result.heldout_loss_start},
+      {"fixed_batch_loss_end", result.heldout_loss_end},
+      {"seconds", result.seconds},
+      {"clips_per_second", result.clips_per_second},
+      {"gflops", result.gflops},
+      {"processes", group.world()},
+      {"accumulate", job.accumulate},
+      {"zero1", job.zero1 && group.active()},
+      {"optimizer_moment_mib_per_process", static_cast<double>(trainer.optimizer_moment_bytes()) / (1 << 20)},
+      {"options", job.options.to_json()}};
   if (group.main()) write_file_atomic(job.out / "train_summary.json", summary.dump(2) + "\n");
   return result;
 }

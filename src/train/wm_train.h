@@ -100,6 +100,16 @@ class WmTrainer {
   void save(const std::filesystem::path& dir, const nlohmann::json& extra = nlohmann::json::object()) const;
   void resume(const std::filesystem::path& dir);
 
+  // ZeRO-1 under data parallelism (fused_adamw.h): each rank keeps 1/world of the AdamW moments;
+  // the parameters stay bit for bit those of plain data parallelism. Call after resume(), before
+  // the first step; nothing changes in a world of 1.
+  void shard_optimizer_state();
+  // Before rank 0 saves a sharded trainer: every rank calls it (a collective) so the checkpoint
+  // holds the whole moments. Nothing to do unsharded.
+  void gather_optimizer_state();
+  // Bytes of AdamW moments this process holds.
+  int64_t optimizer_moment_bytes() const { return fused_->moment_elements() * 4; }
+
  private:
   double lr_at(int64_t step) const;
 
@@ -160,6 +170,8 @@ struct WmTrainJob {
   int matmul_threads = 0;
   // Activation checkpointing (models::ActionDitImpl::recompute_blocks): less memory, more compute.
   bool checkpoint_activations = false;
+  // ZeRO-1 under data parallelism (WmTrainer::shard_optimizer_state); ignored in a world of 1.
+  bool zero1 = false;
 };
 
 struct WmTrainResult {

@@ -44,6 +44,20 @@ double max_difference(const fs::path& a, const fs::path& b) {
   return worst;
 }
 
+// Whether two checkpoints' trainer states (raw weights, AdamW moments, RNG) hold the same tensors,
+// bit for bit, and how many AdamW moment tensors they hold.
+int64_t equal_trainer_states(const fs::path& a, const fs::path& b) {
+  const auto ca = Checkpoint::open(resolve_checkpoint_dir(a)),
+             cb = Checkpoint::open(resolve_checkpoint_dir(b));
+  EXPECT_EQ(ca.trainer_tensors().keys(), cb.trainer_tensors().keys());
+  int64_t moments = 0;
+  for (const auto& key : ca.trainer_tensors().keys()) {
+    EXPECT_TRUE(torch::equal(ca.trainer_tensors().tensor(key), cb.trainer_tensors().tensor(key))) << key;
+    moments += key.find(".exp_avg") != std::string::npos;
+  }
+  return moments;
+}
+
 // Two processes and one add the same gradients in another order; AdamW turns the last bits of a
 // near-zero gradient into up to a full step, so the runs agree to a tenth of the learning rate
 // (1e-3 in these runs), not to the last bit.
@@ -92,6 +106,18 @@ TEST(DataParallelCli, TwoProcessesTrainAsOneProcessWithTwoMicroBatches) {
       << "two micro-batches of 2 are other draws than one batch of 4: the comparison above is not trivial";
   const auto summary = nlohmann::json::parse(test::read_file(tmp / "wm2" / "train_summary.json"));
   EXPECT_EQ(summary.at("processes"), 2);
+  // ZeRO-1: each process keeps half the moments; the weights, the EMA and the gathered moments of
+  // the checkpoint are those of plain data parallelism bit for bit, across a resume too.
+  r = test::run_dojo(launch(6) + wm_args + " --zero1 --steps 1" + out("wm3"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = test::run_dojo(launch(7) + wm_args + " --zero1 --steps 3" + out("wm3"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_EQ(max_difference(tmp / "wm2" / "checkpoint", tmp / "wm3" / "checkpoint"), 0.0);
+  EXPECT_GT(equal_trainer_states(tmp / "wm2" / "checkpoint", tmp / "wm3" / "checkpoint"), 0);
+  const auto sharded = nlohmann::json::parse(test::read_file(tmp / "wm3" / "train_summary.json"));
+  EXPECT_EQ(sharded.at("zero1"), true);
+  EXPECT_NEAR(sharded.at("optimizer_moment_mib_per_process").get<double>(),
+              summary.at("optimizer_moment_mib_per_process").get<double>() / 2, 1e-3);
   r = test::run_dojo("--threads 1 wm train --stage scratch --hop 4 --steps 1 --batch 3 --accumulate 2" +
                      data + tok + out("bad"));
   EXPECT_EQ(r.exit_code, 2) << r.output;
