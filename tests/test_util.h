@@ -34,6 +34,9 @@ std::filesystem::path sample_video(const std::string& name = "vtest.avi");
 // their shapes differ.
 double max_abs(const torch::Tensor& a, const torch::Tensor& b);
 
+// The mean of a frame's values (any dtype).
+float mean_level(const torch::Tensor& frame);
+
 // The whole content of a file ("" when it cannot be read).
 std::string read_file(const std::filesystem::path& path);
 // The message of the dojo::Error that `fn` throws, or "(no error)" when it throws none.

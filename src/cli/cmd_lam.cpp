@@ -20,7 +20,7 @@
 namespace dojo::cli {
 namespace {
 
-void add_train(CLI::App& lam) {
+void add_lam_train(CLI::App& lam) {
   auto* cmd = lam.add_subcommand(
       "train",
       "Train the latent action model on frame pairs (random skip 1-4) of a dataset mixture. "
@@ -174,7 +174,7 @@ void add_retrieve(CLI::App& lam) {
 void register_lam(CLI::App& app) {
   auto* lam = app.add_subcommand("lam", "Latent action model: train, label, probe, retrieve");
   lam->require_subcommand(1);
-  add_train(*lam);
+  add_lam_train(*lam);
   add_label(*lam);
   add_probe(*lam);
   add_retrieve(*lam);

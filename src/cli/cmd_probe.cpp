@@ -15,7 +15,7 @@
 namespace dojo::cli {
 namespace {
 
-void add_train(CLI::App& probe) {
+void add_probe_train(CLI::App& probe) {
   auto* cmd = probe.add_subcommand(
       "train",
       "Train the keypoint probe on DojoSim episodes (robot and human) labelled by the simulator; "
@@ -84,7 +84,7 @@ void add_eval(CLI::App& probe) {
 void register_probe(CLI::App& app) {
   auto* probe = app.add_subcommand("probe", "Keypoint probe: where the embodiment is in a frame");
   probe->require_subcommand(1);
-  add_train(*probe);
+  add_probe_train(*probe);
   add_eval(*probe);
 }
 

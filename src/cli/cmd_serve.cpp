@@ -34,7 +34,7 @@ struct ServeArgs {
   int teacher_steps = 0;
 };
 
-fs::path pick(const std::string& given, const fs::path& fallback) {
+fs::path pick_existing(const std::string& given, const fs::path& fallback) {
   return !given.empty() ? fs::path(given) : (fs::exists(fallback) ? fallback : fs::path());
 }
 
@@ -60,7 +60,7 @@ std::optional<serve::ModelHost::Options> reference_host_options(const ServeArgs&
   serve::ModelSpec s;
   s.name = "student";
   s.checkpoint = student;
-  s.tokenizer = pick(a.tokenizer, reference / "tokenizer");
+  s.tokenizer = pick_existing(a.tokenizer, reference / "tokenizer");
   DOJO_CHECK(!s.tokenizer.empty(), "serve: the reference set in " + reference.string() + " has no tokenizer");
   s.fast_decoder = reference_model_fast_decoder(a.fast_decoder, !a.tokenizer.empty());
   o.models.push_back(s);
@@ -91,9 +91,10 @@ serve::ModelHost::Options host_options(const ServeArgs& a) {
   if (auto reference = reference_host_options(a)) return *reference;
   serve::ModelHost::Options o;
   const fs::path demo = a.demo.empty() ? "dojo_demo" : a.demo;
-  const auto tokenizer = pick(a.tokenizer, demo / "tokenizer" / "checkpoint");
-  const auto student = pick(a.student, demo / "student" / "checkpoint");
-  const auto teacher = a.no_teacher ? fs::path() : pick(a.teacher, demo / "wm_posttrain" / "checkpoint");
+  const auto tokenizer = pick_existing(a.tokenizer, demo / "tokenizer" / "checkpoint");
+  const auto student = pick_existing(a.student, demo / "student" / "checkpoint");
+  const auto teacher =
+      a.no_teacher ? fs::path() : pick_existing(a.teacher, demo / "wm_posttrain" / "checkpoint");
   if (!a.server.study.empty() && a.tokenizer.empty() && a.student.empty() && a.teacher.empty() &&
       (tokenizer.empty() || (student.empty() && teacher.empty())))
     return o;  // a study needs no model: its clips are rendered
@@ -107,7 +108,7 @@ serve::ModelHost::Options host_options(const ServeArgs& a) {
     s.checkpoint = student;
     s.tokenizer = tokenizer;
     s.fast_decoder =
-        pick(a.fast_decoder, a.student.empty() ? demo / "fast_decoder" / "checkpoint" : fs::path());
+        pick_existing(a.fast_decoder, a.student.empty() ? demo / "fast_decoder" / "checkpoint" : fs::path());
     o.models.push_back(s);
   }
   if (!teacher.empty()) {
@@ -119,7 +120,7 @@ serve::ModelHost::Options host_options(const ServeArgs& a) {
     t.teacher_steps = a.teacher_steps;
     o.models.push_back(t);
   }
-  o.data = pick(a.data, demo / "robot");
+  o.data = pick_existing(a.data, demo / "robot");
   set_runtime(a, o);
   return o;
 }

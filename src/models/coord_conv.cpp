@@ -12,13 +12,6 @@ namespace nn = torch::nn;
 namespace {
 
 // conv 3x3 (stride 2) -> SiLU -> conv 3x3 -> SiLU.
-void add_stage(nn::Sequential& seq, int64_t in, int64_t out) {
-  seq->push_back(nn::Conv2d(nn::Conv2dOptions(in, out, 3).stride(2).padding(1)));
-  seq->push_back(nn::SiLU());
-  seq->push_back(nn::Conv2d(nn::Conv2dOptions(out, out, 3).padding(1)));
-  seq->push_back(nn::SiLU());
-}
-
 }  // namespace
 
 torch::Tensor frames_to_unit_images(const torch::Tensor& frames_u8, int64_t size, const std::string& who) {
@@ -29,11 +22,18 @@ torch::Tensor frames_to_unit_images(const torch::Tensor& frames_u8, int64_t size
   return f.permute({0, 3, 1, 2}).to(torch::kFloat32).div(255.0);  // [N, 3, size, size]
 }
 
+void add_conv_stage(nn::Sequential& seq, int64_t in, int64_t out) {
+  seq->push_back(nn::Conv2d(nn::Conv2dOptions(in, out, 3).stride(2).padding(1)));
+  seq->push_back(nn::SiLU());
+  seq->push_back(nn::Conv2d(nn::Conv2dOptions(out, out, 3).padding(1)));
+  seq->push_back(nn::SiLU());
+}
+
 nn::Sequential coord_conv_features(int64_t width) {
   nn::Sequential features;
-  add_stage(features, 3 + 2, width);          // S/2; the pixel's own (x, y) as two more channels
-  add_stage(features, width, 2 * width);      // S/4
-  add_stage(features, 2 * width, 4 * width);  // S/8
+  add_conv_stage(features, 3 + 2, width);          // S/2; the pixel's own (x, y) as two more channels
+  add_conv_stage(features, width, 2 * width);      // S/4
+  add_conv_stage(features, 2 * width, 4 * width);  // S/8
   return features;
 }
 

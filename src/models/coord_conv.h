@@ -21,6 +21,9 @@ torch::Tensor frames_to_unit_images(const torch::Tensor& frames_u8, int64_t size
 
 // The three stages for images with their coordinate channels: [B, 3 + 2, S, S] -> [B, 4 width, S/8, S/8].
 torch::nn::Sequential coord_conv_features(int64_t width);
+// One stage of the frame encoders: a stride-2 3x3 convolution in -> out, SiLU, a 3x3 convolution
+// out -> out, SiLU (the success detector stacks the same stages on stacked frames).
+void add_conv_stage(torch::nn::Sequential& seq, int64_t in, int64_t out);
 // images [B, 3, S, S] in [0, 1] -> [B, 5, S, S]: the image in [-1, 1], then x and y in [-1, 1].
 torch::Tensor with_pixel_coordinates(const torch::Tensor& images);
 

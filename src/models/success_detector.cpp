@@ -9,6 +9,7 @@
 #include "core/json_file.h"
 #include "core/state_dict.h"
 #include "io/frame_ops.h"
+#include "models/coord_conv.h"
 
 namespace dojo::models {
 
@@ -36,21 +37,14 @@ SuccessDetectorConfig SuccessDetectorConfig::from_json(const nlohmann::json& j) 
 namespace {
 
 // conv 3x3 (stride 2) -> SiLU -> conv 3x3 -> SiLU.
-void add_stage(nn::Sequential& seq, int64_t in, int64_t out) {
-  seq->push_back(nn::Conv2d(nn::Conv2dOptions(in, out, 3).stride(2).padding(1)));
-  seq->push_back(nn::SiLU());
-  seq->push_back(nn::Conv2d(nn::Conv2dOptions(out, out, 3).padding(1)));
-  seq->push_back(nn::SiLU());
-}
-
 }  // namespace
 
 SuccessDetectorImpl::SuccessDetectorImpl(SuccessDetectorConfig config) : config_(config) {
   const int64_t w = config_.width;
   features = nn::Sequential();
-  add_stage(features, 3 * config_.window, w);  // S/2
-  add_stage(features, w, 2 * w);               // S/4
-  add_stage(features, 2 * w, 4 * w);           // S/8
+  add_conv_stage(features, 3 * config_.window, w);  // S/2
+  add_conv_stage(features, w, 2 * w);               // S/4
+  add_conv_stage(features, 2 * w, 4 * w);           // S/8
   register_module("features", features);
   head = register_module("head", nn::Linear(8 * w, 1));
 }

@@ -41,11 +41,6 @@ torch::Tensor to_tensor(const std::vector<double>& v) {
   return torch::tensor(std::vector<float>(v.begin(), v.end()), torch::kFloat32);
 }
 
-std::vector<double> to_vector(const torch::Tensor& row) {
-  const auto r = row.to(torch::kFloat64).contiguous();
-  return std::vector<double>(r.data_ptr<double>(), r.data_ptr<double>() + r.numel());
-}
-
 // The world at frame 0 of a scene.
 std::unique_ptr<sim::World> start_world(const eval::EpisodeStart& start) {
   auto world = std::make_unique<sim::World>(sim::scene_from_json(start.scene));
@@ -118,7 +113,7 @@ torch::Tensor DojoSimEnvironment::step(const torch::Tensor& commands) {
              "DojoSim: commands must be [n, " + std::to_string(world_->action_dim()) + "]");
   std::vector<torch::Tensor> frames;
   for (int64_t i = 0; i < commands.size(0); ++i) {
-    world_->step(to_vector(commands[i]));
+    world_->step(command_values(commands[i]));
     frames.push_back(to_frame(renderer_->render(*world_), world_->spec().height, world_->spec().width));
   }
   return torch::stack(frames);  // [n, H, W, 3]
@@ -142,6 +137,11 @@ sim::RobotPolicyOptions scripted_policy_options(const PolicySpec& spec) {
 std::unique_ptr<eval::Policy> make_scripted_policy(const PolicySpec& spec) {
   DOJO_CHECK(!spec.name.empty(), "scripted policy: a name is needed");
   return std::make_unique<ScriptedPolicy>(spec);  // scripted_policy_options refuses a non-scripted spec
+}
+
+std::vector<double> command_values(const torch::Tensor& row) {
+  const auto r = row.to(torch::kFloat64).contiguous();
+  return std::vector<double>(r.data_ptr<double>(), r.data_ptr<double>() + r.numel());
 }
 
 std::vector<PolicySpec> default_policy_set() {

@@ -81,6 +81,9 @@ sim::RobotPolicyOptions scripted_policy_options(const PolicySpec& spec);
 
 // The built-in policy set: 13 scripted policies from expert to idle.
 std::vector<PolicySpec> default_policy_set();
+
+// A command row [w] as the simulator takes it.
+std::vector<double> command_values(const torch::Tensor& row);
 // {"policies": [{"name": ..., "behavior": ..., "quality": ...} | {"name": ..., "checkpoint": DIR} |
 // {"name": ..., "reader": DIR, "quality": {knobs}} | {"name": ..., "command": "..."}, ...]}; a
 // relative checkpoint or reader is relative to the file. Throws

@@ -135,18 +135,11 @@ PlanReport run_planning(const PlanRun& a) {
     report.proposers.push_back(name);
     proposer_paths.push_back(checkpoint_fingerprint(dir));
   }
-  std::optional<LoadedWorldModel> loaded;
-  std::unique_ptr<Imagination> imagination;
-  if (a.world_model) {
-    loaded = load_world_model(*a.world_model, models::SuccessDetector{nullptr});
-    DOJO_CHECK(a.options.proposal_length % loaded->per_step == 0,
-               "plan: --proposal-length " + std::to_string(a.options.proposal_length) + " does not fill " +
-                   loaded->environment->name() + "'s steps of " + std::to_string(loaded->per_step) +
-                   " commands");
-    imagination = make_world_model_imagination(*loaded->environment);
-  } else {
-    imagination = make_simulator_imagination();
-  }
+  if (a.world_model)
+    DOJO_CHECK(a.options.proposal_length % a.world_model->commands_per_step() == 0,
+               "plan: --proposal-length " + std::to_string(a.options.proposal_length) +
+                   " does not fill the " + (a.world_model->teacher ? "teacher" : "student") + "'s steps of " +
+                   std::to_string(a.world_model->commands_per_step()) + " commands");
   fs::create_directories(out);
   if (a.value.empty() &&
       !(fs::exists(value_dir / "result.json") &&
@@ -154,6 +147,15 @@ PlanReport run_planning(const PlanRun& a) {
     ValueRun v = a.value_training;
     v.out = value_dir.string();
     train_value(v);
+  }
+  // The world model after the value model trains: training needs the memory more.
+  std::optional<LoadedWorldModel> loaded;
+  std::unique_ptr<Imagination> imagination;
+  if (a.world_model) {
+    loaded = load_world_model(*a.world_model, models::SuccessDetector{nullptr});
+    imagination = make_world_model_imagination(*loaded->environment);
+  } else {
+    imagination = make_simulator_imagination();
   }
   DOJO_CHECK(checkpoint_exists(value_dir / "checkpoint") || checkpoint_exists(value_dir),
              "plan: no value model at " + value_dir.string());

@@ -142,7 +142,13 @@ fs::path detector_directory(const PolicyEvalRun& a) {
 // it here will use); nothing when neither is known.
 std::optional<SeedRange> seeds_of(const std::string& what, const fs::path& dir,
                                   std::optional<SeedRange> fallback) {
-  if (const auto record = training_data_record(dir); !record.empty()) {
+  // A record whose data was never rendered (a crash mid-render) says what a rerun will replace.
+  const auto record = training_data_record(dir);
+  const auto run = record.empty() ? fs::path() : record.parent_path();
+  const bool rendered =
+      !record.empty() && (fs::exists(run / "demos.safetensors") || fs::exists(run / "readings.safetensors") ||
+                          fs::exists(run / "data.safetensors") || checkpoint_exists(run / "checkpoint"));
+  if (rendered) {
     const auto j = read_json_file(record);
     if (j.contains("seed") && j.contains("scenes"))
       return SeedRange{what, j["seed"].get<uint64_t>(), j["scenes"].get<int64_t>()};
@@ -177,6 +183,10 @@ nlohmann::json WorldModelSource::fingerprint() const {
   return j;
 }
 
+int64_t WorldModelSource::commands_per_step() const {
+  return teacher ? infer::WorldModel::kChunkActions : infer::StreamingEngine::kActionsPerStep;
+}
+
 LoadedWorldModel::LoadedWorldModel() = default;
 LoadedWorldModel::LoadedWorldModel(LoadedWorldModel&&) noexcept = default;
 LoadedWorldModel& LoadedWorldModel::operator=(LoadedWorldModel&&) noexcept = default;
@@ -185,7 +195,7 @@ LoadedWorldModel::~LoadedWorldModel() = default;
 LoadedWorldModel load_world_model(const WorldModelSource& s, models::SuccessDetector detector) {
   const auto device = parse_device(s.device);
   LoadedWorldModel loaded;
-  loaded.per_step = infer::StreamingEngine::kActionsPerStep;
+  loaded.per_step = s.commands_per_step();
   std::unique_ptr<infer::Generator> generator;
   nlohmann::json ranges;
   std::string name = "student";
@@ -194,7 +204,6 @@ LoadedWorldModel load_world_model(const WorldModelSource& s, models::SuccessDete
         infer::WorldModel::load(s.checkpoint, s.tokenizer, device, parse_precision(s.precision)));
     ranges = loaded.teacher->action_ranges();
     generator = infer::make_teacher_generator(*loaded.teacher, nullptr, s.teacher_steps);
-    loaded.per_step = infer::WorldModel::kChunkActions;
     name = "teacher";
   } else {
     infer::StreamingEngine::Options o;
@@ -231,7 +240,7 @@ void render_training_data_once(const fs::path& data, const nlohmann::json& made,
     for (const auto& [key, value] : made.items())
       DOJO_CHECK(!held.contains(key) || held[key] == value,
                  who + ": " + data.string() + " was made with " + key + " " + held[key].dump() + ", not " +
-                     value.dump() + ": give the same, or another --out");
+                     value.dump() + ": give the settings its data.json records, or another --out");
     return;
   }
   write_file_atomic(record, made.dump(2) + "\n");
@@ -351,10 +360,17 @@ nlohmann::json train_detector(const DetectorRun& a) {
   const auto data = out / "data.safetensors";
   std::optional<LoadedWorldModel> world_model;
   // Under data parallelism rank 0 renders the labelled episodes; the others then read them.
+  const nlohmann::json made = {{"frames", frames},
+                               {"scenes", a.scenes},
+                               {"seed", a.seed},
+                               {"frames_per_episode", a.frames},
+                               {"settle_frames", a.settle_frames},
+                               {"policies", a.policies.empty() ? "" : fs::absolute(a.policies).string()}};
   train::data_parallel().main_first("the detector's episodes", [&] {
-    if (fs::exists(data)) {
+    if (fs::exists(data))
       require_detector_frames(out, frames, data.string() + " holds", "give another --out");
-    } else {
+    // The record goes first: data without it reads as DojoSim's.
+    render_training_data_once(data, made, "policy detector", [&] {
       SuccessDataOptions o;
       o.scenes = a.scenes;
       o.seed = a.seed;
@@ -366,16 +382,9 @@ nlohmann::json train_detector(const DetectorRun& a) {
       o.episode = episode_options(a.frames, a.settle_frames, world_model ? world_model->per_step : 4);
       LOG_INFO("policy detector: rendering ", a.scenes, " scenes per policy in DojoSim",
                world_model ? " and replaying them in the world model" : "");
-      const auto specs = detector_training_set(a.policies);
-      const nlohmann::json made = {{"frames", frames},
-                                   {"scenes", a.scenes},
-                                   {"seed", a.seed},
-                                   {"frames_per_episode", a.frames},
-                                   {"settle_frames", a.settle_frames},
-                                   {"policies", a.policies.empty() ? "" : fs::absolute(a.policies).string()}};
-      write_file_atomic(out / "data.json", made.dump(2) + "\n");  // first: data without it reads as DojoSim's
-      make_success_data(specs, o, data, world_model ? world_model->environment.get() : nullptr);
-    }
+      make_success_data(detector_training_set(a.policies), o, data,
+                        world_model ? world_model->environment.get() : nullptr);
+    });
   });
   world_model.reset();  // training needs the memory more
   train::SuccessTrainJob job;
@@ -585,13 +594,14 @@ PolicyEvalOutcome run_policy_eval(const PolicyEvalRun& a) {
   json["seen"] = group(seen);
   json["world_model"] = world_model_name;
   json["fingerprint"] = fingerprint;
-  const auto detector_dir = detector_directory(a);
+  // The detector's run: the directory given, or the one above it when --detector named RUN/checkpoint.
+  const auto detector_record = training_data_record(detector_directory(a));
+  const auto detector_run = detector_record.empty() ? detector_directory(a) : detector_record.parent_path();
   std::string detector_line;
-  if (!!a.world_model && fs::exists(detector_dir / "result.json")) {
-    json["detector"] = read_json_file(detector_dir / "result.json");
-    if (fs::exists(detector_dir / "data.json"))
-      json["detector"]["data"] = read_json_file(detector_dir / "data.json");
-    detector_line = detector_summary(json["detector"], detector_frames_in(detector_dir) != "dojosim");
+  if (!!a.world_model && fs::exists(detector_run / "result.json")) {
+    json["detector"] = read_json_file(detector_run / "result.json");
+    if (!detector_record.empty()) json["detector"]["data"] = read_json_file(detector_record);
+    detector_line = detector_summary(json["detector"], detector_frames_in(detector_run) != "dojosim");
   }
   write_file_atomic(out / "report.json", json.dump(2) + "\n");
   eval::write_policy_eval_html(report, out / "report.html", "DojoSim", world_model_name, options.video_dir,

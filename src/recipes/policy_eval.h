@@ -36,6 +36,8 @@ struct WorldModelSource {
   std::string device = "cpu", precision = "fp32";
   // What the model's frames depend on (journals and detector data record it).
   nlohmann::json fingerprint() const;
+  // Commands one step of the loaded model takes: the student's 4, the teacher's chunk of 12.
+  int64_t commands_per_step() const;
 };
 
 // A world model as an environment (eval/policy_eval.h): the student, or the teacher with its

@@ -26,11 +26,6 @@ double control_dt() {
   return defaults.timestep * defaults.substeps;
 }
 
-std::vector<double> to_vector(const torch::Tensor& row) {
-  const auto r = row.to(torch::kFloat64).contiguous();
-  return std::vector<double>(r.data_ptr<double>(), r.data_ptr<double>() + r.numel());
-}
-
 class ReaderPolicy : public eval::Policy {
  public:
   ReaderPolicy(std::string name, models::SceneReader reader, ReaderKnobs knobs)
@@ -39,7 +34,7 @@ class ReaderPolicy : public eval::Policy {
   void reset(const eval::EpisodeStart& start) override {
     step_ = 0;
     sim::BeliefControllerOptions o;
-    o.start_command = to_vector(start.command);
+    o.start_command = command_values(start.command);
     o.control_dt = control_dt();
     o.speed = knobs_.speed;
     o.noise_std = knobs_.noise_std;

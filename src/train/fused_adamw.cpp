@@ -119,7 +119,8 @@ FusedAdamW::FusedAdamW(torch::optim::AdamW& optimizer, std::vector<torch::Tensor
   grad_ = torch::zeros({total}, options);
   // The moments are made at the first step or state adopted (make_moments): a trainer that
   // shards before then never holds the whole of them.
-  exp_avg_ = exp_avg_sq_ = torch::zeros({0}, options);
+  exp_avg_ = torch::zeros({0}, options);
+  exp_avg_sq_ = torch::zeros({0}, options);
   for (size_t i = 0; i < params_.size(); ++i)
     params_[i].mutable_grad() = grad_.narrow(0, offsets_[i], params_[i].numel()).view(params_[i].sizes());
   begin_ = 0;
@@ -134,6 +135,8 @@ void FusedAdamW::zero_grad() {
                "FusedAdamW: a gradient was replaced (zero_grad(set_to_none) or an assignment); the flat "
                "gradient no longer holds it");
   grad_.zero_();
+  // Moments gathered for a save (gather_state) go before this step's activations are made.
+  if (sharded()) optimizer_.state().clear();
 }
 
 void FusedAdamW::point_state(const torch::Tensor& m, const torch::Tensor& v) {
@@ -240,11 +243,14 @@ void FusedAdamW::gather_slices(const torch::Tensor& mine, const torch::Tensor& w
 void FusedAdamW::gather_state() {
   if (!sharded() || step_ == 0) return;
   torch::NoGradGuard no_grad;
+  // Into host memory: the checkpoint is written from there, and a device does not have to find
+  // room for the whole moments beside the training state it sharded them to make room for.
   const bool main = collectives_.rank == 0;
-  auto m = main ? torch::empty_like(param_) : torch::Tensor(),
-       v = main ? torch::empty_like(param_) : torch::Tensor();
-  gather_slices(exp_avg_, m, /*into_main=*/true);
-  gather_slices(exp_avg_sq_, v, /*into_main=*/true);
+  const auto host = param_.options().device(torch::kCPU);
+  auto m = main ? torch::empty({param_.numel()}, host) : torch::Tensor(),
+       v = main ? torch::empty({param_.numel()}, host) : torch::Tensor();
+  gather_slices(exp_avg_.to(torch::kCPU), m, /*into_main=*/true);
+  gather_slices(exp_avg_sq_.to(torch::kCPU), v, /*into_main=*/true);
   if (main) point_state(m, v);
 }
 

@@ -64,9 +64,9 @@ class FusedAdamW {
   // ZeRO-1 from now on: moments (a resumed state's included) are kept for this rank's slice only.
   // Refused under DOJO_PLAIN_KERNELS (its reference step is torch's AdamW over every parameter).
   void shard(Collectives collectives);
-  // Sharded: gathers the whole moments into rank 0's optimizer state (a collective: every rank
-  // calls it, before rank 0 saves); freed at the next step. The other ranks hold no more than
-  // before. Unsharded: nothing to do, the state always views the moments.
+  // Sharded: gathers the whole moments into rank 0's optimizer state, in host memory (a
+  // collective: every rank calls it, before rank 0 saves); freed by the next zero_grad(). The
+  // other ranks hold no more than before. Unsharded: nothing to do, the state views the moments.
   void gather_state();
   // Moment elements this process holds (2 per parameter unsharded; about 2 / world sharded).
   int64_t moment_elements() const { return exp_avg_.numel() + exp_avg_sq_.numel(); }

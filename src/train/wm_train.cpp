@@ -466,13 +466,14 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   if (!action_ranges.empty()) extras["actions"] = action_ranges;
   if (!views.is_null()) extras["views"] = views;
   if (!extras.empty()) trainer.set_config_extras(extras);
+  // Sharded before a resume adopts the saved moments: each rank then copies its slice only.
+  group.check_same("--zero1", job.zero1 ? "on" : "off");
+  if (job.zero1) trainer.shard_optimizer_state();
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("wm train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
   }
   group.check_same("the step to resume from", std::to_string(trainer.steps_done()));
-  group.check_same("--zero1", job.zero1 ? "on" : "off");
-  if (job.zero1) trainer.shard_optimizer_state();
 
   // A fixed batch with fixed noise tracks progress without the noise of random batches.
   const int64_t probe = std::min<int64_t>(n, 16);

@@ -101,8 +101,8 @@ class WmTrainer {
   void resume(const std::filesystem::path& dir);
 
   // ZeRO-1 under data parallelism (fused_adamw.h): each rank keeps 1/world of the AdamW moments;
-  // the parameters stay bit for bit those of plain data parallelism. Call after resume(), before
-  // the first step; nothing changes in a world of 1.
+  // the parameters stay bit for bit those of plain data parallelism. Call before resume() (each
+  // rank then adopts its slice of the saved moments) and the first step; a world of 1: no change.
   void shard_optimizer_state();
   // Before rank 0 saves a sharded trainer: every rank calls it (a collective) so the checkpoint
   // holds the whole moments. Nothing to do unsharded.

@@ -16,8 +16,6 @@ namespace {
 
 using namespace lerobot_fixture;
 
-float mean_level(const at::Tensor& frame) { return frame.to(torch::kFloat32).mean().item<float>(); }
-
 // A range for GR-1's 29 dimensions unlike the dataset's: [-1000, 1000] everywhere.
 ActionRanges wide_gr1_range() {
   ArrayStats wide;
@@ -42,8 +40,8 @@ TEST(RolloutData, Gr1AtItsReleasedStrideWithTheDatasetsStatistics) {
   EXPECT_DOUBLE_EQ(clip.fps, kFps / 2);
   ASSERT_EQ(clip.video.sizes(), (std::vector<int64_t>{13, 32, 32, 3}));
   // Frames 2, 4, ..., 26 of episode 1 (global frame numbers 30 + 2 k).
-  EXPECT_NEAR(mean_level(clip.video[0]), level(32), 1.5);
-  EXPECT_NEAR(mean_level(clip.video[12]), level(56), 1.5);
+  EXPECT_NEAR(test::mean_level(clip.video[0]), level(32), 1.5);
+  EXPECT_NEAR(test::mean_level(clip.video[12]), level(56), 1.5);
   ASSERT_EQ(clip.actions.sizes(), (std::vector<int64_t>{12, 384}));
   // Raw left_arm.0 rises by 1 a frame, 2 a step; the dataset's range spans 100 + 29 = 129.
   const float step = 2.f / 129.f * 2.f;
@@ -104,7 +102,7 @@ TEST(RolloutData, AnUnnamedRobotIsRefusedAndStrideAndSizeFollowTheOptions) {
   EXPECT_EQ(data.stride(), 1);
   const auto clip = data.read(data.find("", ""));
   ASSERT_EQ(clip.video.sizes(), (std::vector<int64_t>{25, 16, 16, 3}));
-  EXPECT_NEAR(mean_level(clip.video[24]), level(25), 1.5);
+  EXPECT_NEAR(test::mean_level(clip.video[24]), level(25), 1.5);
   // 25 frames at stride 2 need 51 steps: the 30-frame episodes are too short.
   options.frame_stride = 0;
   const RolloutData strided(root, 2, {}, options);

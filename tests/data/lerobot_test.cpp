@@ -22,8 +22,6 @@ namespace {
 
 using namespace lerobot_fixture;
 
-float mean_level(const at::Tensor& frame) { return frame.to(torch::kFloat32).mean().item<float>(); }
-
 void expect_gr1_mapping(const LeRobotDataset& ds, size_t episode) {
   const auto arrays = ds.read_arrays(episode);
   ASSERT_EQ(arrays.actions.sizes(), (std::vector<int64_t>{30, 29}));
@@ -136,9 +134,9 @@ TEST(LeRobot, V21ReadsEpisodesTasksStatsAndGr1Slot) {
   expect_gr1_mapping(*ds, 1);
   const auto frames = ds->read_frames(1, {0, 13, 29});  // [3, 32, 32, 3]
   ASSERT_EQ(frames.sizes(), (std::vector<int64_t>{3, 32, 32, 3}));
-  EXPECT_NEAR(mean_level(frames[0]), level(30), 1.5);
-  EXPECT_NEAR(mean_level(frames[1]), level(43), 1.5);
-  EXPECT_NEAR(mean_level(frames[2]), level(59), 1.5);
+  EXPECT_NEAR(test::mean_level(frames[0]), level(30), 1.5);
+  EXPECT_NEAR(test::mean_level(frames[1]), level(43), 1.5);
+  EXPECT_NEAR(test::mean_level(frames[2]), level(59), 1.5);
 }
 
 TEST(LeRobot, V30ReadsSharedFilesAndLocatesFramesByTimestamp) {
@@ -154,9 +152,9 @@ TEST(LeRobot, V30ReadsSharedFilesAndLocatesFramesByTimestamp) {
   expect_gr1_mapping(*ds, 1);
   // Episode 1 starts 1.5 s into the shared video: its frame k is video frame 30 + k.
   const auto frames = ds->read_frames(1, {0, 29, 5});
-  EXPECT_NEAR(mean_level(frames[0]), level(30), 1.5);
-  EXPECT_NEAR(mean_level(frames[1]), level(59), 1.5);
-  EXPECT_NEAR(mean_level(frames[2]), level(35), 1.5);
+  EXPECT_NEAR(test::mean_level(frames[0]), level(30), 1.5);
+  EXPECT_NEAR(test::mean_level(frames[1]), level(59), 1.5);
+  EXPECT_NEAR(test::mean_level(frames[2]), level(35), 1.5);
 }
 
 // v3.0's default codec is AV1 (LeRobot encodes with g=2, crf=30): re-encode the shared video
@@ -178,9 +176,9 @@ TEST(LeRobot, V30Av1VideoIsReadByTimestamp) {
   ASSERT_EQ(io::probe_video(video.string()).codec, "av1");
   const auto ds = LeRobotDataset::open(root);
   const auto frames = ds->read_frames(1, {0, 9, 15});
-  EXPECT_NEAR(mean_level(frames[0]), level(16), 3.0);
-  EXPECT_NEAR(mean_level(frames[1]), level(25), 3.0);
-  EXPECT_NEAR(mean_level(frames[2]), level(31), 3.0);
+  EXPECT_NEAR(test::mean_level(frames[0]), level(16), 3.0);
+  EXPECT_NEAR(test::mean_level(frames[1]), level(25), 3.0);
+  EXPECT_NEAR(test::mean_level(frames[2]), level(31), 3.0);
 }
 
 TEST(LeRobot, ClipsPutGr1ActionsInTheirSlot) {
@@ -200,7 +198,7 @@ TEST(LeRobot, ClipsPutGr1ActionsInTheirSlot) {
     const double step = 2 + 2 * (1 + j), base = 2 + 2 * (4 * (j / 4));
     EXPECT_NEAR(clip.actions[j][7].item<float>(), 2 * (step - base) / 129.0, 1e-5) << j;
   }
-  for (int k = 0; k < 13; ++k) EXPECT_NEAR(mean_level(clip.video[k]), level(30 + 4 + 2 * k), 2.0) << k;
+  for (int k = 0; k < 13; ++k) EXPECT_NEAR(test::mean_level(clip.video[k]), level(30 + 4 + 2 * k), 2.0) << k;
   EXPECT_EQ(test::error_message([&] {
               (void)dataset.store();
             }).find("lerobot-v3.0 dataset is not an episode store") != std::string::npos,
@@ -356,7 +354,7 @@ TEST(DataConvert, LeRobotToEpisodeFormatIsResumable) {
   EXPECT_FLOAT_EQ(store.info().action_stats->max[7], raw_action(1, 13, 22));
   const auto episode = store.load(1);
   EXPECT_FLOAT_EQ(episode.actions[3][7].item<float>(), raw_action(1, 3, 22));
-  EXPECT_NEAR(mean_level(episode.frames[5]), level(14 + 5), 2.0);
+  EXPECT_NEAR(test::mean_level(episode.frames[5]), level(14 + 5), 2.0);
   EXPECT_EQ(episode.meta.at("task"), "wave");
   // A rerun keeps what is there; other options are refused.
   r = test::run_dojo(cmd);

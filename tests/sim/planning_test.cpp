@@ -219,7 +219,7 @@ TEST(PlanCli, ValueTrainThenPlanWithTheSimulatorResumesAndRefusesBadInput) {
   // Data made for another horizon is not trained on again.
   refused(test::run_dojo("--threads 1 value train --episodes 3 --steps 3 --batch 4 --horizon 16 --out " +
                          (tmp / "value").string()),
-          "was made with horizon 32, not 16: give the same, or another --out");
+          "was made with horizon 32, not 16: give the settings its data.json records, or another --out");
   // A proposer retrained in place is another planner: the journal of the old one is not resumed.
   torch::manual_seed(6);
   save_checkpoint(tmp / "a", models::bc_policy_checkpoint(*models::BcPolicy()));

@@ -268,9 +268,9 @@ TEST(PolicyCli, ReaderPoliciesAreHeldOutAndSharedScenesAreRefused) {
   // The same directory with other data settings is refused, not trained on the old frames.
   r = test::run_dojo("policy reader --out " + reader.string() + " --episodes 5 --frames 16 --steps 6");
   EXPECT_NE(r.exit_code, 0);
-  EXPECT_NE(
-      r.output.find("readings.safetensors was made with scenes 4, not 5: give the same, or another --out"),
-      std::string::npos)
+  EXPECT_NE(r.output.find("readings.safetensors was made with scenes 4, not 5: give the settings its "
+                          "data.json records, or another --out"),
+            std::string::npos)
       << r.output;
 
   std::ofstream(tmp / "set.json")

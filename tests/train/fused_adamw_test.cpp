@@ -1,10 +1,15 @@
 // The fused end of a training step against its reference: clip_grad_norm_, torch::optim::AdamW
-// and diffusion::ema_update on the same weights and gradients; and a resume through the saved
-// optimizer state continuing exactly as an unbroken run.
+// and diffusion::ema_update on the same weights and gradients; a resume through the saved
+// optimizer state continuing exactly as an unbroken run; and the update sharded over ranks
+// (ZeRO-1, here threads of one process) giving the unsharded one's bits.
 #include "train/fused_adamw.h"
 
 #include <gtest/gtest.h>
 #include <torch/torch.h>
+
+#include <condition_variable>
+#include <mutex>
+#include <thread>
 
 #include "core/error.h"
 #include "core/state_dict.h"
@@ -99,6 +104,118 @@ TEST(FusedAdamW, ResumesFromTheSavedStateAsIfUnbroken) {
     flat.step(0.5, 1e-2, 0);
   }
   EXPECT_EQ(max_diff(resumed->parameters(), unbroken->parameters()), 0.0);
+}
+
+// Collectives between the threads of one process: each rank leaves a copy of its tensor, all
+// wait, each reads what it needs, all wait again before the slots are reused.
+class ThreadGroup {
+ public:
+  explicit ThreadGroup(int world) : world_(world), slots_(world) {}
+  FusedAdamW::Collectives collectives(int rank) {
+    FusedAdamW::Collectives c;
+    c.rank = rank;
+    c.world = world_;
+    c.all_gather = [this, rank](const torch::Tensor& mine, const std::vector<torch::Tensor>& out) {
+      exchange(rank, mine, out);
+    };
+    c.gather_to_main = [this, rank](const torch::Tensor& mine, const std::vector<torch::Tensor>& out) {
+      EXPECT_EQ(out.size(), rank == 0 ? static_cast<size_t>(world_) : 0u);
+      exchange(rank, mine, out);
+    };
+    return c;
+  }
+
+ private:
+  void barrier() {
+    std::unique_lock<std::mutex> lock(mutex_);
+    const int64_t generation = generation_;
+    if (++arrived_ == world_) {
+      arrived_ = 0;
+      ++generation_;
+      wake_.notify_all();
+    } else {
+      wake_.wait(lock, [&] { return generation_ != generation; });
+    }
+  }
+  void exchange(int rank, const torch::Tensor& mine, const std::vector<torch::Tensor>& out) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      slots_[rank] = mine.clone();
+    }
+    barrier();
+    for (size_t r = 0; r < out.size(); ++r) out[r].copy_(slots_[r]);
+    barrier();
+  }
+  int world_;
+  std::vector<torch::Tensor> slots_;
+  std::mutex mutex_;
+  std::condition_variable wake_;
+  int arrived_ = 0;
+  int64_t generation_ = 0;
+};
+
+TEST(FusedAdamW, ShardedOverRanksGivesTheWholeUpdatesBits) {
+  // 58 parameters: 3 ranks hold 20, 20 and a short 18; of 13 ranks the last holds none.
+  for (const int world : {3, 13}) {
+    torch::manual_seed(2);
+    auto whole = small_net(), whole_ema = small_net();
+    copy_weights(*whole_ema, *whole);
+    const auto options = torch::optim::AdamWOptions(1e-2).weight_decay(0.1);
+    constexpr int64_t kSteps = 5, kSaveAfter = 3;
+    auto run = [&](torch::nn::Sequential net, torch::optim::AdamW& opt, FusedAdamW& flat,
+                   NamedTensors& saved) {
+      for (int64_t k = 0; k < kSteps; ++k) {
+        flat.zero_grad();
+        set_grads(net->parameters(), k);
+        flat.step(0.5, 1e-2, diffusion::power_ema_beta(k + 1, 6.94));
+        if (k + 1 == kSaveAfter) {
+          flat.gather_state();  // every rank; rank 0's optimizer then holds the whole moments
+          saved = adamw_state(opt, *net);
+          for (auto& t : saved) t.second = t.second.clone();
+        }
+      }
+    };
+    // The ranks: copies of the same start, one thread each.
+    std::vector<torch::nn::Sequential> nets, emas;
+    std::vector<std::unique_ptr<torch::optim::AdamW>> opts;
+    std::vector<std::unique_ptr<FusedAdamW>> flats;
+    ThreadGroup group(world);
+    for (int r = 0; r < world; ++r) {
+      nets.push_back(small_net());
+      emas.push_back(small_net());
+      copy_weights(*nets.back(), *whole);
+      copy_weights(*emas.back(), *whole);
+      opts.push_back(std::make_unique<torch::optim::AdamW>(nets.back()->parameters(), options));
+      flats.push_back(
+          std::make_unique<FusedAdamW>(*opts.back(), nets.back()->parameters(), emas.back()->parameters()));
+      flats.back()->shard(group.collectives(r));
+    }
+    std::vector<NamedTensors> saved(world);
+    std::vector<std::thread> threads;
+    for (int r = 0; r < world; ++r)
+      threads.emplace_back([&, r] { run(nets[r], *opts[r], *flats[r], saved[r]); });
+    for (auto& t : threads) t.join();
+    torch::optim::AdamW whole_opt(whole->parameters(), options);
+    FusedAdamW whole_flat(whole_opt, whole->parameters(), whole_ema->parameters());
+    NamedTensors whole_saved;
+    run(whole, whole_opt, whole_flat, whole_saved);
+
+    for (int r = 0; r < world; ++r) {
+      EXPECT_EQ(max_diff(nets[r]->parameters(), whole->parameters()), 0.0)
+          << "world " << world << " rank " << r;
+      EXPECT_EQ(max_diff(emas[r]->parameters(), whole_ema->parameters()), 0.0)
+          << "world " << world << " rank " << r;
+      EXPECT_LE(flats[r]->moment_elements(), 2 * ((58 + world - 1) / world))
+          << "world " << world << " rank " << r;
+    }
+    // The checkpoint's moments, gathered on rank 0 only.
+    ASSERT_EQ(saved[0].size(), whole_saved.size()) << "world " << world;
+    for (size_t i = 0; i < whole_saved.size(); ++i) {
+      EXPECT_EQ(saved[0][i].first, whole_saved[i].first);
+      EXPECT_TRUE(torch::equal(saved[0][i].second, whole_saved[i].second)) << whole_saved[i].first;
+    }
+    EXPECT_TRUE(saved[1].empty()) << "only rank 0 receives the moments";
+  }
 }
 
 TEST(FusedAdamW, RefusesAGradientThatWasReplaced) {
