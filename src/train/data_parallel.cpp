@@ -230,29 +230,19 @@ void DataParallel::average_gradients(const std::vector<torch::Tensor>& params, i
 
 void DataParallel::all_gather_into(const torch::Tensor& mine, const std::vector<torch::Tensor>& out,
                                    const std::string& what) {
-  DOJO_CHECK(static_cast<int>(out.size()) == world_.world, "all_gather_into: one output per rank");
-  if (!active()) {
-    out[0].copy_(mine);
-    return;
-  }
-#ifdef DOJO_HAVE_GLOO
-  torch::NoGradGuard no_grad;
-  try {
-    std::vector<torch::Tensor> input = {mine.contiguous()};
-    std::vector<std::vector<torch::Tensor>> output = {out};
-    group_->gloo->allgather(output, input)->wait();
-  } catch (const std::exception& e) {
-    peer_lost(world_, what, e);
-  }
-#else
-  (void)what;
-#endif
+  gather(mine, out, /*to_main=*/false, what);
 }
 
 void DataParallel::gather_into_main(const torch::Tensor& mine, const std::vector<torch::Tensor>& out,
                                     const std::string& what) {
-  DOJO_CHECK(static_cast<int>(out.size()) == (main() ? world_.world : 0),
-             "gather_into_main: one output per rank on rank 0, none elsewhere");
+  gather(mine, out, /*to_main=*/true, what);
+}
+
+void DataParallel::gather(const torch::Tensor& mine, const std::vector<torch::Tensor>& out, bool to_main,
+                          const std::string& what) {
+  const bool receives = !to_main || main();
+  DOJO_CHECK(static_cast<int>(out.size()) == (receives ? world_.world : 0),
+             what + ": one output per receiving rank, none elsewhere");
   if (!active()) {
     out[0].copy_(mine);
     return;
@@ -262,10 +252,14 @@ void DataParallel::gather_into_main(const torch::Tensor& mine, const std::vector
   try {
     std::vector<torch::Tensor> input = {mine.contiguous()};
     std::vector<std::vector<torch::Tensor>> output;
-    if (main()) output.push_back(out);
-    c10d::GatherOptions options;
-    options.rootRank = 0;
-    group_->gloo->gather(output, input, options)->wait();
+    if (receives) output.push_back(out);  // Gloo's gather wants none on the other ranks
+    if (to_main) {
+      c10d::GatherOptions options;
+      options.rootRank = 0;
+      group_->gloo->gather(output, input, options)->wait();
+    } else {
+      group_->gloo->allgather(output, input)->wait();
+    }
   } catch (const std::exception& e) {
     peer_lost(world_, what, e);
   }

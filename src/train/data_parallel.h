@@ -92,6 +92,8 @@ class DataParallel {
 
  private:
   explicit DataParallel(ParallelWorld world);
+  void gather(const torch::Tensor& mine, const std::vector<torch::Tensor>& out, bool to_main,
+              const std::string& what);
   struct Group;
   ParallelWorld world_;
   std::unique_ptr<Group> group_;  // null in a world of 1
