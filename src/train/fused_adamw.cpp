@@ -265,10 +265,8 @@ double FusedAdamW::step(double max_norm, double lr, double ema_beta) {
   torch::NoGradGuard no_grad;
   if (!(max_norm > 0)) max_norm = std::numeric_limits<double>::infinity();
   make_moments();
-  if (sharded())
-    optimizer_.state().clear();  // moments gathered for a save: this rank keeps its slice only
-  else if (step_ == 0)
-    point_state(exp_avg_, exp_avg_sq_);  // the moments exist from the first step on, as views
+  // (Sharded: moments gathered for a save were freed by zero_grad().)
+  if (!sharded() && step_ == 0) point_state(exp_avg_, exp_avg_sq_);  // from the first step on, as views
   double norm = 0;
   if (plain_kernels()) {
     plain_step(max_norm, lr, ema_beta, norm);
