@@ -243,11 +243,14 @@ void restore_rng_state(const NamedTensors& tensors) {
   }
 }
 
+fs::path run_checkpoint(const fs::path& dir) {
+  return checkpoint_exists(dir / "checkpoint") ? dir / "checkpoint" : dir;
+}
+
 nlohmann::json checkpoint_fingerprint(const fs::path& dir) {
   if (dir.empty()) return nullptr;
   auto weights = resolve_checkpoint_dir(dir) / "model.safetensors";
-  if (!fs::exists(weights) && checkpoint_exists(dir / "checkpoint"))
-    weights = resolve_checkpoint_dir(dir / "checkpoint") / "model.safetensors";
+  if (!fs::exists(weights)) weights = resolve_checkpoint_dir(run_checkpoint(dir)) / "model.safetensors";
   DOJO_CHECK(fs::exists(weights), weights.string() + ": missing (not a checkpoint directory)");
   return {{"path", fs::absolute(dir).lexically_normal().string()},
           {"bytes", static_cast<int64_t>(fs::file_size(weights))},

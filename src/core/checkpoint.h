@@ -58,6 +58,9 @@ void save_checkpoint(const std::filesystem::path& dir, const CheckpointData& dat
 std::filesystem::path resolve_checkpoint_dir(const std::filesystem::path& dir);
 // Whether resolve_checkpoint_dir(dir) would find a checkpoint: what a trainer asks to resume.
 bool checkpoint_exists(const std::filesystem::path& dir);
+// The checkpoint a directory stands for: DIR/checkpoint when DIR is a training run that holds one,
+// else DIR itself (what commands taking "a run or its checkpoint" read).
+std::filesystem::path run_checkpoint(const std::filesystem::path& dir);
 // Identifies a checkpoint's weights without hashing them (path, size and time of its
 // model.safetensors): a retrained model changes size or time, so a run that recorded it (a cache,
 // a journal) sees the change. DIR may also be a training run whose checkpoint is DIR/checkpoint.

@@ -159,8 +159,7 @@ PlanReport run_planning(const PlanRun& a) {
   }
   DOJO_CHECK(checkpoint_exists(value_dir / "checkpoint") || checkpoint_exists(value_dir),
              "plan: no value model at " + value_dir.string());
-  auto scorer = make_value_scorer(models::load_value_model(
-      checkpoint_exists(value_dir / "checkpoint") ? value_dir / "checkpoint" : value_dir));
+  auto scorer = make_value_scorer(models::load_value_model(run_checkpoint(value_dir)));
   PolicySceneOptions scene_options;
   scene_options.count = a.scenes;
   scene_options.seed = a.seed;

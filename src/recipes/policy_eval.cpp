@@ -492,8 +492,7 @@ PolicyEvalOutcome run_policy_eval(const PolicyEvalRun& a) {
       if (a.detector_frames == "world-model") d.world_model = a.world_model;
       train_detector(d);
     }
-    auto detector = models::load_success_detector(
-        checkpoint_exists(detector_dir / "checkpoint") ? detector_dir / "checkpoint" : detector_dir);
+    auto detector = models::load_success_detector(run_checkpoint(detector_dir));
     loaded = load_world_model(source, std::move(detector));
     world_model = loaded->environment.get();
     world_model_name = world_model->name();
