@@ -24,7 +24,7 @@ for match in re.finditer(r"^\s*dojo_layer\((\w+)([^)]*)\)", cmake, re.M):
     name, rest = match.group(1), match.group(2)
     if "SOURCES" in rest:
         continue  # the engine-only build's partial layers
-    deps = re.search(r"\bDEPS\b(.*?)(?:\bLIBS\b|$)", rest, re.S)
+    deps = re.search(r"\bDEPS\b(.*?)(?:\bLIBS\b|\bEXCLUDE\b|$)", rest, re.S)
     words = deps.group(1).split() if deps else []
     declared[name] = set(w.replace("${DOJO_SIM_LAYER}", "sim") for w in words)
 for name, deps in sorted(declared.items()):

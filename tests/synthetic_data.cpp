@@ -59,11 +59,12 @@ void write_synthetic_dataset(const std::filesystem::path& dir, const SyntheticOp
         {"embodiment", o.embodiment}, {"task", robot ? "move the block" : "move the hand"}, {"split", split}};
     char id[16];
     std::snprintf(id, sizeof id, "%06d", e);
-    data::write_episode(dir / "episodes" / id, ep, 10.0);
+    data::write_episode(dir / "episodes" / id, ep, 10.0, o.video_format);
     info.episodes.push_back({id, T, split, ep.meta["task"]});
   }
   info.keypoint_names = {"centre", "top_left", "bottom_right"};
   if (o.side_camera) info.cameras = {"ego", "side"};
+  info.video_format = o.video_format;
   if (robot) {
     info.action_stats = action_stats.finish();
     info.state_stats = state_stats.finish();

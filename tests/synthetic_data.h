@@ -10,6 +10,8 @@
 #include <filesystem>
 #include <string>
 
+#include "data/episode_store.h"
+
 namespace dojo::test {
 
 struct SyntheticOptions {
@@ -21,6 +23,11 @@ struct SyntheticOptions {
   int val_episodes = 0;  // the last ones are split "val"
   // A second camera, "side": the same scene mirrored left to right (info.json cameras ego, side).
   bool side_camera = false;
+#ifdef DOJO_WITH_MEDIA
+  data::VideoFormat video_format = data::VideoFormat::kMp4;
+#else
+  data::VideoFormat video_format = data::VideoFormat::kRaw;  // this build reads no video file
+#endif
 };
 
 // Writes DIR/info.json and DIR/episodes/NNNNNN like `dojo sim generate` does.

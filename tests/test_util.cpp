@@ -7,6 +7,7 @@
 #include "core/atomic_file.h"
 
 #include <array>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
@@ -15,6 +16,7 @@
 #include <random>
 
 #include "core/error.h"
+#include "core/safetensors.h"
 
 namespace dojo::test {
 
@@ -48,6 +50,28 @@ float mean_level(const torch::Tensor& frame) { return frame.to(torch::kFloat32).
 std::string read_file(const std::filesystem::path& path) {
   std::ifstream in(path, std::ios::binary);
   return std::string(std::istreambuf_iterator<char>(in), {});
+}
+
+double first_loss_in_curve(const std::filesystem::path& csv) {
+  const auto text = read_file(csv);
+  const auto row = text.find('\n');                                             // the header's end
+  const auto comma = row == std::string::npos ? row : text.find(',', row + 1);  // past the step
+  if (comma == std::string::npos) {
+    ADD_FAILURE() << csv.string() << " holds no step";
+    return std::nan("");
+  }
+  return std::stod(text.substr(comma + 1));
+}
+
+void expect_float32_checkpoint(const std::filesystem::path& dir) {
+  auto f = SafetensorsFile::open(dir / "model.safetensors");
+  for (const auto& key : f.keys()) {
+    const auto& dtype = f.info(key).dtype;
+    // Integer and boolean tensors (counters, masks) are not weights.
+    if (dtype[0] == 'F' || dtype == "BF16") {
+      EXPECT_EQ(dtype, "F32") << dir.string() << ": " << key;
+    }
+  }
 }
 
 std::string error_message(const std::function<void()>& fn) {

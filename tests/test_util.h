@@ -39,6 +39,11 @@ float mean_level(const torch::Tensor& frame);
 
 // The whole content of a file ("" when it cannot be read).
 std::string read_file(const std::filesystem::path& path);
+// A trainer's loss.csv: the first step's value of its first column after the step (NaN and a
+// failure when there is none).
+double first_loss_in_curve(const std::filesystem::path& csv);
+// Every weight of the checkpoint directory's model.safetensors is float32 (failures name them).
+void expect_float32_checkpoint(const std::filesystem::path& dir);
 // The message of the dojo::Error that `fn` throws, or "(no error)" when it throws none.
 std::string error_message(const std::function<void()>& fn);
 

@@ -76,6 +76,7 @@ void register_data(CLI::App& app) {
   auto convert_limit = std::make_shared<int64_t>(-1);
   auto convert_open = std::make_shared<data::OpenOptions>();
   auto lerobot = std::make_shared<data::LeRobotExportOptions>();
+  auto convert_format = std::make_shared<std::string>("mp4");
   convert_cmd->add_option("SRC", *convert_src, "Source dataset directory")->required();
   convert_cmd->add_option("DST", *convert_dst, "Output directory")->required();
   convert_cmd->add_option("--to", *convert_to, "episodes (our format) or lerobot (LeRobot v2.1)")
@@ -89,6 +90,7 @@ void register_data(CLI::App& app) {
       ->add_option("--video-name", lerobot->camera,
                    "--to lerobot: the camera's name (observation.images.NAME)")
       ->capture_default_str();
+  add_video_format_option(convert_cmd, *convert_format);
   add_open_options(convert_cmd, convert_open);
   convert_cmd->callback([=] {
     set_action([=] {
@@ -98,6 +100,9 @@ void register_data(CLI::App& app) {
         height = static_cast<int>(h);
         width = static_cast<int>(w);
       }
+      if (*convert_to == "lerobot" && *convert_format != "mp4")
+        throw UsageError(
+            "data convert --to lerobot writes mp4 videos (LeRobot's format): drop --video-format");
       if (*convert_to == "lerobot" && lerobot->robot_type.empty())
         throw UsageError(
             "data convert --to lerobot needs --robot-type NAME (LeRobot readers find the robot there)");
@@ -115,6 +120,7 @@ void register_data(CLI::App& app) {
         result = data::export_lerobot(*source, *convert_dst, options, [&] { progress.advance(); });
       } else {
         data::ConvertOptions options;
+        options.video_format = data::video_format_from_string(*convert_format, "--video-format");
         options.height = height;
         options.width = width;
         options.limit = *convert_limit;

@@ -24,6 +24,7 @@ struct DistillArgs {
   std::vector<std::string> data;
   int64_t steps = 1000, save_every = 200, hop = 4, max_clips = 0, window = 12, sink = -1;
   std::string sink_position = "window_edge";
+  TrainingDeviceArgs device;
   int batch = 8, student_steps = 4, teacher_steps = 35, counterfactual_copies = 0, warmup_chunks = 1;
   int64_t lora_rank = 0, accumulate = 1;
   double lora_alpha = 32;
@@ -38,6 +39,9 @@ int run_distill(DistillArgs a) {
   if (a.teacher.empty()) LOG_INFO("no --teacher: distilling the reference set's post-trained world model");
   resolve_models(a.teacher, a.tokenizer, nullptr);
   train::DistillJob job;
+  const auto on = a.device.parse("distill");  // before any work
+  job.device = on.device;
+  job.precision = on.precision;
   job.stage = train::parse_distill_stage(a.stage);
   job.init = a.init;
   job.self_forcing = a.self_forcing;
@@ -86,7 +90,7 @@ int run_distill(DistillArgs a) {
   job.time_budget_s = a.minutes * 60;
   job.save_every = a.save_every;
   job.seed = a.seed;
-  job.matmul_threads = matmul_bound_command_threads("distill", false);
+  job.matmul_threads = matmul_bound_command_threads("distill", job.device.is_cuda());
   const auto r = train::run_distillation(job);
   if (job.stage == train::DistillStage::kWarmup)
     std::printf(
@@ -190,6 +194,7 @@ void register_distill(CLI::App& app) {
                   "self-forcing: share of rollouts driven by another clip's actions")
       ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
+  a->device.add_to(cmd);
   add_seed_option(cmd, a->seed);
   cmd->callback([a] { set_action([a] { return run_distill(*a); }); });
 }

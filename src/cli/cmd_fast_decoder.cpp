@@ -20,10 +20,14 @@ struct FastDecoderArgs {
   int64_t accumulate = 1;
   double lr = 1e-3, minutes = 0;
   uint64_t seed = 0;
+  TrainingDeviceArgs device;
 };
 
 int run_fast_decoder(const FastDecoderArgs& a) {
   train::FastDecoderJob job;
+  const auto on = a.device.parse("fast decoder");
+  job.device = on.device;
+  job.precision = on.precision;
   for (const auto& d : a.data) {
     train::LatentCacheSpec spec;
     spec.dataset = d;
@@ -72,6 +76,7 @@ void register_fast_decoder(CLI::App& tokenizer) {
   cmd->add_option("--max-clips", a->max_clips, "Clips per dataset (0: all)")->capture_default_str();
   cmd->add_option("--save-every", a->save_every, "Checkpoint every N steps")->capture_default_str();
   add_seed_option(cmd, a->seed);
+  a->device.add_to(cmd);
   cmd->callback([a] { set_action([a] { return run_fast_decoder(*a); }); });
 }
 

@@ -50,12 +50,17 @@ void add_lam_train(CLI::App& lam) {
   cmd->add_option("--save-every", job->save_every, "Checkpoint interval in steps")->capture_default_str();
   add_workers_option(cmd, job->workers);
   add_seed_option(cmd, job->seed);
+  auto device = std::make_shared<TrainingDeviceArgs>();
+  device->add_to(cmd);
   cmd->callback([=] {
     set_action([=] {
       for (const auto& d : *data) {
         const auto parsed = parse_weighted_data(d);
         job->datasets.emplace_back(parsed.dir, parsed.weight);
       }
+      const auto on = device->parse("lam train");
+      job->device = on.device;
+      job->precision = on.precision;
       job->out = *out;
       job->time_budget_s = *minutes * 60.0;
       job->model = *size == "tiny"    ? models::LamConfig::tiny()

@@ -31,6 +31,10 @@ struct PolicyEvalArgs {
 };
 
 int run_detector(DetectorArgs a) {
+  // The world model's --device and --precision: its replays and the detector's training.
+  const auto on = TrainingDeviceArgs{a.wm.device, a.wm.precision}.parse("policy detector");
+  a.run.device = on.device;
+  a.run.precision = on.precision;
   if (a.world_model) {
     a.run.world_model = resolve_world_model(a.wm, "policy detector");
     a.run.replay_threads =
@@ -113,7 +117,16 @@ void register_policy(CLI::App& app) {
       ->add_option("--snapshots", t->snapshots, "Steps whose weights are kept as policies (besides the last)")
       ->delimiter(',')
       ->capture_default_str();
-  train_cmd->callback([t] { set_action([t] { return recipes::train_bc(*t).is_object() ? 0 : 1; }); });
+  auto train_device = std::make_shared<TrainingDeviceArgs>();
+  train_device->add_to(train_cmd);
+  train_cmd->callback([t, train_device] {
+    set_action([t, train_device] {
+      const auto on = train_device->parse("policy train");
+      t->device = on.device;
+      t->precision = on.precision;
+      return recipes::train_bc(*t).is_object() ? 0 : 1;
+    });
+  });
 
   auto r = std::make_shared<recipes::ReaderRun>();
   auto* reader_cmd = policy->add_subcommand(

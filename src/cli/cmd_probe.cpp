@@ -24,6 +24,7 @@ void add_probe_train(CLI::App& probe) {
   auto data = std::make_shared<std::vector<std::string>>();
   auto out = std::make_shared<std::string>();
   auto minutes = std::make_shared<double>(0);
+  auto device = std::make_shared<TrainingDeviceArgs>();
   add_data_option(cmd, *data)->required();
   add_split_option(cmd, job->split);
   add_out_option(cmd, *out, "directory for checkpoint/ and loss.csv")->required();
@@ -38,8 +39,12 @@ void add_probe_train(CLI::App& probe) {
   cmd->add_option("--width", job->model.width, "Channels of the first stage")->capture_default_str();
   cmd->add_option("--save-every", job->save_every, "Checkpoint interval in steps")->capture_default_str();
   add_seed_option(cmd, job->seed);
+  device->add_to(cmd);
   cmd->callback([=] {
     set_action([=] {
+      const auto on = device->parse("probe train");
+      job->device = on.device;
+      job->precision = on.precision;
       job->datasets.assign(data->begin(), data->end());
       job->out = *out;
       job->time_budget_s = *minutes * 60.0;

@@ -74,12 +74,15 @@ void add_generate(CLI::App& sim) {
                   "the table's right); multi-view training tiles them (--views ego,side)")
       ->check(CLI::IsMember({"side"}))
       ->delimiter(',');
+  auto video_format = std::make_shared<std::string>("mp4");
+  add_video_format_option(cmd, *video_format);
   add_json_option(cmd, *json);
   cmd->callback([=] {
     set_action([=] {
       const auto [h, w] = parse_size(*size);
       o->height = static_cast<int>(h);
       o->width = static_cast<int>(w);
+      o->video_format = data::video_format_from_string(*video_format, "--video-format");
       if (!policies->empty()) {
         const auto specs =
             *policies == "default" ? recipes::default_policy_set() : recipes::read_policy_set(*policies);

@@ -37,6 +37,7 @@ struct TrainArgs {
          hard_pixel_fraction = 0;
   bool cosine = true, sample = false;
   uint64_t seed = 0;
+  TrainingDeviceArgs device;
 
   TrainArgs() {
     const auto r = train::recommended_tokenizer_options();
@@ -85,6 +86,9 @@ int run_train(const TrainArgs& a) {
   const auto batches =
       train::tokenizer_batches(datasets, clip, a.batch, a.image_batch, a.workers, a.seed, a.accumulate);
   auto o = train::recommended_tokenizer_options();
+  const auto on = a.device.parse("tokenizer train");
+  o.device = on.device;
+  o.precision = on.precision;
   o.steps = a.steps;
   o.lr = a.lr;
   o.kl_weight = a.kl;
@@ -279,6 +283,7 @@ void register_tokenizer(CLI::App& app) {
       ->capture_default_str();
   add_workers_option(train_cmd, ta->workers);
   add_seed_option(train_cmd, ta->seed);
+  ta->device.add_to(train_cmd);
   train_cmd->callback([=] { set_action([=] { return run_train(*ta); }); });
 
   auto* eval_cmd =

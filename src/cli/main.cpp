@@ -169,9 +169,11 @@ int main(int argc, char** argv) {
   cli::register_lam(app);
   cli::register_wm(app);
   cli::register_distill(app);
+#ifdef DOJO_WITH_MEDIA
   cli::register_serve(app);
   cli::register_study(app);
   cli::register_serve_load(app);
+#endif
   cli::register_launch(app);
   cli::register_metrics(app);
   cli::register_probe(app);

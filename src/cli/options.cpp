@@ -7,6 +7,7 @@
 #include <stdexcept>
 
 #include "core/error.h"
+#include "core/runtime.h"
 
 namespace dojo::cli {
 
@@ -21,6 +22,9 @@ const std::vector<SharedOption>& shared_options() {
       {"--json", "Print the result as JSON"},
       {"--out,-o", "Output"},
       {"--checkpoint,--ckpt,-c", "Checkpoint directory"},
+      {"--video-format",
+       "How the episodes store their frames: mp4 (H.264) or raw (the uint8 frames in safetensors, ~10x "
+       "larger, read and written with no video library)"},
       {"--accumulate",
        "Micro-batches per step and process: the batch splits over processes x accumulate "
        "(dojo launch); gradients add up before one optimiser step"},
@@ -46,6 +50,25 @@ CLI::Option* add_device_option(CLI::App* cmd, std::string& device) {
 CLI::Option* add_precision_option(CLI::App* cmd, std::string& precision) {
   const auto& o = shared("--precision");
   return cmd->add_option(o.names, precision, o.help)->capture_default_str();
+}
+
+CLI::Option* add_video_format_option(CLI::App* cmd, std::string& format) {
+  const auto& o = shared("--video-format");
+  return cmd->add_option(o.names, format, o.help)
+      ->check(CLI::IsMember({"mp4", "raw"}))
+      ->capture_default_str();
+}
+
+void TrainingDeviceArgs::add_to(CLI::App* cmd) {
+  add_device_option(cmd, device);
+  add_precision_option(cmd, precision);
+}
+
+TrainingDeviceArgs::Parsed TrainingDeviceArgs::parse(const std::string& trainer) const {
+  Parsed p{parse_device(device), parse_precision(precision)};
+  check_training_precision(trainer, p.precision);
+  check_precision_supported(p.precision, p.device.type());
+  return p;
 }
 
 CLI::Option* add_data_option(CLI::App* cmd, std::string& dir) {

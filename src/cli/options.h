@@ -2,9 +2,13 @@
 // gets the same name, the same alias and the same help text. Commands add the ones they use.
 #pragma once
 
+#include <c10/core/Device.h>
+
 #include <cstdint>
 #include <string>
 #include <vector>
+
+#include "core/autocast.h"
 
 namespace CLI {
 class App;
@@ -15,15 +19,28 @@ namespace dojo::cli {
 
 CLI::Option* add_device_option(CLI::App* cmd, std::string& device);        // --device
 CLI::Option* add_precision_option(CLI::App* cmd, std::string& precision);  // --precision
-CLI::Option* add_data_option(CLI::App* cmd, std::string& dir);             // --data,-d
+// A trainer's --device and --precision. parse() checks them before any work, each failure one
+// line: an unknown name, a CUDA request without CUDA, fp16 (no trainer scales its loss), or a
+// precision the device cannot run.
+struct TrainingDeviceArgs {
+  std::string device = "cpu", precision = "fp32";
+  void add_to(CLI::App* cmd);
+  struct Parsed {
+    c10::Device device;
+    Precision precision;
+  };
+  Parsed parse(const std::string& trainer) const;
+};
+CLI::Option* add_data_option(CLI::App* cmd, std::string& dir);  // --data,-d
 // --data,-d, repeatable; `extra` is appended to the help (what else the value may say).
 CLI::Option* add_data_option(CLI::App* cmd, std::vector<std::string>& dirs, const std::string& extra = "");
 CLI::Option* add_split_option(CLI::App* cmd, std::string& split);  // --split,-s
 CLI::Option* add_split_option(CLI::App* cmd, std::vector<std::string>& splits);
-CLI::Option* add_seed_option(CLI::App* cmd, uint64_t& seed);             // --seed
-CLI::Option* add_workers_option(CLI::App* cmd, int& workers);            // --workers,-j
-CLI::Option* add_accumulate_option(CLI::App* cmd, int64_t& accumulate);  // --accumulate (data parallelism)
-CLI::Option* add_json_option(CLI::App* cmd, bool& json);                 // --json
+CLI::Option* add_seed_option(CLI::App* cmd, uint64_t& seed);               // --seed
+CLI::Option* add_workers_option(CLI::App* cmd, int& workers);              // --workers,-j
+CLI::Option* add_accumulate_option(CLI::App* cmd, int64_t& accumulate);    // --accumulate (data parallelism)
+CLI::Option* add_json_option(CLI::App* cmd, bool& json);                   // --json
+CLI::Option* add_video_format_option(CLI::App* cmd, std::string& format);  // --video-format mp4|raw
 // A --data value "DIR" or "DIR:WEIGHT" (a mixture weight > 0; a colon not followed by a number
 // belongs to the path). Throws dojo::UsageError naming the value.
 struct WeightedData {

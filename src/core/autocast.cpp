@@ -52,6 +52,11 @@ void check_precision_supported(Precision precision, c10::DeviceType device) {
     throw UsageError("precision fp16 needs a CUDA device (on CPU use bf16)");
 }
 
+void check_training_precision(const std::string& trainer, Precision precision) {
+  if (precision == Precision::kFloat16)
+    throw UsageError(trainer + ": precision fp16 is not supported for training (no loss scaling); use bf16");
+}
+
 namespace {
 
 void check_device(c10::DeviceType device) {

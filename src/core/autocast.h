@@ -19,6 +19,10 @@ c10::ScalarType autocast_dtype(Precision precision);
 // Throws dojo::UsageError when `precision` cannot run on `device`: fp16 autocast is CUDA-only
 // (libtorch's CPU autocast supports bf16 only in 1.13).
 void check_precision_supported(Precision precision, c10::DeviceType device);
+// Throws dojo::UsageError, naming `trainer`, for a precision no trainer trains in: fp16's 5
+// exponent bits underflow small gradients unless the loss is scaled (no trainer scales it); bf16
+// has float32's range and is what the release trains in.
+void check_training_precision(const std::string& trainer, Precision precision);
 
 // Sets autocast for one device type (CPU or CUDA) to `enabled` with lower-precision `dtype`
 // for the guard's scope, like Python's torch.autocast(device, dtype, enabled): enabled = false

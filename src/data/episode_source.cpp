@@ -69,10 +69,9 @@ nlohmann::json EpisodeStoreSource::describe() const {
 }
 
 at::Tensor EpisodeStoreSource::read_frames(size_t index, const std::vector<int64_t>& frames) const {
-  io::VideoReaderOptions options;
-  options.threads = 1;  // the loader's parallelism comes from its workers
-  io::VideoReader reader(store_.video_path(index, camera_).string(), options);
-  return reader.read_frames(frames);  // [N, H, W, 3] u8
+  // One decoder thread: the loader's parallelism comes from its workers.
+  return read_video_frames(store_.video_path(index, camera_), frames,
+                           /*decoder_threads=*/1);  // [N, H, W, 3] u8
 }
 
 std::shared_ptr<const EpisodeSource> open_dataset(const fs::path& path, const OpenOptions& options) {
@@ -102,7 +101,9 @@ std::shared_ptr<const EpisodeSource> open_dataset(const fs::path& path, const Op
     return open_dataset(path, one);
   }
   if (fs::exists(path / "meta" / "info.json")) return LeRobotDataset::open(path, options);
+#ifdef DOJO_WITH_MEDIA
   if (looks_like_egodex(path)) return EgoDexDataset::open(path);
+#endif
   if (looks_like_video_folder(path)) {
     VideoFolderOptions vf;
     vf.skip_dreamdojo_names = options.skip_dreamdojo_names;
@@ -165,6 +166,7 @@ ConvertResult convert_dataset(const EpisodeSource& source, const fs::path& dst, 
                         {"height", options.height},
                         {"width", options.width},
                         {"limit", options.limit}};
+  if (options.video_format != VideoFormat::kMp4) job["video_format"] = to_string(options.video_format);
   const fs::path job_path = dst / "convert.json";
   if (fs::exists(job_path)) {
     if (read_json_file(job_path) != job)
@@ -180,6 +182,7 @@ ConvertResult convert_dataset(const EpisodeSource& source, const fs::path& dst, 
 
   DatasetInfo info = src;
   info.episodes.clear();
+  info.video_format = options.video_format;
   info.generator = {{"converted_from", job["source"]}, {"source_format", source.format()}};
   ConvertResult result;
   StatsAccumulator action_acc, state_acc;
@@ -210,7 +213,7 @@ ConvertResult convert_dataset(const EpisodeSource& source, const fs::path& dst, 
             io::resize_center_crop(episode.frames, options.height, options.width);  // [T, h, w, 3]
       episode.meta["task"] = entry.task;
       episode.meta["source"] = source.episode_location(i);
-      write_episode(dir, episode, src.fps);
+      write_episode(dir, episode, src.fps, options.video_format);
       arrays = episode;
       ++result.converted;
     }

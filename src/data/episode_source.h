@@ -110,6 +110,7 @@ std::filesystem::path write_stats(const EpisodeSource& source, const nlohmann::j
 struct ConvertOptions {
   int height = 0, width = 0;  // centre-crop + resize frames to HxW; 0 = keep the stored size
   int64_t limit = -1;         // convert only the first N episodes (< 0: all)
+  VideoFormat video_format = VideoFormat::kMp4;  // how the converted episodes store their frames
 };
 
 struct ConvertResult {

@@ -27,7 +27,30 @@ Embodiment embodiment_from_string(const std::string& name, const std::string& wh
   throw Error(where + ": unknown embodiment '" + name + "' (expected human or robot)");
 }
 
+std::string to_string(VideoFormat format) { return format == VideoFormat::kRaw ? "raw" : "mp4"; }
+
+VideoFormat video_format_from_string(const std::string& name, const std::string& where) {
+  if (name == "mp4") return VideoFormat::kMp4;
+  if (name == "raw") return VideoFormat::kRaw;
+  throw Error(where + ": unknown video format '" + name + "' (expected mp4 or raw)");
+}
+
 namespace {
+
+const char* video_extension(VideoFormat format) {
+  return format == VideoFormat::kRaw ? ".safetensors" : ".mp4";
+}
+
+bool is_raw_video(const fs::path& file) { return file.extension() == ".safetensors"; }
+
+// The frames of a raw video file, a view of its mapping (valid while `file` lives).
+at::Tensor raw_frames(const SafetensorsFile& file, const fs::path& path) {
+  DOJO_CHECK(file.contains("frames"), path.string() + ": no tensor 'frames'");
+  auto frames = file.tensor("frames");
+  DOJO_CHECK(frames.dim() == 4 && frames.size(3) == 3 && frames.scalar_type() == torch::kUInt8,
+             path.string() + ": 'frames' must be [T, H, W, 3] uint8");
+  return frames;
+}
 
 void check_finite(const at::Tensor& t, const std::string& what, const fs::path& where) {
   if (t.defined() && !torch::isfinite(t).all().item<bool>())
@@ -36,7 +59,7 @@ void check_finite(const at::Tensor& t, const std::string& what, const fs::path& 
 
 }  // namespace
 
-void write_episode(const fs::path& dir, const EpisodeData& episode, double fps) {
+void write_episode(const fs::path& dir, const EpisodeData& episode, double fps, VideoFormat format) {
   DOJO_CHECK(episode.frames.defined() && episode.frames.dim() == 4 && episode.frames.size(3) == 3 &&
                  episode.frames.scalar_type() == torch::kUInt8,
              dir.string() + ": frames must be [T, H, W, 3] uint8");
@@ -64,14 +87,21 @@ void write_episode(const fs::path& dir, const EpisodeData& episode, double fps) 
     // random access cheap, and a high quality keeps the world model's targets clean.
     options.keyframe_interval = 8;
     options.crf = 15;
-    io::write_video((tmp / "video.mp4").string(), episode.frames, options);
+    const auto write = [&](const std::string& name, const at::Tensor& frames) {
+      const auto file = tmp / (name + video_extension(format));
+      if (format == VideoFormat::kRaw)
+        save_safetensors(file, {{"frames", frames.contiguous()}});
+      else
+        io::write_video(file.string(), frames, options);
+    };
+    write("video", episode.frames);
     for (const auto& [camera, frames] : episode.views) {
       DOJO_CHECK(
           frames.dim() == 4 && frames.size(0) == t && frames.scalar_type() == torch::kUInt8,
           dir.string() + ": camera '" + camera + "' needs [T, H, W, 3] uint8 frames, T as the main video");
       DOJO_CHECK(!camera.empty() && camera != "video" && camera.find('/') == std::string::npos,
                  dir.string() + ": bad camera name '" + camera + "'");
-      io::write_video((tmp / (camera + ".mp4")).string(), frames, options);
+      write(camera, frames);
     }
   }
   NamedTensors arrays;
@@ -125,6 +155,7 @@ nlohmann::json DatasetInfo::to_json() const {
   j["state_names"] = state_names;
   if (!keypoint_names.empty()) j["keypoint_names"] = keypoint_names;
   if (!cameras.empty()) j["cameras"] = cameras;
+  if (video_format != VideoFormat::kMp4) j["video_format"] = data::to_string(video_format);
   j["num_episodes"] = episodes.size();
   j["num_frames"] = total_frames();
   j["splits"] = split_counts();
@@ -158,6 +189,8 @@ DatasetInfo DatasetInfo::from_json(const nlohmann::json& j, const std::string& w
     info.state_names = j.value("state_names", std::vector<std::string>{});
     info.keypoint_names = j.value("keypoint_names", std::vector<std::string>{});
     info.cameras = j.value("cameras", std::vector<std::string>{});
+    info.video_format = video_format_from_string(j.value("video_format", std::string("mp4")),
+                                                 where + ": field 'video_format'");
     if (j.contains("stats")) {
       const auto& stats = j.at("stats");
       if (stats.contains("action"))
@@ -208,14 +241,14 @@ fs::path EpisodeStore::episode_dir(size_t index) const {
 fs::path EpisodeStore::video_path(size_t index, const std::string& camera) const {
   const auto& cameras = info_.cameras;
   if (camera.empty() || (!cameras.empty() && camera == cameras.front()))
-    return episode_dir(index) / "video.mp4";
+    return episode_dir(index) / (std::string("video") + video_extension(info_.video_format));
   if (std::find(cameras.begin() + (cameras.empty() ? 0 : 1), cameras.end(), camera) == cameras.end()) {
     std::string known;
     for (const auto& c : cameras) known += (known.empty() ? "" : ", ") + c;
     throw Error(dir_.string() + ": no camera '" + camera + "' (" +
                 (known.empty() ? std::string("one camera recorded") : "cameras: " + known) + ")");
   }
-  return episode_dir(index) / (camera + ".mp4");
+  return episode_dir(index) / (camera + video_extension(info_.video_format));
 }
 
 std::vector<size_t> EpisodeStore::split_indices(const std::string& split) const {
@@ -263,12 +296,7 @@ EpisodeData EpisodeStore::load_arrays(size_t index) const {
 
 EpisodeData EpisodeStore::load(size_t index) const {
   EpisodeData data = load_arrays(index);
-  io::VideoReader reader(video_path(index).string());
-  const int64_t frames = info_.episodes[index].frames;
-  if (reader.info().frames != frames)
-    throw Error(video_path(index).string() + ": video has " + std::to_string(reader.info().frames) +
-                " frames, the dataset lists " + std::to_string(frames));
-  data.frames = reader.read_range(0, frames, 1);
+  data.frames = read_all_video_frames(video_path(index), info_.episodes[index].frames);
   return data;
 }
 
@@ -279,6 +307,42 @@ std::string EpisodeStore::check_episode(size_t index) const {
   } catch (const std::exception& e) {
     return e.what();
   }
+}
+
+at::Tensor read_video_frames(const fs::path& file, const std::vector<int64_t>& indices, int decoder_threads) {
+  if (!is_raw_video(file)) {
+    io::VideoReaderOptions options;
+    options.threads = decoder_threads;
+    io::VideoReader reader(file.string(), options);
+    return reader.read_frames(indices);
+  }
+  if (!fs::exists(file)) throw Error(file.string() + ": missing");
+  const auto mapped = SafetensorsFile::open(file);
+  const auto frames = raw_frames(mapped, file);  // [T, H, W, 3] u8
+  for (int64_t i : indices)
+    DOJO_CHECK(i >= 0 && i < frames.size(0), file.string() + ": frame " + std::to_string(i) +
+                                                 " out of range (" + std::to_string(frames.size(0)) +
+                                                 " frames)");
+  return frames.index_select(0, torch::tensor(indices, torch::kLong));  // a copy: outlives the mapping
+}
+
+at::Tensor read_all_video_frames(const fs::path& file, int64_t expected) {
+  int64_t found = 0;
+  at::Tensor frames;
+  if (is_raw_video(file)) {
+    if (!fs::exists(file)) throw Error(file.string() + ": missing");
+    const auto mapped = SafetensorsFile::open(file);
+    frames = raw_frames(mapped, file).clone();
+    found = frames.size(0);
+  } else {
+    io::VideoReader reader(file.string());
+    found = reader.info().frames;
+    if (found == expected) frames = reader.read_range(0, expected, 1);
+  }
+  if (found != expected)
+    throw Error(file.string() + ": video has " + std::to_string(found) + " frames, the dataset lists " +
+                std::to_string(expected));
+  return frames;
 }
 
 }  // namespace dojo::data

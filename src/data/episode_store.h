@@ -3,6 +3,8 @@
 //   DIR/info.json                     dataset description, per-dimension statistics, splits
 //   DIR/episodes/000042/video.mp4     H.264 frames (the first camera of info.json's "cameras")
 //   DIR/episodes/000042/<camera>.mp4  the other cameras' frames, when the dataset records several
+//                                     (info.json "video_format": "raw": video.safetensors and
+//                                     <camera>.safetensors, the frames themselves, see VideoFormat)
 //   DIR/episodes/000042/data.safetensors  "action" [T, A] f32, "state" [T, S] f32,
 //                                     "hidden_motion" [T, M] f32 (optional; evaluation only),
 //                                     "keypoints" [T, 3K] f32 (optional; simulator ground truth:
@@ -30,6 +32,21 @@
 namespace dojo::data {
 
 enum class Embodiment { kHuman, kRobot };
+
+// How episodes store their frames: H.264 in .mp4 files (the default: about a tenth of the size),
+// or raw, the uint8 frames in .safetensors files ("frames" [T, H, W, 3]), which need no video
+// library to read or write: a build without FFmpeg (DOJO_WITH_MEDIA=OFF, e.g. trainers on a GPU
+// machine) reads and writes only those.
+enum class VideoFormat { kMp4, kRaw };
+std::string to_string(VideoFormat format);  // "mp4" | "raw"
+// Throws dojo::Error naming `where` for an unknown name.
+VideoFormat video_format_from_string(const std::string& name, const std::string& where);
+// Frames `indices` (in the order given, duplicates allowed) of an episode video file of either
+// format, told apart by its extension: [N, H, W, 3] uint8. Errors name the file and the index.
+at::Tensor read_video_frames(const std::filesystem::path& file, const std::vector<int64_t>& indices,
+                             int decoder_threads = 0);
+// Every frame of such a file, checked to be `expected` of them (the dataset's count).
+at::Tensor read_all_video_frames(const std::filesystem::path& file, int64_t expected);
 std::string to_string(Embodiment embodiment);
 // Throws dojo::Error naming `where` for an unknown name.
 Embodiment embodiment_from_string(const std::string& name, const std::string& where);
@@ -49,7 +66,8 @@ struct EpisodeData {
 };
 
 // Writes one episode directory atomically. `fps` goes into the video container.
-void write_episode(const std::filesystem::path& dir, const EpisodeData& episode, double fps);
+void write_episode(const std::filesystem::path& dir, const EpisodeData& episode, double fps,
+                   VideoFormat format = VideoFormat::kMp4);
 
 // One row of info.json's episode table.
 struct EpisodeEntry {
@@ -71,6 +89,7 @@ struct DatasetInfo {
   // Cameras recorded, the main one (video.mp4) first; empty: one camera. Keypoints are the
   // main camera's.
   std::vector<std::string> cameras;
+  VideoFormat video_format = VideoFormat::kMp4;  // info.json "video_format" (absent: mp4)
   std::optional<ArrayStats> action_stats, state_stats;
   std::vector<EpisodeEntry> episodes;
   nlohmann::json generator = nlohmann::json::object();  // how the data was made (seed, options)

@@ -1,6 +1,5 @@
 // VideoReader: frame-accurate random access to any video FFmpeg decodes (index built by
-// demuxing, seeking, decoding, RGB conversion), probe_video, measure_decode_fps and
-// VideoInfo::to_json.
+// demuxing, seeking, decoding, RGB conversion), probe_video and measure_decode_fps.
 #include "io/video.h"
 
 #include <torch/torch.h>
@@ -36,22 +35,6 @@ namespace fs = std::filesystem;
 constexpr int64_t kMinFramesSkippedBySeek = 8;
 
 }  // namespace
-
-// =============================================================================================
-// VideoInfo
-
-nlohmann::json VideoInfo::to_json() const {
-  return {{"path", path},
-          {"frames", frames},
-          {"width", width},
-          {"height", height},
-          {"fps", fps},
-          {"codec", codec},
-          {"container", container},
-          {"duration_s", duration_s},
-          {"pixel_format", pixel_format},
-          {"keyframes", keyframes}};
-}
 
 // =============================================================================================
 // VideoReader

@@ -170,7 +170,7 @@ static nn::Sequential make_ffn(int64_t dim, double dropout) {
   return nn::Sequential(nn::Linear(dim, dim * 4), nn::GELU(), nn::Dropout(dropout), nn::Linear(dim * 4, dim));
 }
 
-static nn::LayerNorm make_norm(int64_t dim) { return nn::LayerNorm(nn::LayerNormOptions({dim})); }
+static LamLayerNorm make_norm(int64_t dim) { return LamLayerNorm(dim); }
 
 LamSpatioTemporalBlockImpl::LamSpatioTemporalBlockImpl(int64_t dim, int64_t heads, double dropout) {
   spatial_attn = register_module("spatial_attn", LamSelfAttention(dim, heads, dropout, false));

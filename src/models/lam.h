@@ -59,6 +59,17 @@ struct LamRotaryImpl : torch::nn::Module {
 };
 TORCH_MODULE(LamRotary);
 
+// LayerNorm computed in float32 whatever its input, the result in the input's dtype: under
+// autocast the linear layers hand it bf16, which libtorch 1.13's CPU kernel refuses beside
+// float32 weights (CUDA autocast runs layer_norm in float32 too). Float32 input: torch's own.
+struct LamLayerNormImpl : torch::nn::LayerNormImpl {
+  explicit LamLayerNormImpl(int64_t dim) : torch::nn::LayerNormImpl(torch::nn::LayerNormOptions({dim})) {}
+  torch::Tensor forward(const torch::Tensor& x) {
+    return torch::nn::LayerNormImpl::forward(x.to(torch::kFloat32)).to(x.scalar_type());
+  }
+};
+TORCH_MODULE(LamLayerNorm);
+
 // Multi-head self-attention: to_q/to_k/to_v without bias, to_out = (Linear, Dropout).
 struct LamSelfAttentionImpl : torch::nn::Module {
   LamSelfAttentionImpl(int64_t dim, int64_t heads, double dropout, bool rotary);
@@ -76,7 +87,7 @@ struct LamSpatioTemporalBlockImpl : torch::nn::Module {
   torch::Tensor forward(const torch::Tensor& x);  // [B, T, S, E] -> same
   LamSelfAttention spatial_attn{nullptr}, temporal_attn{nullptr};
   torch::nn::Sequential ffn{nullptr};
-  torch::nn::LayerNorm norm1{nullptr}, norm2{nullptr}, norm3{nullptr};
+  LamLayerNorm norm1{nullptr}, norm2{nullptr}, norm3{nullptr};
 };
 TORCH_MODULE(LamSpatioTemporalBlock);
 
@@ -86,7 +97,7 @@ struct LamSpatioBlockImpl : torch::nn::Module {
   torch::Tensor forward(const torch::Tensor& x);  // [B, T, S, E] -> same
   LamSelfAttention spatial_attn{nullptr};
   torch::nn::Sequential ffn{nullptr};
-  torch::nn::LayerNorm norm1{nullptr}, norm2{nullptr};
+  LamLayerNorm norm1{nullptr}, norm2{nullptr};
 };
 TORCH_MODULE(LamSpatioBlock);
 

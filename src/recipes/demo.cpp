@@ -139,9 +139,8 @@ void link_if_absent(const fs::path& from, const fs::path& to) {
   fs::rename(partial, to);
 }
 
-// Where a stage computes. The stages whose trainers ignore --device (data generation, the LAM,
-// the tokenizer, the probe, the student's distillation and the fast decoder) compute on the CPU in
-// float32 whatever was asked, and say so.
+// Where a stage computes: every trainer and rollout on the device and precision asked; data
+// generation (DojoSim) and a copied tokenizer on the CPU in float32, and they say so.
 struct RunsOn {
   std::string device = "cpu", precision = "fp32";
 };
@@ -340,8 +339,8 @@ DemoSummary run_demo(const DemoOptions& o) {
     return o.minutes > 0 ? nlohmann::json{{"minutes", o.minutes}} : nlohmann::json{{"steps", steps.at(name)}};
   };
   nlohmann::json stages;
-  // Where the stages compute: the world model's training and every rollout on the device and
-  // precision asked; the rest on the CPU in float32 (their trainers take no device).
+  // Where the stages compute: every trainer and rollout on the device and precision asked; DojoSim
+  // and a copied tokenizer on the CPU.
   const RunsOn on_cpu;
   const RunsOn as_asked{device.str(), to_string(precision)};
 
@@ -388,7 +387,7 @@ DemoSummary run_demo(const DemoOptions& o) {
   // 2. Latent action model on human and robot video (no actions used).
   LOG_INFO("[2/10] LAM: latent actions from video alone");
   const Stage lam_stage{
-      "lam", {{"budget", budget_settings("lam")}, {"data", stages["data"]}}, on_cpu, {"lam"}};
+      "lam", {{"budget", budget_settings("lam")}, {"data", stages["data"]}}, as_asked, {"lam"}};
   stages["lam"] = run_stage(out, lam_stage, o.seed, [&] {
     train::LamTrainJob lam;
     lam.datasets = {{out / "human", 1.0}, {out / "robot", 1.0}};
@@ -400,7 +399,9 @@ DemoSummary run_demo(const DemoOptions& o) {
     lam.time_budget_s = stage_minutes("lam") * 60;
     lam.save_every = 100;
     lam.seed = o.seed;
-    ScopedThreads matmul_bound(matmul_threads(/*on_cuda=*/false));
+    lam.device = device;
+    lam.precision = precision;
+    ScopedThreads matmul_bound(matmul_threads(device.is_cuda()));
     const auto s = train::run_lam_training(lam);
     return nlohmann::json{{"mse", s.mse}, {"psnr", s.psnr}};
   });
@@ -427,7 +428,7 @@ DemoSummary run_demo(const DemoOptions& o) {
     LOG_INFO("[3/10] tokenizer: Wan2.1-architecture VAE");
     const Stage tokenizer_stage{"tokenizer",
                                 {{"budget", budget_settings("tokenizer")}, {"data", stages["data"]}},
-                                on_cpu,
+                                as_asked,
                                 {"tokenizer"}};
     stages["tokenizer"] = run_stage(out, tokenizer_stage, o.seed, [&] {
       discard_models_on_old_latents(out);
@@ -460,6 +461,8 @@ DemoSummary run_demo(const DemoOptions& o) {
       t.loss_curve = out / "tokenizer" / "loss.csv";
       t.stats_batches = 8;
       t.next_image_batch = batches.images;
+      t.device = device;
+      t.precision = precision;
       fs::create_directories(out / "tokenizer");
       torch::manual_seed(o.seed);
       const auto r = train::train_tokenizer(vae, batches.clips, t);
@@ -472,7 +475,7 @@ DemoSummary run_demo(const DemoOptions& o) {
   LOG_INFO("[4/10] keypoint probe: finds the arm and the hand in a frame");
   const fs::path probe_dir = out / "probe" / "checkpoint";
   const Stage probe_stage{
-      "probe", {{"budget", budget_settings("probe")}, {"data", stages["data"]}}, on_cpu, {"probe"}};
+      "probe", {{"budget", budget_settings("probe")}, {"data", stages["data"]}}, as_asked, {"probe"}};
   stages["probe"] = run_stage(out, probe_stage, o.seed, [&] {
     train::ProbeTrainJob job;
     job.datasets = {out / "robot", out / "human"};
@@ -480,6 +483,8 @@ DemoSummary run_demo(const DemoOptions& o) {
     job.steps = o.minutes > 0 ? 1000000 : o.probe_steps;
     job.time_budget_s = stage_minutes("probe") * 60;
     job.seed = o.seed;
+    job.device = device;
+    job.precision = precision;
     const auto r = train::run_probe_training(job);
     auto probe = models::load_keypoint_probe(probe_dir);
     const auto accuracy = eval::probe_accuracy(probe, {out / "robot"}, "val");
@@ -568,7 +573,7 @@ DemoSummary run_demo(const DemoOptions& o) {
                              {"sink_frames", sink_frames},
                              {"max_clips", o.max_clips},
                              {"teacher", stages["wm_posttrain"]}},
-                            on_cpu,
+                            as_asked,
                             {"student_warmup", "student"}};
   stages["student"] = run_stage(out, student_stage, o.seed, [&] {
     train::DistillJob job;
@@ -594,7 +599,9 @@ DemoSummary run_demo(const DemoOptions& o) {
     job.steps = o.warmup_steps;
     job.save_every = 100;
     job.seed = o.seed;
-    job.matmul_threads = matmul_threads(false);  // once the latent caches are encoded
+    job.device = device;
+    job.precision = precision;
+    job.matmul_threads = matmul_threads(device.is_cuda());  // once the latent caches are encoded
     const auto warmup = train::run_distillation(job);
     job.stage = train::DistillStage::kSelfForcing;
     job.init = out / "student_warmup" / "checkpoint";
@@ -619,7 +626,7 @@ DemoSummary run_demo(const DemoOptions& o) {
                                   {"tokenizer", stages["tokenizer"]},
                                   {"data", stages["data"]},
                                   {"max_clips", o.max_clips}},
-                                 on_cpu,
+                                 as_asked,
                                  {"fast_decoder"}};
   stages["fast_decoder"] = run_stage(out, fast_decoder_stage, o.seed, [&] {
     train::FastDecoderJob job;
@@ -634,6 +641,8 @@ DemoSummary run_demo(const DemoOptions& o) {
     job.batch_size = 4;  // half the default: the demo's time budget
     job.steps = o.fast_decoder_steps;
     job.seed = o.seed;
+    job.device = device;
+    job.precision = precision;
     // Convolutions (the Wan encoder and decoder, the fast decoder): every thread, unlike the
     // matmul-bound stages. 1.54x the steps/s of one thread (docs/benchmarks.md).
     const auto r = train::run_fast_decoder_training(job);

@@ -274,6 +274,8 @@ nlohmann::json train_bc(const BcRun& a) {
   job.accumulate = a.accumulate;
   job.snapshots = a.snapshots;
   job.shift = a.shift;
+  job.device = a.device;
+  job.precision = a.precision;
   const auto r = train::run_bc_training(job);
   nlohmann::json snapshots = nlohmann::json::array();
   for (const auto& s : r.snapshots) snapshots.push_back(s.string());
@@ -393,6 +395,8 @@ nlohmann::json train_detector(const DetectorRun& a) {
   job.steps = a.steps;
   job.accumulate = a.accumulate;
   job.model = model;
+  job.device = a.device;
+  job.precision = a.precision;
   const auto r = train::run_success_training(job);
   const auto accuracy = [](const train::SuccessAccuracy& s) {
     return nlohmann::json{{"accuracy", s.accuracy},

@@ -18,6 +18,7 @@
 #include <string>
 #include <vector>
 
+#include "core/autocast.h"
 #include "eval/policy_eval.h"
 #include "models/success_detector.h"
 #include "recipes/dojosim_policies.h"
@@ -74,6 +75,8 @@ struct BcRun {
   std::vector<int64_t> snapshots = {200, 500, 1000};
   double noise = 0.03;
   uint64_t seed = 20000;
+  torch::Device device = torch::kCPU;  // where the policy trains (rendering stays in DojoSim)
+  Precision precision = Precision::kFloat32;
 };
 nlohmann::json train_bc(const BcRun& run);  // OUT/result.json's content
 
@@ -97,7 +100,9 @@ struct DetectorRun {
   uint64_t seed = 9000;
   // Frames from this world model's replays of the episodes (labels from DojoSim); none: DojoSim's.
   std::optional<WorldModelSource> world_model;
-  int replay_threads = 0;  // intra-op threads while the world model replays (0: as they are)
+  int replay_threads = 0;              // intra-op threads while the world model replays (0: as they are)
+  torch::Device device = torch::kCPU;  // where the detector trains
+  Precision precision = Precision::kFloat32;
 };
 nlohmann::json train_detector(const DetectorRun& run);
 

@@ -51,6 +51,7 @@ nlohmann::json GenerateOptions::to_json() const {
   if (play_fraction > 0) j["play_fraction"] = play_fraction;
   if (!cameras.empty()) j["cameras"] = cameras;
   if (!play_behaviors.empty()) j["play_behaviors"] = play_behaviors;
+  if (video_format != data::VideoFormat::kMp4) j["video_format"] = data::to_string(video_format);
   if (!policies.empty()) {
     auto& list = j["policies"] = nlohmann::json::array();
     for (const auto& p : policies)
@@ -185,7 +186,7 @@ std::string episode_id(int index) {
 
 bool episode_complete(const fs::path& dir) {
   return fs::exists(dir / "meta.json") && fs::exists(dir / "data.safetensors") &&
-         fs::exists(dir / "video.mp4");
+         (fs::exists(dir / "video.mp4") || fs::exists(dir / "video.safetensors"));
 }
 
 // Refuses to mix two different runs in one directory; records the options of a new run.
@@ -222,6 +223,7 @@ data::DatasetInfo build_info(const fs::path& out, const GenerateOptions& options
   info.width = options.width;
   info.generator = options.to_json();
   info.generator["engine"] = "dojosim";
+  info.video_format = options.video_format;
   if (!options.cameras.empty()) {
     info.cameras = {"ego"};
     info.cameras.insert(info.cameras.end(), options.cameras.begin(), options.cameras.end());
@@ -324,7 +326,7 @@ GenerateSummary generate_dataset(const fs::path& out, const GenerateOptions& opt
         episode.meta["split"] = plans[index].split;
         episode.meta["episode_index"] = index;
         if (!plans[index].policy.empty()) episode.meta["policy"] = plans[index].policy;
-        data::write_episode(out / "episodes" / episode_id(index), episode, 10.0);
+        data::write_episode(out / "episodes" / episode_id(index), episode, 10.0, options.video_format);
         frames += static_cast<int64_t>(record.frames.size());
         std::lock_guard<std::mutex> lock(mutex);
         progress.advance(1);

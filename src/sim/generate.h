@@ -11,6 +11,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "data/episode_store.h"
 #include "sim/skills.h"
 
 namespace dojo::sim {
@@ -60,6 +61,8 @@ struct GenerateOptions {
   // Cameras recorded beside "ego", each as <camera>.mp4 in every episode ("side": a fixed view
   // from the table's right). Multi-view training tiles them (data/multi_view.h).
   std::vector<std::string> cameras;
+  // How the episodes store their frames (data::VideoFormat): raw needs no video library.
+  data::VideoFormat video_format = data::VideoFormat::kMp4;
 
   nlohmann::json to_json() const;
 };

@@ -166,6 +166,8 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
   loop.seed = job.seed;
   loop.batch_size = job.batch_size;
   loop.accumulate = job.accumulate;
+  loop.device = job.device;
+  loop.precision = job.precision;
   const auto run = run_adamw_loop(
       *policy, loop, [&] { return models::bc_policy_checkpoint(*policy); },
       [&](const LoopStep&, int64_t batch, torch::Generator& gen) {
@@ -175,11 +177,16 @@ BcTrainResult run_bc_training(const BcTrainJob& job) {
         auto images = models::bc_input(policy, b.frames);  // [B, 3, S, S]
         images = random_shift(images, job.shift, gen);
         images = soften_like_generated(images, job.blur_probability, job.brightness, gen);
-        const auto predicted = policy->forward(images, policy->normalise_command(b.last));  // [B, chunk, A]
+        const auto last = b.last.to(job.device);
+        const auto predicted =
+            policy->forward(images.to(job.device), policy->normalise_command(last));  // [B, chunk, A]
         return AdamwStep{
-            torch::mse_loss(predicted, policy->commands_to_offsets(b.target, b.last)), images.size(0), {}};
+            torch::mse_loss(predicted, policy->commands_to_offsets(b.target.to(job.device), last)),
+            images.size(0),
+            {}};
       },
       [&](int64_t steps_done) { snapshots.after_step(steps_done); });
+  policy->to(torch::kCPU);                    // scored below on the CPU's frames
   snapshots.at_end(run.end_step, job.steps);  // the finished policy is a snapshot too
   BcTrainResult r;
   r.steps = run.end_step;

@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <vector>
 
+#include "core/autocast.h"
 #include "models/bc_policy.h"
 
 namespace dojo::train {
@@ -42,6 +43,10 @@ struct BcTrainJob {
   // are absolute joint targets, so a shifted frame teaches a wrong target (4 px is ~4 cm here).
   int64_t shift = 0;
   uint64_t seed = 0;
+  // Where it trains (the model moves there; draws stay on the CPU) and at what precision (bf16:
+  // the forward pass under autocast, weights and checkpoints float32).
+  torch::Device device = torch::kCPU;
+  Precision precision = Precision::kFloat32;
 };
 
 struct BcTrainResult {

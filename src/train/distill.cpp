@@ -33,8 +33,10 @@ namespace {
 // the query steps and the final x0, frame 0 the clean conditioning latent: [n, P, 16, 4, h, w].
 torch::Tensor teacher_points(models::ActionDitImpl& teacher, const diffusion::SigmaSchedule& schedule,
                              const torch::Tensor& x0, const torch::Tensor& actions,
-                             const torch::Tensor& noise, const std::vector<int>& query_steps) {
+                             const torch::Tensor& noise, const std::vector<int>& query_steps,
+                             Precision precision) {
   torch::NoGradGuard no_grad;
+  AutocastGuard autocast(x0.device().type(), precision);
   auto mask = torch::zeros_like(x0.narrow(1, 0, 1));  // [n, 1, 4, h, w]
   mask.narrow(2, 0, 1).fill_(1);
   const diffusion::VelocityFn velocity = [&](const torch::Tensor& x, double, int64_t timestep) {
@@ -59,11 +61,13 @@ torch::Tensor teacher_points(models::ActionDitImpl& teacher, const diffusion::Si
 // teacher's own pixel rollouts decode that chunk and re-encode its last frame instead: a
 // single-frame latent where this one holds frames 9-12, an approximation); its noise is drawn per
 // clip (clip_ids) and chunk. Chunk c with seed s draws what chunk 0 with seed s + 1000003·c draws.
+// Computed where the teacher's weights are; returned on the CPU.
 torch::Tensor chained_teacher_points(models::ActionDitImpl& teacher, const diffusion::SigmaSchedule& schedule,
                                      const torch::Tensor& first, const torch::Tensor& actions,
                                      const std::vector<int64_t>& clip_ids, const TrajectorySpec& spec) {
   const int64_t P = static_cast<int64_t>(spec.query_steps.size()) + 1;
-  auto anchor = first;  // [m, 16, 1, h, w]
+  const auto device = teacher.parameters().front().device();
+  auto anchor = first.to(device);  // [m, 16, 1, h, w]
   std::vector<torch::Tensor> pieces;
   for (int c = 0; c < spec.chunks; ++c) {
     std::vector<torch::Tensor> noise;
@@ -73,13 +77,13 @@ torch::Tensor chained_teacher_points(models::ActionDitImpl& teacher, const diffu
       noise.push_back(torch::randn({first.size(1), 4, first.size(3), first.size(4)}, g));
     }
     const auto x0 = torch::cat({anchor, torch::zeros_like(anchor).expand({-1, -1, 3, -1, -1})}, 2);
-    const auto points =
-        teacher_points(teacher, schedule, x0, actions.narrow(1, 12 * c, 12), torch::stack(noise),
-                       spec.query_steps);  // [m, P, 16, 4, h, w]
+    const auto points = teacher_points(teacher, schedule, x0, actions.narrow(1, 12 * c, 12).to(device),
+                                       torch::stack(noise).to(device), spec.query_steps,
+                                       spec.precision);  // [m, P, 16, 4, h, w]
     pieces.push_back(c == 0 ? points : points.narrow(3, 1, 3));
     anchor = points.select(1, P - 1).narrow(2, 3, 1);  // the chunk's last latent, clean
   }
-  return torch::cat(pieces, 3);
+  return torch::cat(pieces, 3).to(torch::kCPU);
 }
 }  // namespace
 
@@ -117,6 +121,7 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
                          {"seed", spec.seed}};
   if (spec.counterfactual_copies > 0) meta["counterfactual_copies"] = spec.counterfactual_copies;
   if (spec.chunks > 1) meta["chunks"] = spec.chunks;
+  if (spec.precision != Precision::kFloat32) meta["precision"] = dojo::to_string(spec.precision);
   fs::create_directories(dir);
   // Trajectory j: clip j % N's first frame and noise, with the actions of clip (j + k·stride) % N
   // for copy k = j / N (k = 0: its own). The stride spreads the copies over far-apart clips, whose
@@ -215,19 +220,22 @@ torch::Tensor warmup_loss_at(models::ActionDitImpl& student, const torch::Tensor
   DOJO_CHECK(index.size(0) == B && index.size(1) == T, "warmup: one trajectory point per clip and frame");
   index = index.clone();            // the point of every frame
   index.select(1, 0).fill_(P - 1);  // frame 0: clean
+  const auto device = student.parameters().front().device();
   const auto b = torch::arange(B).unsqueeze(1), f = torch::arange(T).unsqueeze(0);
   const auto x = points.permute({0, 3, 1, 2, 4, 5})
-                     .index({b, f, index})       // [B, T, 16, h, w]
-                     .permute({0, 2, 1, 3, 4});  // [B, 16, T, h, w]
+                     .index({b, f, index})  // [B, T, 16, h, w]
+                     .permute({0, 2, 1, 3, 4})
+                     .to(device);  // [B, 16, T, h, w]
   const auto sigma = (torch::tensor(timesteps, torch::kFloat64).to(torch::kFloat32) / 1000.0)
                          .index({index})
-                         .to(x.device());       // [B, T]
-  const auto target = points.select(1, P - 1);  // [B, 16, T, h, w]
+                         .to(device);                      // [B, T]
+  const auto target = points.select(1, P - 1).to(device);  // [B, 16, T, h, w]
   const auto& c = student.config;
   const int64_t tokens = (x.size(3) / c.patch_spatial) * (x.size(4) / c.patch_spatial);
   models::DitInputs base;
-  base.actions = actions;
-  base.self_attn_mask = models::dit_block_causal_mask(T, tokens, 0, window_frames + 1, sink_frames);
+  base.actions = actions.to(device);
+  base.self_attn_mask =
+      models::dit_block_causal_mask(T, tokens, 0, window_frames + 1, sink_frames).to(device);
   const auto x0 = infer::student_x0_rf(student, base, x, sigma);  // [B, 16, T, h, w]
   return (x0 - target).narrow(2, 1, T - 1).pow(2).mean();
 }
@@ -360,8 +368,10 @@ DistillResult run_warmup(const DistillJob& job) {
   const auto& fingerprint = data.fingerprint;
   const double shift = data.shift;
 
-  auto teacher = models::load_world_model(job.teacher);
-  const auto trajectories = load_or_build_trajectories(*teacher, shift, clips, job.trajectories, fingerprint,
+  auto teacher = models::load_world_model(job.teacher, job.device);
+  auto trajectory_spec = job.trajectories;
+  trajectory_spec.precision = job.precision;
+  const auto trajectories = load_or_build_trajectories(*teacher, shift, clips, trajectory_spec, fingerprint,
                                                        job.out / "trajectories");
   const int64_t n = trajectories.size();
   // Trajectory j is clip j % N under copy j / N's actions (N clips; copy 0 its own).
@@ -401,7 +411,7 @@ DistillResult run_warmup(const DistillJob& job) {
   // LoRA distillation trains the adapters alone: the action MLPs already read the actions.
   if (student->config.lora.enabled())
     freeze_all_but_adapters(*student, /*train_action_mlps=*/false, "distill");
-  WmTrainer trainer(student, job.options);
+  WmTrainer trainer(student, job.options, job.device, job.precision);
   nlohmann::json extras = {
       {"actions", action_ranges}, {"student", settings.to_json()}, {"teacher", fingerprint["teacher"]}};
   if (data.config.contains("views")) extras["views"] = data.config["views"];  // a multi-view teacher's canvas
@@ -419,6 +429,7 @@ DistillResult run_warmup(const DistillJob& job) {
   const auto probe_actions = trajectories.actions.index_select(0, probe_idx);
   const auto fixed_batch_loss = [&] {
     torch::NoGradGuard no_grad;
+    AutocastGuard autocast(job.device.type(), job.precision);
     return warmup_loss(*trainer.ema(), probe_points, probe_actions, trajectories.timesteps,
                        settings.window_frames, cpu_generator(job.seed + 777), settings.sink_frames)
         .item<double>();
@@ -454,6 +465,7 @@ DistillResult run_warmup(const DistillJob& job) {
         const auto s = trainer.step_loss(
             [&](models::ActionDitImpl& net, int64_t j) {
               const int64_t row = shards.row_offset(j), m = shards.micro_batch;
+              AutocastGuard autocast(job.device.type(), job.precision);
               return warmup_loss_at(net, pts.narrow(0, row, m), acts.narrow(0, row, m),
                                     trajectories.timesteps, settings.window_frames,
                                     point_index.narrow(0, row, m), settings.sink_frames);
@@ -496,6 +508,8 @@ DistillResult run_warmup(const DistillJob& job) {
                                   {"fixed_batch_loss_end", result.fixed_batch_loss_end},
                                   {"seconds", result.seconds},
                                   {"student", settings.to_json()},
+                                  {"device", job.device.str()},
+                                  {"precision", dojo::to_string(job.precision)},
                                   {"options", job.options.to_json()}};
   if (group.main()) write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
   return result;
@@ -536,7 +550,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
           ? resumed_student_settings(student_config_json["student"], job.student, student_source,
                                      /*sink_from_asked=*/!resuming)
           : job.student;
-  auto teacher = models::load_world_model(job.teacher);
+  auto teacher = models::load_world_model(job.teacher, job.device);
   for (auto& p : teacher->parameters()) p.set_requires_grad(false);
   torch::manual_seed(job.seed);
   WmTrainOptions gen_options, critic_options;
@@ -558,9 +572,10 @@ DistillResult run_self_forcing(const DistillJob& job) {
   warn_if_lora_differs(*student_net, job.lora, resuming, ckpt_dir);
   if (student_net->config.lora.enabled())
     freeze_all_but_adapters(*student_net, /*train_action_mlps=*/false, "distill");
-  WmTrainer generator(student_net, gen_options);
+  WmTrainer generator(student_net, gen_options, job.device, job.precision);
   // The critic starts as the teacher (the fake score equals the real one before any student sample).
-  WmTrainer critic(fresh_copy(resuming ? critic_dir : job.teacher), critic_options);
+  WmTrainer critic(fresh_copy(resuming ? critic_dir : job.teacher), critic_options, job.device,
+                   job.precision);
   nlohmann::json generator_extras = {{"actions", data.action_ranges},
                                      {"student", student.to_json()},
                                      {"teacher", data.fingerprint["teacher"]}},
@@ -591,12 +606,13 @@ DistillResult run_self_forcing(const DistillJob& job) {
   const auto probe_idx = torch::linspace(0, static_cast<double>(n - 1), probe).to(torch::kLong);
   const auto fixed_batch_loss = [&] {
     torch::NoGradGuard no_grad;
-    const auto x = clips.latents.index_select(0, probe_idx);
+    AutocastGuard autocast(job.device.type(), job.precision);
+    const auto x = clips.latents.index_select(0, probe_idx).to(job.device);
     auto g = cpu_generator(job.seed + 4242);
-    const auto noise = torch::randn(x.sizes(), g);
-    const auto rolled =
-        student_rollout(*generator.ema(), student, x.narrow(2, 0, 1),
-                        clips.actions.index_select(0, probe_idx), noise, student.steps - 1, x.size(2));
+    const auto noise = torch::randn(x.sizes(), g).to(job.device);
+    const auto rolled = student_rollout(*generator.ema(), student, x.narrow(2, 0, 1),
+                                        clips.actions.index_select(0, probe_idx).to(job.device), noise,
+                                        student.steps - 1, x.size(2));
     return (rolled - x).narrow(2, 1, x.size(2) - 1).pow(2).mean().item<double>();
   };
   DistillResult result;
@@ -634,15 +650,17 @@ DistillResult run_self_forcing(const DistillJob& job) {
         const auto window_noise = torch::randn({x.size(0), x.size(1), 1 + L, x.size(3), x.size(4)}, g);
         const auto window_actions = acts.narrow(1, 4 * (first_scored - 1), 4 * L);
         const bool generator_phase = info.index % (sf.critic_steps + 1) == 0;
-        // Every rank drew the whole step above (in a plain run's order) and runs its rows of it.
+        // Every rank drew the whole step above (in a plain run's order, on the CPU) and runs its
+        // rows of it where the networks are.
         const int64_t m = shards.micro_batch;
         const auto rows = [&](const torch::Tensor& t, int64_t j) {
-          return t.narrow(0, shards.row_offset(j), m);
+          return t.narrow(0, shards.row_offset(j), m).to(job.device);
         };
         WmStepStats s;
         if (generator_phase) {
           s = generator.step_loss(
               [&](models::ActionDitImpl& net, int64_t j) {
+                AutocastGuard autocast(job.device.type(), job.precision);  // the forward passes alone
                 const auto rolled = student_rollout(net, student, rows(x, j).narrow(2, 0, 1), rows(acts, j),
                                                     rows(noise, j), exit_hop, first_scored);
                 return dmd_generator_loss(*teacher, *critic.net(), rolled.narrow(2, first_scored - 1, 1 + L),
@@ -654,6 +672,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
         } else {
           s = critic.step_loss(
               [&](models::ActionDitImpl& net, int64_t j) {
+                AutocastGuard autocast(job.device.type(), job.precision);
                 torch::Tensor rolled;
                 {
                   torch::NoGradGuard no_grad;
@@ -699,6 +718,8 @@ DistillResult run_self_forcing(const DistillJob& job) {
                                   {"fixed_batch_latent_mse_end", result.fixed_batch_loss_end},
                                   {"seconds", result.seconds},
                                   {"student", student.to_json()},
+                                  {"device", job.device.str()},
+                                  {"precision", dojo::to_string(job.precision)},
                                   {"options", sf.to_json()}};
   if (group.main()) write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
   return result;
@@ -707,6 +728,7 @@ DistillResult run_self_forcing(const DistillJob& job) {
 }  // namespace
 
 DistillResult run_distillation(const DistillJob& job) {
+  check_training_precision("distill", job.precision);
   DOJO_CHECK(job.student.sink_frames >= 0 && job.student.sink_frames <= job.student.window_frames,
              "distill: the attention sink (" + std::to_string(job.student.sink_frames) +
                  " frames) must fit in the window (" + std::to_string(job.student.window_frames) + ")");

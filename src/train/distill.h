@@ -56,6 +56,9 @@ struct TrajectorySpec {
   // frame there instead) into 1 + 3 K latents (1 + 12 K frames), so the warm-up also teaches the
   // positions a streaming student reaches after its first 13 frames.
   int chunks = 1;
+  // The teacher's matmuls under autocast at this precision (bf16: a different trajectory from
+  // fp32's, so it is part of the shards' fingerprint); the teacher runs where its weights are.
+  Precision precision = Precision::kFloat32;
 };
 
 // The teacher's trajectories on `clips` (latents [N, 16, 1 + 3 K, h, w], actions [N, 12 K, 384],
@@ -112,6 +115,11 @@ struct DistillJob {
   double time_budget_s = 0;
   int64_t save_every = 200;
   uint64_t seed = 0;
+  // Where the teacher, student and critic run and at what precision (bf16: their forward passes
+  // under autocast, weights, moments and losses float32, as WmTrainer); every draw stays on the
+  // CPU, so a seed gives the same batches on any device. Checkpoints are CPU float32 either way.
+  torch::Device device = torch::kCPU;
+  Precision precision = Precision::kFloat32;
   // > 0: intra-op threads once the latent caches are ready (as WmTrainJob::matmul_threads): the
   // trajectories and the training are matmul-bound, encoding the caches is not.
   int matmul_threads = 0;

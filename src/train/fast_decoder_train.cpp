@@ -74,7 +74,10 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
   const auto heldout_psnr = [&] {
     torch::NoGradGuard no_grad;
     decoder->eval();
-    const double p = psnr(decoder->decode(clips.latents.index_select(0, heldout_idx)), target(heldout_idx));
+    const auto device = decoder->parameters().front().device();  // the job's while it trains
+    const double p =
+        psnr(decoder->decode(clips.latents.index_select(0, heldout_idx).to(device)).to(torch::kCPU),
+             target(heldout_idx));
     decoder->train();
     return p;
   };
@@ -92,14 +95,18 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
   loop.seed = job.seed;
   loop.batch_size = job.batch_size;
   loop.accumulate = job.accumulate;
+  loop.device = job.device;
+  loop.precision = job.precision;
   loop.extra_columns = {"heldout_psnr"};
   const auto run = run_adamw_loop(
       *decoder, loop, [&] { return models::fast_decoder_checkpoint(*decoder); },
       [&](const LoopStep& s, int64_t batch, torch::Generator& gen) {
         const auto idx = torch::randint(train_n, {batch}, gen, torch::kLong);
-        const auto loss = (decoder->decode(clips.latents.index_select(0, idx)) - target(idx)).pow(2).mean();
+        const auto decoded = decoder->decode(clips.latents.index_select(0, idx).to(job.device));
+        const auto loss = (decoded - target(idx).to(job.device)).pow(2).mean();
         return AdamwStep{loss, batch, {s.saves ? heldout_psnr() : std::nan("")}};
       });
+  decoder->to(torch::kCPU);
   FastDecoderResult r;
   r.steps = run.end_step;
   r.clips = train_n;

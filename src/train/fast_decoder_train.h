@@ -8,6 +8,7 @@
 #include <filesystem>
 #include <vector>
 
+#include "core/autocast.h"
 #include "models/fast_decoder.h"
 #include "train/latent_cache.h"
 
@@ -24,6 +25,10 @@ struct FastDecoderJob {
   double time_budget_s = 0;
   int64_t save_every = 500;
   uint64_t seed = 0;
+  // Where it trains (the model moves there; draws stay on the CPU) and at what precision (bf16:
+  // the forward pass under autocast, weights and checkpoints float32).
+  torch::Device device = torch::kCPU;
+  Precision precision = Precision::kFloat32;
 };
 
 struct FastDecoderResult {

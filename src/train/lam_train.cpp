@@ -50,8 +50,11 @@ torch::Tensor augment_brightness(const torch::Tensor& videos, double amount, tor
   return (videos + offset).clamp_(0.0, 1.0);
 }
 
-LamTrainer::LamTrainer(models::LatentActionModel model, LamTrainOptions options)
-    : model_(std::move(model)), options_(options) {
+LamTrainer::LamTrainer(models::LatentActionModel model, LamTrainOptions options, torch::Device device,
+                       Precision precision)
+    : model_(std::move(model)), options_(options), device_(device), precision_(precision) {
+  check_training_precision("lam train", precision_);
+  model_->to(device_);  // before the optimiser sees the parameters
   std::vector<torch::Tensor> params;
   for (auto& p : model_->parameters())
     if (p.requires_grad()) params.push_back(p);  // rotary freqs are frozen
@@ -73,9 +76,12 @@ LamStepStats LamTrainer::step(const std::vector<torch::Tensor>& micro_batches,
   double loss = 0, mse = 0, kl = 0;
   for (int64_t j = 0; j < count; ++j) {
     if (!seeds.empty()) torch::manual_seed(seeds[j]);
-    const auto videos = models::to_unit_float(micro_batches[j]);
-    const auto out = model_->forward(videos);
-    const auto l = models::lam_loss(out, videos, options_.beta);
+    const auto videos = models::to_unit_float(micro_batches[j].to(device_));
+    models::LamLoss l;
+    {
+      AutocastGuard autocast(device_.type(), precision_);
+      l = models::lam_loss(model_->forward(videos), videos, options_.beta);
+    }
     // One micro-batch alone is backpropagated unscaled: the step is bit for bit the plain one.
     (count == 1 ? l.total : l.total / static_cast<double>(count)).backward();
     loss += l.total.item<double>() / static_cast<double>(count);
@@ -139,7 +145,7 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   if (resuming)
     config = models::LamConfig::from_json(Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config());
   torch::manual_seed(job.seed);
-  LamTrainer trainer(models::LatentActionModel(config), job.options);
+  LamTrainer trainer(models::LatentActionModel(config), job.options, job.device, job.precision);
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("lam train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());

@@ -11,6 +11,7 @@
 #include <utility>
 #include <vector>
 
+#include "core/autocast.h"
 #include "core/safetensors.h"
 #include "models/lam.h"
 
@@ -34,9 +35,12 @@ struct LamStepStats {
 
 class LamTrainer {
  public:
-  LamTrainer(models::LatentActionModel model, LamTrainOptions options);
-  // videos: [B, T >= 2, H, W, 3], float in [0, 1] or uint8. One AdamW step on them (no
-  // augmentation here; see augment_brightness).
+  // The model and its AdamW moments live on `device`; with bf16 the forward pass runs under
+  // autocast, weights, gradients and the loss stay float32 (fp16 is refused: no loss scaling).
+  LamTrainer(models::LatentActionModel model, LamTrainOptions options, torch::Device device = torch::kCPU,
+             Precision precision = Precision::kFloat32);
+  // videos: [B, T >= 2, H, W, 3], float in [0, 1] or uint8, on any device (moved to the
+  // trainer's). One AdamW step on them (no augmentation here; see augment_brightness).
   LamStepStats step(const torch::Tensor& videos);
   // One AdamW step on this process's micro-batches of a step: gradients accumulated over them and
   // averaged over the data-parallel ranks (data_parallel.h). With `seeds`, the model's own draws
@@ -58,6 +62,8 @@ class LamTrainer {
  private:
   models::LatentActionModel model_;
   LamTrainOptions options_;
+  torch::Device device_;
+  Precision precision_;
   std::unique_ptr<torch::optim::AdamW> optimizer_;
   int64_t steps_ = 0;
 };
@@ -76,7 +82,9 @@ struct LamTrainJob {
   int64_t save_every = 200;
   int workers = 1;
   uint64_t seed = 0;
-  double time_budget_s = 0;  // stop early (and checkpoint) after this long; 0: none
+  double time_budget_s = 0;            // stop early (and checkpoint) after this long; 0: none
+  torch::Device device = torch::kCPU;  // where it trains (the loader's clips are moved there)
+  Precision precision = Precision::kFloat32;
 };
 // Trains (resuming from out/checkpoint when present). Frame pairs are drawn with a uniformly
 // random skip in {1, 2, 3, 4}. Returns the stats of the last step.

@@ -51,6 +51,8 @@ ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
   loop.seed = job.seed;
   loop.batch_size = job.batch_size;
   loop.accumulate = job.accumulate;
+  loop.device = job.device;
+  loop.precision = job.precision;
   const auto run = run_adamw_loop(
       *probe, loop, [&] { return models::keypoint_probe_checkpoint(*probe); },
       [&](const LoopStep&, int64_t batch, torch::Generator& gen) {
@@ -59,8 +61,10 @@ ProbeTrainResult run_probe_training(const ProbeTrainJob& job) {
         auto images = frames.frames.index_select(0, idx).permute({0, 3, 1, 2}).to(torch::kFloat32).div(255.0);
         const auto target = targets.index_select(0, idx);
         images = soften_like_generated(images, job.blur_probability, job.brightness, gen);
-        return AdamwStep{keypoint_probe_loss(probe->forward(images), target), batch, {}};
+        return AdamwStep{
+            keypoint_probe_loss(probe->forward(images.to(job.device)), target.to(job.device)), batch, {}};
       });
+  probe->to(torch::kCPU);  // the caller's frames are on the CPU
   ProbeTrainResult r;
   r.steps = run.end_step;
   r.loss = run.loss;

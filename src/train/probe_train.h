@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "core/autocast.h"
 #include "models/keypoint_probe.h"
 
 namespace dojo::train {
@@ -28,6 +29,10 @@ struct ProbeTrainJob {
   double blur_probability = 0.5;  // per frame: Gaussian blur with sigma ~ U(0.3, 1.5) px
   double brightness = 0.1;        // per frame: add U(-b, b)
   uint64_t seed = 0;
+  // Where it trains (the model moves there; draws stay on the CPU) and at what precision (bf16:
+  // the forward pass under autocast, weights and checkpoints float32).
+  torch::Device device = torch::kCPU;
+  Precision precision = Precision::kFloat32;
 };
 
 struct ProbeTrainResult {

@@ -36,7 +36,7 @@ torch::Tensor student_rollout(models::ActionDitImpl& student, const infer::Stude
     torch::NoGradGuard no_grad;
     models::DitInputs in;
     in.x = x0.detach();
-    in.timesteps = torch::zeros({x0.size(0), 1});
+    in.timesteps = torch::zeros({x0.size(0), 1}, x0.options());
     in.condition_mask = zeros_mask;
     if (f > 0) in.actions = actions.narrow(1, k * (f - 1), k);
     in.frame_offset = f;

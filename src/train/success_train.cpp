@@ -146,6 +146,8 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
   loop.seed = job.seed;
   loop.batch_size = job.batch_size;
   loop.accumulate = job.accumulate;
+  loop.device = job.device;
+  loop.precision = job.precision;
   const auto run = run_adamw_loop(
       *detector, loop, [&] { return models::success_detector_checkpoint(*detector); },
       [&](const LoopStep&, int64_t batch, torch::Generator& gen) {
@@ -164,8 +166,12 @@ SuccessTrainResult run_success_training(const SuccessTrainJob& job) {
         // A mirrored scene is as successful as the original: flips double the scenes it sees.
         const auto flip = (torch::rand({B, 1, 1, 1}, gen) < 0.5).to(input.dtype());
         input = flip * input.flip({3}) + (1 - flip) * input;
-        return AdamwStep{torch::binary_cross_entropy_with_logits(detector->forward(input), target), B, {}};
+        return AdamwStep{torch::binary_cross_entropy_with_logits(detector->forward(input.to(job.device)),
+                                                                 target.to(job.device)),
+                         B,
+                         {}};
       });
+  detector->to(torch::kCPU);  // scored below on the CPU's frames
   SuccessTrainResult r;
   r.steps = run.end_step;
   r.loss = run.loss;

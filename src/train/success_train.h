@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <optional>
 
+#include "core/autocast.h"
 #include "models/success_detector.h"
 
 namespace dojo::train {
@@ -41,6 +42,10 @@ struct SuccessTrainJob {
   double brightness = 0.1;
   uint64_t seed = 0;
   int64_t votes = models::kSuccessVotes;  // windows voting on an episode in the episode-level score
+  // Where it trains (the model moves there; draws stay on the CPU) and at what precision (bf16:
+  // the forward pass under autocast, weights and checkpoints float32).
+  torch::Device device = torch::kCPU;
+  Precision precision = Precision::kFloat32;
 };
 
 struct SuccessAccuracy {

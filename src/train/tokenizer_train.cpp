@@ -127,6 +127,8 @@ int64_t resume_training(const std::filesystem::path& dir, WanVae& vae, torch::op
 
 TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Tensor(int64_t)>& next_batch,
                                      const TokenizerTrainOptions& o) {
+  check_training_precision("tokenizer train", o.precision);
+  vae->to(o.device);  // before the optimiser sees the parameters
   vae->train();
   std::vector<torch::Tensor> params = vae->parameters();
   torch::optim::AdamW opt(params, torch::optim::AdamWOptions(o.lr).weight_decay(o.weight_decay));
@@ -180,8 +182,13 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
           if (split.shards() > 1)
             torch::manual_seed(0x70CE11ULL * 0x9E3779B97F4A7C15ULL + static_cast<uint64_t>(index));
           const auto video = random_spatial_crop(images ? image_batch(s.index) : next_batch(s.index), o.crop,
-                                                 static_cast<uint64_t>(index));
-          auto loss = tokenizer_loss(vae, video, o);
+                                                 static_cast<uint64_t>(index))
+                                 .to(o.device);
+          TokenizerLoss loss;
+          {
+            AutocastGuard autocast(o.device.type(), o.precision);
+            loss = tokenizer_loss(vae, video, o);
+          }
           (accumulate == 1 ? loss.total : loss.total / static_cast<double>(accumulate)).backward();
           recon += loss.mse.item<double>() / static_cast<double>(accumulate);
           kl += loss.kl.item<double>() / static_cast<double>(accumulate);
@@ -203,7 +210,7 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
         if (s.last && o.stats_batches > 0) {
           std::vector<torch::Tensor> videos;
           for (int64_t i = 0; i < o.stats_batches * accumulate; ++i)
-            videos.push_back(next_batch(o.steps + i));
+            videos.push_back(next_batch(o.steps + i).to(o.device));
           fit_latent_stats(vae, videos, group);
         }
         const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -215,6 +222,7 @@ TokenizerTrainResult train_tokenizer(WanVae& vae, const std::function<torch::Ten
   result.steps_done = run.end_step;
   result.seconds = run.seconds;
   vae->eval();
+  vae->to(torch::kCPU);  // where its callers' frames are
   return result;
 }
 
@@ -261,7 +269,8 @@ void fit_latent_stats(WanVae& vae, const std::vector<torch::Tensor>& videos, Dat
   const int64_t z = vae->config().z_dim;
   auto sums = torch::zeros({2 * z + 1}, torch::kFloat64);
   for (const auto& v : videos) {
-    const auto mu = vae->encode(v, false).mu.transpose(0, 1).reshape({z, -1}).to(torch::kFloat64);  // [z, n]
+    const auto mu =
+        vae->encode(v, false).mu.transpose(0, 1).reshape({z, -1}).to(torch::kCPU, torch::kFloat64);  // [z, n]
     sums.narrow(0, 0, z).add_(mu.sum(1));
     sums.narrow(0, z, z).add_(mu.pow(2).sum(1));
     sums[2 * z] += static_cast<double>(mu.size(1));
@@ -284,7 +293,7 @@ void fit_latent_stats(WanVae& vae, const std::vector<torch::Tensor>& videos) {
   std::vector<torch::Tensor> mus;
   for (const auto& v : videos)
     mus.push_back(vae->encode(v, false).mu.transpose(0, 1).reshape({vae->config().z_dim, -1}));
-  const auto all = torch::cat(mus, 1).to(torch::kFloat64);  // [z, N]
+  const auto all = torch::cat(mus, 1).to(torch::kCPU, torch::kFloat64);  // [z, N]
   const auto mean = all.mean(1), stdv = all.std(1).clamp_min(1e-6);
   std::vector<double> m(mean.data_ptr<double>(), mean.data_ptr<double>() + mean.numel());
   std::vector<double> s(stdv.data_ptr<double>(), stdv.data_ptr<double>() + stdv.numel());

@@ -15,6 +15,7 @@
 #include <optional>
 #include <string>
 
+#include "core/autocast.h"
 #include "data/clip_sampler.h"
 #include "models/wan_vae.h"
 
@@ -69,6 +70,10 @@ struct TokenizerTrainOptions {
   // step, gradients accumulate, then are averaged over the ranks.
   int64_t accumulate = 1;
   std::filesystem::path loss_curve;  // CSV "step,recon,kl,seconds,images" when set
+  // Where it trains: the model moves there for the run (and back to the CPU after it), batches are
+  // moved there; bf16 runs the encoder and decoder under autocast, weights and moments float32.
+  torch::Device device = torch::kCPU;
+  Precision precision = Precision::kFloat32;
 };
 
 // The recipe measured best for small DojoSim tokenizers on CPU (docs/benchmarks.md, "Small

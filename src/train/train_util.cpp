@@ -164,6 +164,8 @@ AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
   auto& group = data_parallel();
   const auto shards = BatchShards::plan(loop.batch_size, loop.accumulate, group, loop.name);
   const auto ckpt_dir = loop.out / "checkpoint";
+  check_training_precision(loop.name, loop.precision);
+  model.to(loop.device);
   const auto params = model.parameters();
   torch::optim::AdamW opt(params, torch::optim::AdamWOptions(loop.lr).weight_decay(loop.weight_decay));
   int64_t start = 0;
@@ -203,7 +205,11 @@ AdamwRun run_adamw_loop(torch::nn::Module& model, const AdamwLoop& loop,
         std::vector<double> extra;
         for (int64_t j = 0; j < shards.accumulate; ++j) {
           auto gen = step_generator(loop.seed, shards.stream_index(s.index, j));
-          const auto r = step(s, shards.micro_batch, gen);
+          AdamwStep r;
+          {
+            AutocastGuard autocast(loop.device.type(), loop.precision);
+            r = step(s, shards.micro_batch, gen);
+          }
           (shards.accumulate == 1 ? r.loss : r.loss / static_cast<double>(shards.accumulate)).backward();
           loss_sum += r.loss.item<double>();
           items += r.items;

@@ -12,6 +12,7 @@
 #include <string>
 #include <vector>
 
+#include "core/autocast.h"
 #include "core/checkpoint.h"
 #include "core/safetensors.h"
 #include "train/train_loop.h"
@@ -139,6 +140,11 @@ struct AdamwLoop {
   // the step function is asked for one micro-batch at a time, drawn from its own generator.
   int64_t batch_size = 0;
   int64_t accumulate = 1;
+  // Where the model trains: it is moved there before the optimiser sees it (and stays there); the
+  // step function runs under autocast at `precision` (the backward pass outside it) and moves its
+  // batch to `device`. Draws stay on the CPU; checkpoints are float32 and load on any device.
+  torch::Device device = torch::kCPU;
+  Precision precision = Precision::kFloat32;
 };
 struct AdamwStep {
   torch::Tensor loss;         // the scalar to minimise

@@ -136,18 +136,11 @@ FlowLoss flow_loss(models::ActionDit& net, const WmTrainOptions& options, const 
           (v - noise.target_velocity).pow(2).mean()};
 }
 
-void check_training_precision(Precision precision) {
-  // fp16's 5 exponent bits underflow small gradients unless the loss is scaled; bf16 has
-  // float32's range and is what the release trains in.
-  if (precision == Precision::kFloat16)
-    throw UsageError("wm train: precision fp16 is not supported for training (no loss scaling); use bf16");
-}
-
 }  // namespace
 
 WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options, torch::Device device, Precision precision)
     : net_(std::move(net)), ema_(net_->config), options_(options), device_(device), precision_(precision) {
-  check_training_precision(precision_);
+  check_training_precision("wm train", precision_);
   // Moved before the optimiser sees the parameters: Module::to swaps their data in place.
   net_->to(device_);
   ema_->to(device_);
@@ -363,7 +356,7 @@ void freeze_all_but_adapters(models::ActionDitImpl& net, bool train_action_mlps,
 WmTrainResult run_wm_training(const WmTrainJob& job) {
   DOJO_CHECK(!job.data.empty(), "wm train: no dataset given");
   DOJO_CHECK(job.batch_size > 0, "wm train: batch size must be positive");
-  check_training_precision(job.precision);  // before the (slow) latent caching
+  check_training_precision("wm train", job.precision);  // before the (slow) latent caching
   TimeBudget budget(job.time_budget_s);
   fs::create_directories(job.out);
   const auto ckpt_dir = job.out / "checkpoint";

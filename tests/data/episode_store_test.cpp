@@ -6,6 +6,7 @@
 
 #include "core/error.h"
 #include "core/safetensors.h"
+#include "data/episode_source.h"
 #include "test_util.h"
 
 namespace dojo::data {
@@ -22,7 +23,8 @@ torch::Tensor moving_frames(int64_t t, int64_t h = 32, int64_t w = 32) {
 }
 
 // A two-episode robot dataset whose action dim 0 equals the frame index.
-std::filesystem::path make_robot_dataset(const std::filesystem::path& dir, int64_t frames = 20) {
+std::filesystem::path make_robot_dataset(const std::filesystem::path& dir, int64_t frames = 20,
+                                         VideoFormat format = VideoFormat::kMp4) {
   DatasetInfo info;
   info.name = "toy";
   info.embodiment = Embodiment::kRobot;
@@ -41,12 +43,13 @@ std::filesystem::path make_robot_dataset(const std::filesystem::path& dir, int64
     ep.meta = {{"task", "toy task"}};
     char id[16];
     std::snprintf(id, sizeof id, "%06d", e);
-    write_episode(dir / "episodes" / id, ep, 10.0);
+    write_episode(dir / "episodes" / id, ep, 10.0, format);
     acc.add(ep.actions);
     info.episodes.push_back({id, frames, e == 0 ? "train" : "val", "toy task"});
   }
   info.action_stats = acc.finish();
   info.state_stats = acc.finish();
+  info.video_format = format;
   write_dataset_info(dir, info);
   return dir;
 }
@@ -70,6 +73,36 @@ TEST(EpisodeStore, WriteThenReadBack) {
   EXPECT_EQ(ep.meta["task"], "toy task");
   EXPECT_EQ(ep.meta["frames"], 20);
   EXPECT_EQ(store.check_episode(0), "");
+}
+
+TEST(EpisodeStore, RawFramesReadBackExactlyWithoutAVideoFile) {
+  test::TempDir tmp;
+  make_robot_dataset(tmp.path(), 20, VideoFormat::kRaw);
+  EXPECT_EQ(nlohmann::json::parse(test::read_file(tmp / "info.json")).at("video_format"), "raw");
+  const auto store = EpisodeStore::open(tmp.path());
+  EXPECT_EQ(store.info().video_format, VideoFormat::kRaw);
+  EXPECT_EQ(store.video_path(0).filename(), "video.safetensors");
+  EXPECT_FALSE(std::filesystem::exists(store.episode_dir(0) / "video.mp4"));
+  const auto frames = moving_frames(20);
+  EXPECT_TRUE(torch::equal(store.load(0).frames, frames)) << "raw frames are the frames, not a lossy copy";
+  EXPECT_EQ(store.check_episode(1), "");
+  // The loaders' path: frames by index, in the order asked, through the dataset source.
+  const auto source = open_dataset(tmp.path());
+  EXPECT_TRUE(
+      torch::equal(source->read_frames(0, {5, 2, 5}), frames.index_select(0, torch::tensor({5, 2, 5}))));
+  auto message = test::error_message([&] { read_video_frames(store.video_path(0), {3, 20}); });
+  EXPECT_NE(message.find("video.safetensors: frame 20 out of range (20 frames)"), std::string::npos)
+      << message;
+  // A file short of the listed frames, and a format nobody knows, are named.
+  save_safetensors(store.video_path(0), {{"frames", frames.narrow(0, 0, 19).contiguous()}});
+  message = store.check_episode(0);
+  EXPECT_NE(message.find("video.safetensors: video has 19 frames, the dataset lists 20"), std::string::npos)
+      << message;
+  auto j = nlohmann::json::parse(test::read_file(tmp / "info.json"));
+  j["video_format"] = "webm";
+  std::ofstream(tmp / "info.json") << j.dump();
+  message = test::error_message([&] { EpisodeStore::open(tmp.path()); });
+  EXPECT_NE(message.find("field 'video_format': unknown video format 'webm'"), std::string::npos) << message;
 }
 
 TEST(EpisodeStore, InfoRoundTrip) {

@@ -176,8 +176,8 @@ TEST(Demo, ReRunsExactlyTheStagesWhoseInputsChanged) {
   // A finished demo, copied: its records name no path of their own, so the copy re-uses them all.
   fs::copy(tiny_demo_seed_0(), tmp / "demo", fs::copy_options::recursive);
   auto o = tiny_demo(tmp / "demo");
-  // Every stage records where it computed: the world model and the rollouts where asked, the
-  // stages whose trainers take no device on the CPU.
+  // Every stage records where it computed: the trainers and the rollouts where asked (here the
+  // CPU), DojoSim on the CPU.
   const auto demo = nlohmann::json::parse(test::read_file(o.out / "demo.json"));
   for (const auto& name : kStages) {
     EXPECT_EQ(demo[name]["settings"].value("device", ""), "cpu") << name;
@@ -202,7 +202,7 @@ TEST(Demo, ReRunsExactlyTheStagesWhoseInputsChanged) {
   EXPECT_EQ(stages_run(o), (Set{"fast_decoder", "eval_student"})) << "fast decoder steps";
 
   // A record that says it ran on another device or precision than the stage computes on now is
-  // never re-used: neither one that computes on the CPU whatever was asked nor one on the device asked.
+  // never re-used.
   edit_record(o.out, "fast_decoder", "device", "cuda");
   EXPECT_EQ(stages_run(o), (Set{"fast_decoder", "eval_student"})) << "fast decoder ran on cuda";
   edit_record(o.out, "eval", "precision", "bf16");

@@ -68,6 +68,27 @@ TEST(Generate, InterruptedRunResumes) {
   EXPECT_EQ(snapshot(tmp / "d"), before);
 }
 
+TEST(Generate, RawFramesAreTheMp4RunsPicturesAndResume) {
+  test::TempDir tmp;
+  auto o = small("robot", 2);
+  generate_dataset(tmp / "mp4", o);
+  o.video_format = data::VideoFormat::kRaw;
+  generate_dataset(tmp / "raw", o);
+  const auto mp4 = data::EpisodeStore::open(tmp / "mp4"), raw = data::EpisodeStore::open(tmp / "raw");
+  EXPECT_EQ(raw.info().video_format, data::VideoFormat::kRaw);
+  EXPECT_EQ(raw.info().generator.at("video_format"), "raw");
+  // The same renders, stored exactly: within H.264's loss of the mp4's decode.
+  const auto a = mp4.load(1).frames.to(torch::kFloat32), b = raw.load(1).frames.to(torch::kFloat32);
+  ASSERT_EQ(a.sizes(), b.sizes());
+  EXPECT_LT((a - b).abs().mean().item<double>(), 3.0);
+  EXPECT_TRUE(torch::equal(mp4.load(1).actions, raw.load(1).actions));
+  // A raw episode counts as finished when resuming.
+  std::filesystem::remove_all(tmp / "raw" / "episodes" / "000000");
+  const auto summary = generate_dataset(tmp / "raw", o);
+  EXPECT_EQ(summary.generated, 1);
+  EXPECT_EQ(summary.reused, 1);
+}
+
 TEST(Generate, RefusesDirectoryOfAnotherRun) {
   test::TempDir tmp;
   auto o = small("human", 1);

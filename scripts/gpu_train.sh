@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# The trainers on a GPU machine: builds the configuration without media libraries (CMake option
+# DOJO_WITH_MEDIA=OFF: no FFmpeg, JPEG, HDF5, DojoSim or server; datasets of raw frames) against
+# the libtorch inside the machine's PyTorch package, then runs the tests of the trainers and the
+# engine there, the *_CUDA ones among them (each trainer on --device cuda against the CPU, and in
+# bf16). Anyone with a CUDA GPU, CMake, a C++17 compiler and python3 with a CUDA torch can run it.
+#
+#   scripts/gpu_train.sh [OUT_DIR]
+#
+# Headers and libraries the machine lacks: DOJO_DEPS_PREFIX (nlohmann-json, CLI11, snappy, zstd)
+# and DOJO_GTEST_SOURCE_DIR (GoogleTest's sources), as scripts/gpu_deps.sh unpacks them. Writes
+# gpu.txt, build.log, tests.log and tests.xml to OUT_DIR (default gpu_train). Exits non-zero when
+# the build or a test fails, or when no GPU test ran. DOJO_TEST_FILTER narrows the tests (a
+# GoogleTest filter; default: all of this build's).
+set -euo pipefail
+out=${1:-gpu_train}
+mkdir -p "$out"
+out=$(cd "$out" && pwd)  # before leaving the caller's directory
+cd "$(dirname "$0")/.."
+
+{
+  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+  python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" || true
+  c++ --version | head -1
+  nproc
+} 2>&1 | tee "$out/gpu.txt"
+
+torch_prefix=${DOJO_TORCH_PREFIX:-$(python3 -c "import torch.utils; print(torch.utils.cmake_prefix_path)")}
+generator=()
+if command -v ninja > /dev/null; then generator=(-G Ninja); fi
+build=${DOJO_BUILD_DIR:-build-train}
+start=$(date +%s)
+if ! cmake -S . -B "$build" "${generator[@]}" -DCMAKE_BUILD_TYPE=Release -DDOJO_WITH_MEDIA=OFF \
+  -DDOJO_UNITY_BUILD=ON -DDOJO_GTEST_SOURCE_DIR="${DOJO_GTEST_SOURCE_DIR:-}" \
+  -DCMAKE_PREFIX_PATH="$torch_prefix;${DOJO_DEPS_PREFIX:-}" > "$out/build.log" 2>&1; then
+  tail -40 "$out/build.log"
+  exit 1
+fi
+if ! cmake --build "$build" -j "$(nproc)" >> "$out/build.log" 2>&1; then
+  grep -E "error|Error" "$out/build.log" | head -60
+  exit 1
+fi
+echo "built in $(($(date +%s) - start)) s" | tee -a "$out/gpu.txt"
+"$build/dojo" version | tee -a "$out/gpu.txt"
+
+status=0
+"$build/dojo_tests" --gtest_filter="${DOJO_TEST_FILTER:-*}" --gtest_output="xml:$out/tests.xml" \
+  > "$out/tests.log" 2>&1 || status=$?
+grep -E "^\[  (PASSED|FAILED|SKIPPED) " "$out/tests.log" || true
+grep -E "_CUDA" "$out/tests.log" | grep -E "OK|FAILED|SKIPPED" || true
+tail -3 "$out/tests.log"
+if ! grep -qE "^\[       OK \] .*_CUDA" "$out/tests.log"; then
+  echo "no GPU test ran (no CUDA device, or a libtorch without CUDA)"
+  status=1
+fi
+exit $status
