@@ -11,7 +11,7 @@
 # and DOJO_GTEST_SOURCE_DIR (GoogleTest's sources), as scripts/gpu_deps.sh unpacks them. Writes
 # gpu.txt, build.log, tests.log and tests.xml to OUT_DIR (default gpu_train). Exits non-zero when
 # the build or a test fails, or when no GPU test ran. DOJO_TEST_FILTER narrows the tests (a
-# GoogleTest filter; default: all of this build's).
+# GoogleTest filter; default: all of this build's); DOJO_SKIP_TESTS=1 builds only.
 set -euo pipefail
 out=${1:-gpu_train}
 mkdir -p "$out"
@@ -42,6 +42,7 @@ if ! cmake --build "$build" -j "$(nproc)" >> "$out/build.log" 2>&1; then
 fi
 echo "built in $(($(date +%s) - start)) s" | tee -a "$out/gpu.txt"
 "$build/dojo" version | tee -a "$out/gpu.txt"
+if [[ ${DOJO_SKIP_TESTS:-0} == 1 ]]; then exit 0; fi  # the build alone (gpu_train_reference.sh)
 
 status=0
 "$build/dojo_tests" --gtest_filter="${DOJO_TEST_FILTER:-*}" --gtest_output="xml:$out/tests.xml" \
