@@ -30,8 +30,10 @@ generator=()
 if command -v ninja > /dev/null; then generator=(-G Ninja); fi
 build=${DOJO_BUILD_DIR:-build-train}
 start=$(date +%s)
+tests=ON  # the build alone needs no GoogleTest
+if [[ ${DOJO_SKIP_TESTS:-0} == 1 ]]; then tests=OFF; fi
 if ! cmake -S . -B "$build" "${generator[@]}" -DCMAKE_BUILD_TYPE=Release -DDOJO_WITH_MEDIA=OFF \
-  -DDOJO_UNITY_BUILD=ON -DDOJO_GTEST_SOURCE_DIR="${DOJO_GTEST_SOURCE_DIR:-}" \
+  -DDOJO_UNITY_BUILD=ON -DDOJO_BUILD_TESTS=$tests -DDOJO_GTEST_SOURCE_DIR="${DOJO_GTEST_SOURCE_DIR:-}" \
   -DCMAKE_PREFIX_PATH="$torch_prefix;${DOJO_DEPS_PREFIX:-}" > "$out/build.log" 2>&1; then
   tail -40 "$out/build.log"
   exit 1

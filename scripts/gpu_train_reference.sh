@@ -6,7 +6,7 @@
 # on robot actions), the student (4-chunk warm-up, Self-Forcing) and its fast decoder; exports them
 # in bf16 and scores teacher and student on the three robot splits. Every trainer runs with
 # --device / --precision (DOJO_DEVICE, default cuda; DOJO_PRECISION, default bf16). Step counts are
-# the CPU recipe's (DOJO_STEPS_SCALE multiplies them); DOJO_REF_QUICK=1 runs 3 steps a stage and
+# the CPU recipe's (DOJO_STEPS_SCALE, a whole number, multiplies them); DOJO_REF_QUICK=1 runs 3 steps a stage and
 # 2 episodes a split, to check the script itself on any machine.
 #
 #   scripts/gpu_train_reference.sh [OUT_DIR=gpu_reference]
@@ -18,16 +18,18 @@ set -euo pipefail
 out=${1:-gpu_reference}
 mkdir -p "$out"
 out=$(cd "$out" && pwd)
+# The caller's DOJO_GPU_DATA, before leaving its directory.
+data=$(cd "${DOJO_GPU_DATA:-$(dirname "$0")/../.gpu_data}" && pwd)
 cd "$(dirname "$0")/.."
-data=$(cd "${DOJO_GPU_DATA:-.gpu_data}" && pwd)
+
 device=${DOJO_DEVICE:-cuda}
 precision=${DOJO_PRECISION:-bf16}
 scale=${DOJO_STEPS_SCALE:-1}
 quick=${DOJO_REF_QUICK:-0}
-build=${DOJO_BUILD_DIR:-build-train}
+build=$(mkdir -p "${DOJO_BUILD_DIR:-build-train}" && cd "${DOJO_BUILD_DIR:-build-train}" && pwd)
 
 DOJO_SKIP_TESTS=1 DOJO_BUILD_DIR=$build scripts/gpu_train.sh "$out"
-dojo=$PWD/$build/dojo
+dojo=$build/dojo
 work=${DOJO_WORK_DIR:-$PWD/gpu_ref_work}
 mkdir -p "$work"
 for set in human robot robot_ood_objects robot_counterfactual; do
@@ -81,7 +83,7 @@ cp "$W/fast_decoder/checkpoint/"{config.json,model.safetensors} "$ref/fast_decod
 for pair in "lam $W/lam/checkpoint" "tokenizer $W/tokenizer" "probe $W/probe/checkpoint" \
             "wm_posttrain $W/posttrain/checkpoint" "student $W/student/checkpoint"; do
   set -- $pair
-  "$dojo" ckpt export "$2" "$ref/$1" --dtype bf16 >> "$log" 2>&1
+  stage "export_$1" "$dojo" ckpt export "$2" "$ref/$1" --dtype bf16
 done
 for split in "val robot val" "ood robot_ood_objects all" "cf robot_counterfactual all"; do
   set -- $split

@@ -31,8 +31,11 @@ struct PolicyEvalArgs {
 };
 
 int run_detector(DetectorArgs a) {
-  // The world model's --device and --precision: its replays and the detector's training.
-  const auto on = TrainingDeviceArgs{a.wm.device, a.wm.precision}.parse("policy detector");
+  // The world model's --device and --precision: its replays and the detector's training (in fp32
+  // when the replays run in fp16, which no trainer trains in).
+  const bool fp16 = parse_precision(a.wm.precision) == Precision::kFloat16;
+  const auto on = TrainingDeviceArgs{a.wm.device, fp16 ? "fp32" : a.wm.precision}.parse("policy detector");
+  if (fp16) LOG_INFO("policy detector: replays in fp16, the detector trains in fp32");
   a.run.device = on.device;
   a.run.precision = on.precision;
   if (a.world_model) {

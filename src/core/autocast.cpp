@@ -88,6 +88,8 @@ void set_dtype(c10::DeviceType device, c10::ScalarType dtype) {
 
 }  // namespace
 
+void AutocastGuard::clear_cache() { at::autocast::clear_cache(); }
+
 bool AutocastGuard::is_enabled(c10::DeviceType device) {
   check_device(device);
 #if DOJO_AUTOCAST_DEVICE_API

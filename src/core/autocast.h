@@ -38,6 +38,11 @@ class AutocastGuard {
   AutocastGuard(const AutocastGuard&) = delete;
   AutocastGuard& operator=(const AutocastGuard&) = delete;
 
+  // Drops the lower-precision copies of the weights autocast has made in this region. Autocast
+  // keeps one copy per weight that requires grad, made even by a pass without gradients; a later
+  // pass with gradients would reuse it and the weights would get none. Call it before such a pass.
+  static void clear_cache();
+
   // The current autocast state of a device type (CPU or CUDA).
   static bool is_enabled(c10::DeviceType device);
   static c10::ScalarType dtype(c10::DeviceType device);

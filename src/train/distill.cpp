@@ -41,7 +41,8 @@ torch::Tensor teacher_points(models::ActionDitImpl& teacher, const diffusion::Si
   mask.narrow(2, 0, 1).fill_(1);
   const diffusion::VelocityFn velocity = [&](const torch::Tensor& x, double, int64_t timestep) {
     models::DitInputs in;
-    in.timesteps = torch::full({x.size(0), 1}, static_cast<double>(timestep));
+    in.timesteps =
+        torch::full({x.size(0), 1}, static_cast<double>(timestep), x.options().dtype(torch::kFloat32));
     in.actions = actions;
     return models::denoise_velocity(teacher, in, x, x0, noise, mask);
   };

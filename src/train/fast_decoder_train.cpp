@@ -75,6 +75,7 @@ FastDecoderResult run_fast_decoder_training(const FastDecoderJob& job) {
     torch::NoGradGuard no_grad;
     decoder->eval();
     const auto device = decoder->parameters().front().device();  // the job's while it trains
+    AutocastGuard fp32(device.type(), Precision::kFloat32);      // the same measure in every precision
     const double p =
         psnr(decoder->decode(clips.latents.index_select(0, heldout_idx).to(device)).to(torch::kCPU),
              target(heldout_idx));

@@ -2,6 +2,7 @@
 
 #include <cmath>
 
+#include "core/autocast.h"
 #include "core/error.h"
 
 namespace dojo::train {
@@ -63,8 +64,11 @@ torch::Tensor student_rollout(models::ActionDitImpl& student, const infer::Stude
     auto x = eps;
     torch::Tensor x0;
     for (int s = 0; s <= exit_hop; ++s) {
-      const bool grad = s == exit_hop && f >= grad_from;
-      torch::AutoGradMode mode(grad && torch::GradMode::is_enabled());
+      const bool grad = s == exit_hop && f >= grad_from && torch::GradMode::is_enabled();
+      // Under autocast the passes without gradients cached bf16 copies of the weights that carry
+      // no graph; the pass that trains must cast them afresh.
+      if (grad) AutocastGuard::clear_cache();
+      torch::AutoGradMode mode(grad);
       x0 = infer::student_x0(student, base, x, schedule[static_cast<size_t>(s)]);
       if (s < exit_hop) {
         const double t = schedule[static_cast<size_t>(s + 1)].trigflow_t;

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include "core/autocast.h"
 #include "core/state_dict.h"
 #include "test_util.h"
 #include "wm_test_fixtures.h"
@@ -57,6 +58,49 @@ TEST(SelfForcing, TrainingRolloutEqualsTheStreamingEngine) {
   // They differ once frame 0 leaves the window (frame 3 on), so each comparison can fail.
   for (size_t i = 1; i < rollouts.size(); ++i)
     EXPECT_GT((rollouts[i - 1] - rollouts[i]).narrow(2, 3, 4).abs().max().item<double>(), 1e-3) << i;
+}
+
+// Under bf16 autocast the rollout's passes without gradients (the re-cache, the earlier hops) cache
+// bf16 copies of the weights (CUDA autocast does; libtorch 1.13's CPU autocast caches nothing, so
+// only the CUDA test can catch a reused copy); the pass that trains must not reuse them, or the
+// student's linear weights get no gradient at all.
+void expect_bf16_rollout_gradients(torch::Device device) {
+  test::OneThread one;
+  torch::manual_seed(0);
+  models::ActionDit net(test_fixtures::tiny_dit(/*live_actions=*/true));
+  net->to(device);
+  infer::StudentConfig config;
+  config.window_frames = 2;
+  const int64_t frames = 4;
+  const auto first = torch::randn({1, 16, 1, 4, 4}, gen(2)).to(device);
+  const auto actions = (torch::rand({1, 4 * (frames - 1), 384}, gen(3)) * 2 - 1).to(device);
+  const auto noise = torch::randn({1, 16, frames, 4, 4}, gen(4)).to(device);
+  torch::Tensor loss;
+  {
+    AutocastGuard autocast(device.type(), Precision::kBFloat16);
+    const auto rolled = student_rollout(*net, config, first, actions, noise, /*exit_hop=*/2, frames - 1);
+    loss = rolled.narrow(2, frames - 1, 1).pow(2).mean();
+  }
+  loss.backward();
+  int64_t linear_weights = 0;
+  for (const auto& item : net->named_parameters()) {
+    if (item.key().find("blocks.0.self_attn.") == std::string::npos ||
+        item.key().find(".weight") == std::string::npos)
+      continue;
+    ++linear_weights;
+    ASSERT_TRUE(item.value().grad().defined()) << item.key();
+    EXPECT_GT(item.value().grad().abs().sum().item<double>(), 0) << item.key() << " got no gradient";
+  }
+  EXPECT_GE(linear_weights, 3) << "the attention's projections were found";
+}
+
+TEST(SelfForcing, Bf16RolloutsBackpropagateIntoTheStudentsWeights) {
+  expect_bf16_rollout_gradients(torch::kCPU);
+}
+
+TEST(SelfForcing, Bf16RolloutsBackpropagateIntoTheStudentsWeights_CUDA) {
+  DOJO_REQUIRE_CUDA();
+  expect_bf16_rollout_gradients(torch::kCUDA);
 }
 
 // With the critic equal to the teacher the scores agree: no generator gradient. A critic trained
