@@ -17,31 +17,12 @@ out=${1:-gpu_tests}
 mkdir -p "$out"
 out=$(cd "$out" && pwd)  # before leaving the caller's directory
 cd "$(dirname "$0")/.."
+source scripts/gpu_common.sh
 
-{
-  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
-  python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
-  c++ --version | head -1
-  nproc
-} 2>&1 | tee "$out/gpu.txt"
-
-torch_prefix=$(python3 -c "import torch.utils; print(torch.utils.cmake_prefix_path)")
-generator=()
-if command -v ninja > /dev/null; then generator=(-G Ninja); fi
+gpu_facts "$out"
 build=build-engine-tests
-start=$(date +%s)
-if ! cmake -S . -B "$build" "${generator[@]}" -DDOJO_ENGINE_ONLY=ON -DDOJO_ENGINE_TESTS=ON \
-  -DDOJO_GTEST_SOURCE_DIR="${DOJO_GTEST_SOURCE_DIR:-}" \
-  -DCMAKE_PREFIX_PATH="$torch_prefix;${DOJO_DEPS_PREFIX:-}" > "$out/build.log" 2>&1; then
-  tail -40 "$out/build.log"
-  exit 1
-fi
-if ! cmake --build "$build" -j "$(nproc)" >> "$out/build.log" 2>&1; then
-  grep -E "error|Error" "$out/build.log" | head -60
-  exit 1
-fi
-echo "built in $(($(date +%s) - start)) s"
-"$build/dojo" version | tee -a "$out/gpu.txt"
+gpu_build "$out" "$build" -DDOJO_ENGINE_ONLY=ON -DDOJO_ENGINE_TESTS=ON \
+  -DDOJO_GTEST_SOURCE_DIR="${DOJO_GTEST_SOURCE_DIR:-}"
 
 status=0
 "$build/dojo_engine_tests" --gtest_output="xml:$out/tests.xml" > "$out/tests.log" 2>&1 || status=$?

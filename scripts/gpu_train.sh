@@ -17,33 +17,14 @@ out=${1:-gpu_train}
 mkdir -p "$out"
 out=$(cd "$out" && pwd)  # before leaving the caller's directory
 cd "$(dirname "$0")/.."
+source scripts/gpu_common.sh
 
-{
-  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
-  python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)" || true
-  c++ --version | head -1
-  nproc
-} 2>&1 | tee "$out/gpu.txt"
-
-torch_prefix=${DOJO_TORCH_PREFIX:-$(python3 -c "import torch.utils; print(torch.utils.cmake_prefix_path)")}
-generator=()
-if command -v ninja > /dev/null; then generator=(-G Ninja); fi
+gpu_facts "$out"
 build=${DOJO_BUILD_DIR:-build-train}
-start=$(date +%s)
 tests=ON  # the build alone needs no GoogleTest
 if [[ ${DOJO_SKIP_TESTS:-0} == 1 ]]; then tests=OFF; fi
-if ! cmake -S . -B "$build" "${generator[@]}" -DCMAKE_BUILD_TYPE=Release -DDOJO_WITH_MEDIA=OFF \
-  -DDOJO_UNITY_BUILD=ON -DDOJO_BUILD_TESTS=$tests -DDOJO_GTEST_SOURCE_DIR="${DOJO_GTEST_SOURCE_DIR:-}" \
-  -DCMAKE_PREFIX_PATH="$torch_prefix;${DOJO_DEPS_PREFIX:-}" > "$out/build.log" 2>&1; then
-  tail -40 "$out/build.log"
-  exit 1
-fi
-if ! cmake --build "$build" -j "$(nproc)" >> "$out/build.log" 2>&1; then
-  grep -E "error|Error" "$out/build.log" | head -60
-  exit 1
-fi
-echo "built in $(($(date +%s) - start)) s" | tee -a "$out/gpu.txt"
-"$build/dojo" version | tee -a "$out/gpu.txt"
+gpu_build "$out" "$build" -DCMAKE_BUILD_TYPE=Release -DDOJO_WITH_MEDIA=OFF -DDOJO_UNITY_BUILD=ON \
+  -DDOJO_BUILD_TESTS=$tests -DDOJO_GTEST_SOURCE_DIR="${DOJO_GTEST_SOURCE_DIR:-}"
 if [[ ${DOJO_SKIP_TESTS:-0} == 1 ]]; then exit 0; fi  # the build alone (gpu_train_reference.sh)
 
 status=0

@@ -39,9 +39,7 @@ int run_distill(DistillArgs a) {
   if (a.teacher.empty()) LOG_INFO("no --teacher: distilling the reference set's post-trained world model");
   resolve_models(a.teacher, a.tokenizer, nullptr);
   train::DistillJob job;
-  const auto on = a.device.parse("distill");  // before any work
-  job.device = on.device;
-  job.precision = on.precision;
+  a.device.set_in(job, "distill");  // before any work
   job.stage = train::parse_distill_stage(a.stage);
   job.init = a.init;
   job.self_forcing = a.self_forcing;

@@ -25,9 +25,7 @@ struct FastDecoderArgs {
 
 int run_fast_decoder(const FastDecoderArgs& a) {
   train::FastDecoderJob job;
-  const auto on = a.device.parse("fast decoder");
-  job.device = on.device;
-  job.precision = on.precision;
+  a.device.set_in(job, "fast decoder");
   for (const auto& d : a.data) {
     train::LatentCacheSpec spec;
     spec.dataset = d;

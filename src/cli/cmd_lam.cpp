@@ -58,9 +58,7 @@ void add_lam_train(CLI::App& lam) {
         const auto parsed = parse_weighted_data(d);
         job->datasets.emplace_back(parsed.dir, parsed.weight);
       }
-      const auto on = device->parse("lam train");
-      job->device = on.device;
-      job->precision = on.precision;
+      device->set_in(*job, "lam train");
       job->out = *out;
       job->time_budget_s = *minutes * 60.0;
       job->model = *size == "tiny"    ? models::LamConfig::tiny()

@@ -34,10 +34,8 @@ int run_detector(DetectorArgs a) {
   // The world model's --device and --precision: its replays and the detector's training (in fp32
   // when the replays run in fp16, which no trainer trains in).
   const bool fp16 = parse_precision(a.wm.precision) == Precision::kFloat16;
-  const auto on = TrainingDeviceArgs{a.wm.device, fp16 ? "fp32" : a.wm.precision}.parse("policy detector");
+  TrainingDeviceArgs{a.wm.device, fp16 ? "fp32" : a.wm.precision}.set_in(a.run, "policy detector");
   if (fp16) LOG_INFO("policy detector: replays in fp16, the detector trains in fp32");
-  a.run.device = on.device;
-  a.run.precision = on.precision;
   if (a.world_model) {
     a.run.world_model = resolve_world_model(a.wm, "policy detector");
     a.run.replay_threads =
@@ -124,9 +122,7 @@ void register_policy(CLI::App& app) {
   train_device->add_to(train_cmd);
   train_cmd->callback([t, train_device] {
     set_action([t, train_device] {
-      const auto on = train_device->parse("policy train");
-      t->device = on.device;
-      t->precision = on.precision;
+      train_device->set_in(*t, "policy train");
       return recipes::train_bc(*t).is_object() ? 0 : 1;
     });
   });

@@ -42,9 +42,7 @@ void add_probe_train(CLI::App& probe) {
   device->add_to(cmd);
   cmd->callback([=] {
     set_action([=] {
-      const auto on = device->parse("probe train");
-      job->device = on.device;
-      job->precision = on.precision;
+      device->set_in(*job, "probe train");
       job->datasets.assign(data->begin(), data->end());
       job->out = *out;
       job->time_budget_s = *minutes * 60.0;

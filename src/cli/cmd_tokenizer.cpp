@@ -86,9 +86,7 @@ int run_train(const TrainArgs& a) {
   const auto batches =
       train::tokenizer_batches(datasets, clip, a.batch, a.image_batch, a.workers, a.seed, a.accumulate);
   auto o = train::recommended_tokenizer_options();
-  const auto on = a.device.parse("tokenizer train");
-  o.device = on.device;
-  o.precision = on.precision;
+  a.device.set_in(o, "tokenizer train");
   o.steps = a.steps;
   o.lr = a.lr;
   o.kl_weight = a.kl;

@@ -30,6 +30,13 @@ struct TrainingDeviceArgs {
     Precision precision;
   };
   Parsed parse(const std::string& trainer) const;
+  // parse(trainer) into a job's (or run's) `device` and `precision`.
+  template <class Job>
+  void set_in(Job& job, const std::string& trainer) const {
+    const auto p = parse(trainer);
+    job.device = p.device;
+    job.precision = p.precision;
+  }
 };
 CLI::Option* add_data_option(CLI::App* cmd, std::string& dir);  // --data,-d
 // --data,-d, repeatable; `extra` is appended to the help (what else the value may say).

@@ -43,6 +43,12 @@ const char* video_extension(VideoFormat format) {
 
 bool is_raw_video(const fs::path& file) { return file.extension() == ".safetensors"; }
 
+// A raw video file, mapped (its frames: raw_frames).
+SafetensorsFile open_raw_video(const fs::path& path) {
+  if (!fs::exists(path)) throw Error(path.string() + ": missing");
+  return SafetensorsFile::open(path);
+}
+
 // The frames of a raw video file, a view of its mapping (valid while `file` lives).
 at::Tensor raw_frames(const SafetensorsFile& file, const fs::path& path) {
   DOJO_CHECK(file.contains("frames"), path.string() + ": no tensor 'frames'");
@@ -316,8 +322,7 @@ at::Tensor read_video_frames(const fs::path& file, const std::vector<int64_t>& i
     io::VideoReader reader(file.string(), options);
     return reader.read_frames(indices);
   }
-  if (!fs::exists(file)) throw Error(file.string() + ": missing");
-  const auto mapped = SafetensorsFile::open(file);
+  const auto mapped = open_raw_video(file);
   const auto frames = raw_frames(mapped, file);  // [T, H, W, 3] u8
   for (int64_t i : indices)
     DOJO_CHECK(i >= 0 && i < frames.size(0), file.string() + ": frame " + std::to_string(i) +
@@ -330,8 +335,7 @@ at::Tensor read_all_video_frames(const fs::path& file, int64_t expected) {
   int64_t found = 0;
   at::Tensor frames;
   if (is_raw_video(file)) {
-    if (!fs::exists(file)) throw Error(file.string() + ": missing");
-    const auto mapped = SafetensorsFile::open(file);
+    const auto mapped = open_raw_video(file);
     frames = raw_frames(mapped, file).clone();
     found = frames.size(0);
   } else {

@@ -32,6 +32,9 @@
 namespace dojo::data {
 
 enum class Embodiment { kHuman, kRobot };
+std::string to_string(Embodiment embodiment);
+// Throws dojo::Error naming `where` for an unknown name.
+Embodiment embodiment_from_string(const std::string& name, const std::string& where);
 
 // How episodes store their frames: H.264 in .mp4 files (the default: about a tenth of the size),
 // or raw, the uint8 frames in .safetensors files ("frames" [T, H, W, 3]), which need no video
@@ -47,9 +50,6 @@ at::Tensor read_video_frames(const std::filesystem::path& file, const std::vecto
                              int decoder_threads = 0);
 // Every frame of such a file, checked to be `expected` of them (the dataset's count).
 at::Tensor read_all_video_frames(const std::filesystem::path& file, int64_t expected);
-std::string to_string(Embodiment embodiment);
-// Throws dojo::Error naming `where` for an unknown name.
-Embodiment embodiment_from_string(const std::string& name, const std::string& where);
 
 // What an episode holds in memory, before writing or after reading.
 struct EpisodeData {
