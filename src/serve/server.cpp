@@ -45,8 +45,11 @@ struct Server::Impl {
   std::unique_ptr<StudyApi> study;  // with --study
   ServerMetrics metrics;
   net::io_context ioc;
-  tcp::acceptor acceptor{ioc};
-  std::optional<net::ssl::context> tls;  // with --tls-cert / --tls-key: every connection is HTTPS
+  // Keeps the IO threads running while no socket operation is pending (a study request or a
+  // rollout computing aside will still post its answer to them); released by stop().
+  std::optional<net::executor_work_guard<net::io_context::executor_type>> keep_running;
+  tcp::acceptor acceptor{net::make_strand(ioc)};  // its handlers and its close at stop() in turn
+  std::optional<net::ssl::context> tls;           // with --tls-cert / --tls-key: every connection is HTTPS
   std::vector<std::thread> threads;
   std::atomic<int> sessions{0};  // WebSocket sessions and rollout jobs in flight
   // The study's requests: a fixed pool (a vote waits for its fsync, so not on the IO threads) and
@@ -60,11 +63,40 @@ struct Server::Impl {
   std::condition_variable background_done;
   int background_running = 0;
   std::mutex connections_mutex;
+  // A connection's close, posted to its strand; the posted handler holds `running` until it has
+  // run, so stop() can wait for every close before it stops the IO threads.
+  using CloseFn = std::function<void(std::shared_ptr<void> running)>;
+  enum class ConnectionKind { kWebSocket, kHttp };
   struct Closer {
     std::weak_ptr<void> connection;
-    std::function<void()> close;
+    ConnectionKind kind;
+    CloseFn close;
   };
-  std::vector<Closer> closers;  // close every live WebSocket at stop()
+  std::vector<Closer> closers;  // close every live connection at stop()
+  // Registers `close` to run at stop() while `connection` lives; forgets closers of connections
+  // gone since, so the list tracks live ones.
+  void add_closer(std::weak_ptr<void> connection, ConnectionKind kind, CloseFn close) {
+    std::lock_guard<std::mutex> lock(connections_mutex);
+    closers.erase(std::remove_if(closers.begin(), closers.end(),
+                                 [](const Closer& c) { return c.connection.expired(); }),
+                  closers.end());
+    closers.push_back({std::move(connection), kind, std::move(close)});
+  }
+  // Runs `post` (which posts work holding `running` to the IO threads) and waits until that work
+  // has run (at most 5 s): a close still queued when the IO threads stop would never run.
+  void post_and_wait(const std::function<void(std::shared_ptr<void> running)>& post) {
+    auto running = std::make_shared<int>(0);
+    post(running);
+    for (int waited = 0; !threads.empty() && running.use_count() > 1 && waited < 500; ++waited)
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  void close_connections(ConnectionKind kind) {
+    post_and_wait([&](std::shared_ptr<void> running) {
+      std::lock_guard<std::mutex> lock(connections_mutex);
+      for (auto& closer : closers)
+        if (closer.kind == kind) closer.close(running);
+    });
+  }
 
   // `work` wrapped so that stop() waits for it: counted from now until it has run (and released
   // what it holds), its exception logged under `what`.
@@ -182,18 +214,9 @@ class WsConnection : public std::enable_shared_from_this<WsConnection<Stream>> {
         net::post(self->ws_.get_executor(),
                   [self, out = std::move(out)]() mutable { self->enqueue(std::move(out)); });
     });
-    {
-      std::lock_guard<std::mutex> lock(server_.connections_mutex);
-      // Closers of connections gone since are pruned here, so the list tracks live ones.
-      server_.closers.erase(
-          std::remove_if(server_.closers.begin(), server_.closers.end(),
-                         [](const Server::Impl::Closer& c) { return c.connection.expired(); }),
-          server_.closers.end());
-      server_.closers.push_back({weak, [weak] {
-                                   if (auto self = weak.lock())
-                                     net::post(self->ws_.get_executor(), [self] { self->shutdown(); });
-                                 }});
-    }
+    server_.add_closer(weak, Server::Impl::ConnectionKind::kWebSocket, [weak](std::shared_ptr<void> running) {
+      if (auto self = weak.lock()) net::post(self->ws_.get_executor(), [self, running] { self->shutdown(); });
+    });
     read();
   }
 
@@ -303,9 +326,21 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
 
  public:
   HttpConnection(tcp::socket&& socket, Server::Impl& server)
-      : stream_(make(std::move(socket), server)), server_(server) {}
+      : stream_(make(std::move(socket), server)), executor_(stream_.get_executor()), server_(server) {}
   void run() {
-    net::dispatch(stream_.get_executor(), [self = shared_from_this()] {
+    // At stop() a connection still open (between requests, or one whose answer could not be
+    // written) is closed, so that its client sees the server go instead of waiting on a socket
+    // nobody serves.
+    std::weak_ptr<HttpConnection> weak = shared_from_this();
+    server_.add_closer(weak, Server::Impl::ConnectionKind::kHttp, [weak](std::shared_ptr<void> running) {
+      if (auto self = weak.lock())
+        net::post(self->executor_, [self, running] {
+          if (self->upgraded_) return;  // the stream now belongs to a WebSocket, closed by its own closer
+          beast::error_code ec;
+          beast::get_lowest_layer(self->stream_).socket().close(ec);
+        });
+    });
+    net::dispatch(executor_, [self = shared_from_this()] {
       if constexpr (kTls) {
         beast::get_lowest_layer(self->stream_).expires_after(std::chrono::seconds(30));
         self->stream_.async_handshake(net::ssl::stream_base::server, [self](beast::error_code ec) {
@@ -353,6 +388,10 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
     }
     server_.metrics.request();
     auto req = parser_->release();
+    // A stopping server takes no new work: stop() waits for what is running, and clients that keep
+    // sending would keep it waiting.
+    if (server_.stopping)
+      return write(json_error(req, http::status::service_unavailable, "the server is stopping"), true);
     const auto path = path_of(req.target());
     // The embedded pages and scripts hold no secrets and a browser fetches scripts without the
     // token; everything they call (the API, the WebSocket, the clips) needs it.
@@ -376,6 +415,7 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
                        "all " + std::to_string(server_.options.max_sessions) + " sessions are in use"));
       }
       beast::get_lowest_layer(stream_).expires_never();
+      upgraded_ = true;
       std::make_shared<WsConnection<Stream>>(std::move(stream_), server_)->accept(std::move(req));
       return;
     }
@@ -419,8 +459,7 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
                                 RolloutLimits{o.max_rollout_frames, o.max_rollout_seconds, o.jpeg_quality});
         --self->server_.sessions;
         auto res = reply(req, static_cast<http::status>(r.status), r.content_type, std::move(r.body));
-        net::post(self->stream_.get_executor(),
-                  [self, res = std::move(res)]() mutable { self->write(std::move(res)); });
+        net::post(self->executor_, [self, res = std::move(res)]() mutable { self->write(std::move(res)); });
       });
       return;
     }
@@ -441,8 +480,7 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
                                              std::string(req[http::field::user_agent]));
         if (r.status >= 400) self->server_.metrics.error();
         auto res = reply(req, static_cast<http::status>(r.status), r.content_type, std::move(r.body));
-        net::post(self->stream_.get_executor(),
-                  [self, res = std::move(res)]() mutable { self->write(std::move(res)); });
+        net::post(self->executor_, [self, res = std::move(res)]() mutable { self->write(std::move(res)); });
       });
       return;
     }
@@ -466,7 +504,10 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
   }
 
   Stream stream_;
+  // The connection's strand, kept apart from the stream, which a WebSocket upgrade moves away.
+  net::any_io_executor executor_;
   Server::Impl& server_;
+  bool upgraded_ = false;
   beast::flat_buffer buffer_;
   std::optional<http::request_parser<http::string_body>> parser_;
   std::shared_ptr<Response> response_;
@@ -578,6 +619,7 @@ uint16_t Server::start() {
   if (!ec) s.acceptor.listen(net::socket_base::max_listen_connections, ec);
   DOJO_CHECK(!ec, "serve: cannot listen on " + s.options.host + ":" + std::to_string(s.options.port) + ": " +
                       ec.message());
+  s.keep_running.emplace(s.ioc.get_executor());
   s.accept();
   for (int i = 0; i < std::max(1, s.options.io_threads); ++i) s.threads.emplace_back([&s] { s.ioc.run(); });
   return s.acceptor.local_endpoint().port();
@@ -586,21 +628,27 @@ uint16_t Server::start() {
 void Server::stop() {
   auto& s = *impl_;
   if (s.stopping.exchange(true)) return;
-  net::post(s.ioc, [&s] {
-    beast::error_code ec;
-    s.acceptor.close(ec);
+  // 1. No new connection: the listening socket closes on the strand its accept handlers run on, so
+  //    after it no connection is made and the closers below are all there are. A request on a
+  //    connection already open is answered 503 from now on.
+  s.post_and_wait([&s](std::shared_ptr<void> running) {
+    net::post(s.acceptor.get_executor(), [&s, running] {
+      beast::error_code ec;
+      s.acceptor.close(ec);
+    });
   });
-  {
-    std::lock_guard<std::mutex> lock(s.connections_mutex);
-    for (auto& closer : s.closers) closer.close();
-  }
-  // Sessions close (their recordings are written), rollout jobs finish, then the IO threads stop.
+  // 2. Sessions close (their recordings are written); rollout jobs and study requests already
+  //    running finish and post their answers.
+  s.close_connections(Server::Impl::ConnectionKind::kWebSocket);
   for (int waited = 0; s.sessions > 0 && waited < 300; ++waited)
     std::this_thread::sleep_for(std::chrono::milliseconds(10));
   {
     std::unique_lock<std::mutex> lock(s.background_mutex);
     s.background_done.wait(lock, [&s] { return s.background_running == 0; });
   }
+  // 3. Every HTTP connection left closes, then the IO threads stop.
+  s.close_connections(Server::Impl::ConnectionKind::kHttp);
+  s.keep_running.reset();
   s.ioc.stop();
   for (auto& t : s.threads)
     if (t.joinable()) t.join();

@@ -6,6 +6,7 @@
 
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <filesystem>
 #include <thread>
 
@@ -87,7 +88,7 @@ TEST(ServeLoad, ConcurrentSessionsStepAndLiveThenOverTheCap) {
 // Study voters against a study server (no model) with a small pool: every vote the server
 // acknowledged is in the database, busy answers are retried, and a server stopped under the
 // voters ends them with what they had, reported rather than thrown.
-TEST(ServeLoad, StudyVotersAreAcknowledgedAndStored) {
+TEST(ServeLoad, StudyVotersAreAcknowledgedStoredAndCountedWhenTheServerGoes) {
   test::TempDir tmp;
   const auto clips = tmp / "clips" / "ep-0";
   std::filesystem::create_directories(clips);
@@ -117,10 +118,23 @@ TEST(ServeLoad, StudyVotersAreAcknowledgedAndStored) {
   EXPECT_EQ(static_cast<int64_t>(VoteStore(tmp / "s" / "votes.sqlite").all().size()),
             run.answers_acknowledged);
 
-  server.stop();
-  // A server stopped under the voters (server.stop() from another thread mid-run) hung the run
-  // once under ctest -j2 (900 s timeout): left out until found; the SIGKILL case is covered by
-  // scripts/bench_serve_scale.sh.
+  load.seconds = 30;
+  std::thread stopper([&] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    server.stop();
+  });
+  const auto cut_start = std::chrono::steady_clock::now();
+  const auto cut = run_load(load);
+  stopper.join();
+  // The voters learn at once that the server went (connections closed, new work refused), not
+  // from the load client's watchdog a minute past the 30 s run.
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - cut_start).count(), 15);
+  EXPECT_FALSE(cut.server_alive_after);
+  EXPECT_EQ(cut.failed_sessions, 8) << cut.to_json().dump();
+  EXPECT_GT(cut.votes_acknowledged, 0);
+  // A vote stored as the server went may have lost its answer: never fewer rows than acknowledged.
+  EXPECT_GE(static_cast<int64_t>(VoteStore(tmp / "s" / "votes.sqlite").all().size()),
+            run.answers_acknowledged + cut.answers_acknowledged);
 }
 
 }  // namespace
