@@ -29,7 +29,7 @@ struct DistillArgs {
   int64_t lora_rank = 0, accumulate = 1;
   double lora_alpha = 32;
   std::string lora_targets = "q,k,v,o,mlp1,mlp2";
-  double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1;
+  double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1, clean_context_share = 0;
   bool fp32_times = false;
   train::SelfForcingOptions self_forcing;
   uint64_t seed = 0;
@@ -78,6 +78,7 @@ int run_distill(DistillArgs a) {
   job.trajectories.seed = a.seed;
   job.trajectories.counterfactual_copies = a.counterfactual_copies;
   job.trajectories.chunks = a.warmup_chunks;
+  job.clean_context_share = a.clean_context_share;
   job.options.lr = a.lr;
   job.options.weight_decay = a.weight_decay;
   job.options.grad_clip = a.grad_clip;
@@ -187,6 +188,11 @@ void register_distill(CLI::App& app) {
                   "warm-up: teacher chunks chained per trajectory (1: 13 frames; 4: 49 frames, the "
                   "positions a streaming student reaches in an evaluation rollout)")
       ->check(CLI::Range(1, 8))
+      ->capture_default_str();
+  cmd->add_option("--clean-context-share", a->clean_context_share,
+                  "warm-up: share of clips trained on a clean context, as the student streams (frames "
+                  "before a random frontier clean, the rest at random trajectory points)")
+      ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
   cmd->add_option("--counterfactual-share", sf.counterfactual_share,
                   "self-forcing: share of rollouts driven by another clip's actions")

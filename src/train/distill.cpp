@@ -241,6 +241,17 @@ torch::Tensor warmup_loss_at(models::ActionDitImpl& student, const torch::Tensor
   return (x0 - target).narrow(2, 1, T - 1).pow(2).mean();
 }
 
+torch::Tensor with_clean_context(torch::Tensor point_index, double share, int64_t points,
+                                 torch::Generator& generator) {
+  if (share <= 0) return point_index;
+  const int64_t B = point_index.size(0), T = point_index.size(1);
+  DOJO_CHECK(share <= 1 && T >= 2, "warmup: the clean-context share must be in [0, 1], with 2+ frames");
+  const auto chosen = torch::rand({B}, generator) < share;                    // [B]
+  const auto frontier = torch::randint(1, T, {B}, generator, torch::kLong);   // [B]
+  const auto before = torch::arange(T).unsqueeze(0) < frontier.unsqueeze(1);  // [B, T]
+  return point_index.masked_fill(before & chosen.unsqueeze(1), points - 1);
+}
+
 torch::Tensor draw_trajectories(const MixtureIndex& mixture, int64_t copies, int64_t count,
                                 torch::Generator& generator) {
   if (!mixture.weighted()) return torch::randint(mixture.size() * copies, {count}, generator, torch::kLong);
@@ -462,7 +473,9 @@ DistillResult run_warmup(const DistillJob& job) {
         const auto idx = draw_trajectories(mixture, copies, job.batch_size, gen);
         const auto pts = trajectories.points.index_select(0, idx),
                    acts = trajectories.actions.index_select(0, idx);
-        const auto point_index = torch::randint(pts.size(1), {pts.size(0), pts.size(3)}, gen, torch::kLong);
+        const auto point_index =
+            with_clean_context(torch::randint(pts.size(1), {pts.size(0), pts.size(3)}, gen, torch::kLong),
+                               job.clean_context_share, pts.size(1), gen);
         const auto s = trainer.step_loss(
             [&](models::ActionDitImpl& net, int64_t j) {
               const int64_t row = shards.row_offset(j), m = shards.micro_batch;
@@ -487,7 +500,8 @@ DistillResult run_warmup(const DistillJob& job) {
         trainer.save(ckpt_dir, {{"stage", "warmup"},
                                 {"clips", n},
                                 {"trajectories", trajectory_settings},
-                                {"mixture", mixture_record}});
+                                {"mixture", mixture_record},
+                                {"clean_context_share", job.clean_context_share}});
       });
   if (run.end_step == run.start_step && !resuming && group.main())
     trainer.save(ckpt_dir, {{"stage", "warmup"},
@@ -511,7 +525,8 @@ DistillResult run_warmup(const DistillJob& job) {
                                   {"student", settings.to_json()},
                                   {"device", job.device.str()},
                                   {"precision", dojo::to_string(job.precision)},
-                                  {"options", job.options.to_json()}};
+                                  {"options", job.options.to_json()},
+                                  {"clean_context_share", job.clean_context_share}};
   if (group.main()) write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
   return result;
 }

@@ -82,6 +82,12 @@ torch::Tensor warmup_loss_at(models::ActionDitImpl& student, const torch::Tensor
                              const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
                              int64_t window_frames, torch::Tensor point_index, int64_t sink_frames = 0);
 
+// point_index [B, T] with a share of its rows (drawn from `generator`) turned into a clean context:
+// in such a row, frames before a frontier drawn uniformly in [1, T) take the clean point P - 1.
+// Share 0 draws nothing and returns point_index unchanged.
+torch::Tensor with_clean_context(torch::Tensor point_index, double share, int64_t points,
+                                 torch::Generator& generator);
+
 // A warm-up batch's trajectory indices: trajectory j is clip j % N under copy j / N's actions
 // (N = the mixture's clips, `copies` per clip). Weighted: the clip from `mixture`, the copy
 // uniformly; unweighted: every trajectory alike (the stream drawn before weights existed).
@@ -115,6 +121,11 @@ struct DistillJob {
   double time_budget_s = 0;
   int64_t save_every = 200;
   uint64_t seed = 0;
+  // Warm-up: share of a step's clips trained as the student streams, on a clean context: frames
+  // before a random frontier k (1 <= k < T) at their clean point, frames from k on at random
+  // points (with_clean_context). The student streams on its own clean frames, which the per-frame
+  // draws (frame f clean with probability 1/P) almost never show it for late frames.
+  double clean_context_share = 0;
   // Where the teacher, student and critic run and at what precision (bf16: their forward passes
   // under autocast, weights, moments and losses float32, as WmTrainer); every draw stays on the
   // CPU, so a seed gives the same batches on any device. Checkpoints are CPU float32 either way.

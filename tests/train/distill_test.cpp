@@ -36,6 +36,37 @@ TEST(Distill, WeightedWarmupDrawsEachDatasetsShareOverEveryCopy) {
   EXPECT_TRUE(torch::equal(draw_trajectories(alike, 2, 16, a), torch::randint(80, {16}, b, torch::kLong)));
 }
 
+TEST(Distill, CleanContextRowsAreCleanBeforeAFrontierAndDrawnAsBeforeAfterIt) {
+  const int64_t B = 4000, T = 13, P = 5;
+  auto a = step_generator(3, 1), b = step_generator(3, 1);
+  const auto drawn = torch::randint(P, {B, T}, a, torch::kLong);
+  // Share 0 draws nothing: the warm-up's stream of draws is the one it had before the option.
+  EXPECT_TRUE(torch::equal(with_clean_context(drawn, 0, P, a), drawn));
+  torch::randint(P, {B, T}, b, torch::kLong);  // b where a was before with_clean_context
+  EXPECT_TRUE(
+      torch::equal(torch::randint(P, {B, T}, a, torch::kLong), torch::randint(P, {B, T}, b, torch::kLong)));
+
+  auto g = step_generator(5, 2);
+  const auto out = with_clean_context(drawn, 0.5, P, g);
+  int64_t changed_rows = 0;
+  std::vector<int64_t> frontier_count(T, 0);
+  for (int64_t r = 0; r < B; ++r) {
+    const auto row = out[r], orig = drawn[r];
+    if (torch::equal(row, orig) && orig[0].item<int64_t>() != P - 1) continue;  // not chosen
+    // A chosen row: a clean prefix of length k >= 1, then the drawn points unchanged.
+    int64_t k = 0;
+    while (k < T && row[k].item<int64_t>() == P - 1) ++k;
+    ASSERT_GE(k, 1);
+    EXPECT_TRUE(torch::equal(row.narrow(0, k, T - k), orig.narrow(0, k, T - k)));
+    // k may run past the frontier where the drawn points were already clean; count the changed.
+    if (!torch::equal(row, orig)) ++changed_rows;
+  }
+  // About half the rows chosen; a chosen row is changed unless its prefix was already clean.
+  EXPECT_GT(changed_rows, B * 0.44);
+  EXPECT_LT(changed_rows, B * 0.52);
+  EXPECT_THROW(with_clean_context(drawn, 1.5, P, g), Error);
+}
+
 TEST(Distill, TrajectoriesAreTheTeachersOdePointsPerClipAndResume) {
   test::OneThread one;
   torch::manual_seed(0);
