@@ -57,6 +57,8 @@ struct Server::Impl {
   std::optional<net::thread_pool> study_pool;
   std::atomic<int> study_requests{0};
   std::atomic<bool> stopping{false};
+  std::mutex stop_mutex;  // a second stop() (the destructor's) waits for the first to end
+  bool stopped = false;
   // Work that outlives its connection: rollout jobs and sessions winding down (recordings being
   // written). Detached threads, counted: stop() waits for all of them.
   std::mutex background_mutex;
@@ -217,6 +219,8 @@ class WsConnection : public std::enable_shared_from_this<WsConnection<Stream>> {
     server_.add_closer(weak, Server::Impl::ConnectionKind::kWebSocket, [weak](std::shared_ptr<void> running) {
       if (auto self = weak.lock()) net::post(self->ws_.get_executor(), [self, running] { self->shutdown(); });
     });
+    // Upgraded after stop() closed the WebSockets it knew of: nobody would close this one.
+    if (server_.stopping) return shutdown();
     read();
   }
 
@@ -336,8 +340,13 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
       if (auto self = weak.lock())
         net::post(self->executor_, [self, running] {
           if (self->upgraded_) return;  // the stream now belongs to a WebSocket, closed by its own closer
-          beast::error_code ec;
-          beast::get_lowest_layer(self->stream_).socket().close(ec);
+          // An answer being written (a rollout's video) goes out whole first; stop() waits for it
+          // while `running` is held here (at most its 5 s).
+          if (self->writing_) {
+            self->close_after_write_ = std::move(running);
+            return;
+          }
+          beast::get_lowest_layer(self->stream_).close();
         });
     });
     net::dispatch(executor_, [self = shared_from_this()] {
@@ -492,7 +501,14 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
     if (close_after) res.keep_alive(false);
     response_ = std::make_shared<Response>(std::move(res));
     beast::get_lowest_layer(stream_).expires_after(std::chrono::seconds(60));
+    writing_ = true;
     http::async_write(stream_, *response_, [self = shared_from_this()](beast::error_code ec, size_t) {
+      self->writing_ = false;
+      if (self->close_after_write_) {  // stop() closed the connection while this answer went out
+        beast::get_lowest_layer(self->stream_).close();
+        self->close_after_write_.reset();
+        return;
+      }
       if (ec || !self->response_->keep_alive()) return self->close();
       self->read();
     });
@@ -507,7 +523,8 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
   // The connection's strand, kept apart from the stream, which a WebSocket upgrade moves away.
   net::any_io_executor executor_;
   Server::Impl& server_;
-  bool upgraded_ = false;
+  bool upgraded_ = false, writing_ = false;
+  std::shared_ptr<void> close_after_write_;  // stop()'s hold while an answer is being written
   beast::flat_buffer buffer_;
   std::optional<http::request_parser<http::string_body>> parser_;
   std::shared_ptr<Response> response_;
@@ -619,15 +636,18 @@ uint16_t Server::start() {
   if (!ec) s.acceptor.listen(net::socket_base::max_listen_connections, ec);
   DOJO_CHECK(!ec, "serve: cannot listen on " + s.options.host + ":" + std::to_string(s.options.port) + ": " +
                       ec.message());
+  const auto port = s.acceptor.local_endpoint().port();  // before the IO threads share the acceptor
   s.keep_running.emplace(s.ioc.get_executor());
   s.accept();
   for (int i = 0; i < std::max(1, s.options.io_threads); ++i) s.threads.emplace_back([&s] { s.ioc.run(); });
-  return s.acceptor.local_endpoint().port();
+  return port;
 }
 
 void Server::stop() {
   auto& s = *impl_;
-  if (s.stopping.exchange(true)) return;
+  std::lock_guard<std::mutex> stop_lock(s.stop_mutex);
+  if (s.stopped) return;
+  s.stopping = true;
   // 1. No new connection: the listening socket closes on the strand its accept handlers run on, so
   //    after it no connection is made and the closers below are all there are. A request on a
   //    connection already open is answered 503 from now on.
@@ -654,6 +674,13 @@ void Server::stop() {
     if (t.joinable()) t.join();
   s.threads.clear();
   if (s.study_pool) s.study_pool->join();
+  // Work the IO threads started after the wait above (a WebSocket that finished closing winds its
+  // session down on a thread of its own): none can start now, and none may outlive the server.
+  {
+    std::unique_lock<std::mutex> lock(s.background_mutex);
+    s.background_done.wait(lock, [&s] { return s.background_running == 0; });
+  }
+  s.stopped = true;
 }
 
 }  // namespace dojo::serve
