@@ -9,6 +9,10 @@
 #                                            what would travel, failing past 64 MiB
 #   scripts/gpu_tree.sh size [CARRIED ...]   print what would travel, failing past 64 MiB
 #   scripts/gpu_tree.sh restore              move it back (git status is clean again)
+#   scripts/gpu_tree.sh check                what slim would leave to travel, moving nothing,
+#                                            failing past 48 MiB: 16 left for the carried folders
+#                                            (.deps and .gpu_data are 12); a CTest case, so the
+#                                            tree cannot outgrow a GPU call unnoticed
 #
 # CARRIED: the ignored folders the call will name in `carry` (e.g. .deps .gpu_data). Between slim
 # and restore git sees the set as deleted: restore before committing.
@@ -18,11 +22,12 @@ root=$PWD
 held=$(dirname "$root")/.dojo_gpu_held/$(basename "$root")
 limit=$((64 * 1024 * 1024))
 moved=(models/reference)
+excluded=""  # check: a grep pattern of the paths slim would move
 
 size() {
   local total bytes
   # Files on disk that git tracks or would track (a tracked file moved away is not sent).
-  total=$(git ls-files -z --cached --others --exclude-standard |
+  total=$(git ls-files -z --cached --others --exclude-standard | { grep -zv "${excluded:-^$}" || true; } |
           { xargs -0 stat -c '%F %s' 2>/dev/null || true; } | awk '$1 == "regular" {n += $NF} END {print n + 0}')
   for dir in "$@"; do
     [[ -e $dir ]] || { echo "gpu_tree: $dir: no such folder to carry" >&2; exit 2; }
@@ -30,8 +35,8 @@ size() {
     total=$((total + bytes))
     echo "carried $dir: $((bytes / 1024)) KiB"
   done
-  echo "would travel: $((total / 1024 / 1024)) MiB of 64 MiB"
-  ((total <= limit)) || { echo "gpu_tree: over 64 MiB: the call would be refused" >&2; exit 1; }
+  echo "would travel: $((total / 1024 / 1024)) MiB of $((limit / 1024 / 1024)) MiB"
+  ((total <= limit)) || { echo "gpu_tree: over $((limit / 1024 / 1024)) MiB: the call would be refused" >&2; exit 1; }
 }
 
 case "${1:-}" in
@@ -49,6 +54,13 @@ case "${1:-}" in
     ;;
   size)
     shift
+    size "$@"
+    ;;
+  check)
+    shift
+    limit=$((48 * 1024 * 1024))
+    excluded=$(printf '^%s/\\|' "${moved[@]}")
+    excluded=${excluded%\\|}
     size "$@"
     ;;
   restore)
