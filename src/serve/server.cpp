@@ -86,7 +86,7 @@ struct Server::Impl {
   }
   // Runs `post` (which posts work holding `running` to the IO threads) and waits until that work
   // has run (at most 5 s): a close still queued when the IO threads stop would never run.
-  void post_and_wait(const std::function<void(std::shared_ptr<void> running)>& post) {
+  void post_and_wait(const CloseFn& post) {
     auto running = std::make_shared<int>(0);
     post(running);
     for (int waited = 0; !threads.empty() && running.use_count() > 1 && waited < 500; ++waited)
@@ -118,6 +118,10 @@ struct Server::Impl {
       --background_running;
       background_done.notify_all();
     };
+  }
+  void wait_for_background() {
+    std::unique_lock<std::mutex> lock(background_mutex);
+    background_done.wait(lock, [this] { return background_running == 0; });
   }
   void run_in_background(std::function<void()> work) {
     std::thread(counted(std::move(work), "background work")).detach();
@@ -662,10 +666,7 @@ void Server::stop() {
   s.close_connections(Server::Impl::ConnectionKind::kWebSocket);
   for (int waited = 0; s.sessions > 0 && waited < 300; ++waited)
     std::this_thread::sleep_for(std::chrono::milliseconds(10));
-  {
-    std::unique_lock<std::mutex> lock(s.background_mutex);
-    s.background_done.wait(lock, [&s] { return s.background_running == 0; });
-  }
+  s.wait_for_background();
   // 3. Every HTTP connection left closes, then the IO threads stop.
   s.close_connections(Server::Impl::ConnectionKind::kHttp);
   s.keep_running.reset();
@@ -676,10 +677,7 @@ void Server::stop() {
   if (s.study_pool) s.study_pool->join();
   // Work the IO threads started after the wait above (a WebSocket that finished closing winds its
   // session down on a thread of its own): none can start now, and none may outlive the server.
-  {
-    std::unique_lock<std::mutex> lock(s.background_mutex);
-    s.background_done.wait(lock, [&s] { return s.background_running == 0; });
-  }
+  s.wait_for_background();
   s.stopped = true;
 }
 

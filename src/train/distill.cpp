@@ -464,6 +464,12 @@ DistillResult run_warmup(const DistillJob& job) {
     for (double v : recent) sum += v;
     return recent.empty() ? 0.0 : sum / static_cast<double>(recent.size());
   };
+  // The trainer state every warm-up checkpoint records (the no-step save as the periodic ones).
+  const nlohmann::json checkpoint_extra = {{"stage", "warmup"},
+                                           {"clips", n},
+                                           {"trajectories", trajectory_settings},
+                                           {"mixture", mixture_record},
+                                           {"clean_context_share", job.clean_context_share}};
   const auto run = run_training_loop(
       loop, start_step,
       [&](const LoopStep& info) {
@@ -496,18 +502,8 @@ DistillResult run_warmup(const DistillJob& job) {
             job.batch_size,
             note.str()};
       },
-      [&](int64_t, bool) {
-        trainer.save(ckpt_dir, {{"stage", "warmup"},
-                                {"clips", n},
-                                {"trajectories", trajectory_settings},
-                                {"mixture", mixture_record},
-                                {"clean_context_share", job.clean_context_share}});
-      });
-  if (run.end_step == run.start_step && !resuming && group.main())
-    trainer.save(ckpt_dir, {{"stage", "warmup"},
-                            {"clips", n},
-                            {"trajectories", trajectory_settings},
-                            {"mixture", mixture_record}});
+      [&](int64_t, bool) { trainer.save(ckpt_dir, checkpoint_extra); });
+  if (run.end_step == run.start_step && !resuming && group.main()) trainer.save(ckpt_dir, checkpoint_extra);
   result.steps = trainer.steps_done();
   result.last_loss = recent_mean();
   if (result.first_loss == 0) result.first_loss = result.last_loss;
