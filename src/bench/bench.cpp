@@ -34,16 +34,19 @@ std::vector<std::function<std::vector<BenchCase>(const BenchOptions&)>>& factori
   return list;
 }
 
-// Square fp32 matmul: the CPU's practical roofline for everything built from GEMMs.
-BenchCase matmul_case(int64_t n, torch::Device device) {
+// Square matmul: the practical roofline for everything built from GEMMs, in float32 and in bf16
+// (what training under --precision bf16 runs its matrix products in: on CPUs with bf16 dot
+// products oneDNN's bf16 kernels run at several times float32's rate).
+BenchCase matmul_case(int64_t n, torch::Device device, torch::ScalarType dtype = torch::kFloat32) {
   BenchCase c;
-  c.name = "matmul_f32";
+  c.name = dtype == torch::kBFloat16 ? "matmul_bf16" : "matmul_f32";
   c.unit = "GFLOP/s";
   c.params = std::to_string(n) + "x" + std::to_string(n) + "x" + std::to_string(n);
-  c.run_once = [n, device] {
+  c.run_once = [n, device, dtype] {
     torch::NoGradGuard no_grad;
-    const auto a = torch::randn({n, n}, torch::TensorOptions().device(device));  // [n, n]
-    const auto b = torch::randn({n, n}, torch::TensorOptions().device(device));  // [n, n]
+    const auto options = torch::TensorOptions().device(device).dtype(dtype);
+    const auto a = torch::randn({n, n}, options);  // [n, n]
+    const auto b = torch::randn({n, n}, options);  // [n, n]
     // Enough multiplies that one run lasts ~0.5 s on a laptop core.
     const int iters = std::max<int>(1, static_cast<int>(2e9 / (2.0 * n * n * n)));
     if (device.is_cuda()) torch::cuda::synchronize();
@@ -206,6 +209,7 @@ std::vector<BenchCase> builtin_cases(const BenchOptions& options) {
   const torch::Device device = parse_device(options.device);
   std::vector<BenchCase> cases;
   cases.push_back(matmul_case(1024, device));
+  cases.push_back(matmul_case(1024, device, torch::kBFloat16));
   if (!options.video_path.empty()) {
     const std::string path = options.video_path;
     const auto info = io::probe_video(path);

@@ -29,8 +29,9 @@ struct DistillArgs {
   int64_t lora_rank = 0, accumulate = 1;
   double lora_alpha = 32;
   std::string lora_targets = "q,k,v,o,mlp1,mlp2";
-  double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1, clean_context_share = 0;
-  bool fp32_times = false;
+  double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1, clean_context_share = 0,
+         context_noise = 0;
+  bool fp32_times = false, zero1 = false;
   train::SelfForcingOptions self_forcing;
   uint64_t seed = 0;
 };
@@ -79,6 +80,8 @@ int run_distill(DistillArgs a) {
   job.trajectories.counterfactual_copies = a.counterfactual_copies;
   job.trajectories.chunks = a.warmup_chunks;
   job.clean_context_share = a.clean_context_share;
+  job.context_noise = a.context_noise;
+  job.zero1 = a.zero1;
   job.options.lr = a.lr;
   job.options.weight_decay = a.weight_decay;
   job.options.grad_clip = a.grad_clip;
@@ -194,6 +197,14 @@ void register_distill(CLI::App& app) {
                   "before a random frontier clean, the rest at random trajectory points)")
       ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
+  cmd->add_option("--context-noise", a->context_noise,
+                  "warm-up: Gaussian noise on the clean context frames after the first, level drawn "
+                  "uniformly below this (the student streams on latents it made itself)")
+      ->check(CLI::Range(0.0, 2.0))
+      ->capture_default_str();
+  cmd->add_flag("--zero1", a->zero1,
+                "Under data parallelism, each process keeps 1/N of the AdamW moments of the student "
+                "(and of the critic): ZeRO-1, the same weights as without (docs/distributed.md)");
   cmd->add_option("--counterfactual-share", sf.counterfactual_share,
                   "self-forcing: share of rollouts driven by another clip's actions")
       ->check(CLI::Range(0.0, 1.0))

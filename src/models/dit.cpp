@@ -389,6 +389,11 @@ struct RecomputedBlock : torch::autograd::Function<RecomputedBlock> {
                                const torch::Tensor& sin, const torch::Tensor& mask, int64_t block) {
     ctx->save_for_backward({x, silu_emb, adaln_lora, context, cos, sin, mask});
     ctx->saved_data["block"] = block;
+    // The backward pass runs outside the training step's autocast region: the recompute takes the
+    // forward's autocast state with it, or a bf16 forward is recomputed in float32 (1.2 % off).
+    const auto device = x.device().type();
+    ctx->saved_data["autocast"] = AutocastGuard::is_enabled(device);
+    ctx->saved_data["autocast_dtype"] = static_cast<int64_t>(AutocastGuard::dtype(device));
     PlainDitKernelsScope plain;  // the backward pass's run records gradients: the plain kernels
     DitBlockContext c;
     c.silu_emb = silu_emb;
@@ -410,14 +415,25 @@ struct RecomputedBlock : torch::autograd::Function<RecomputedBlock> {
     torch::Tensor out;
     {
       torch::AutoGradMode recording(true);
+      const bool autocast = ctx->saved_data["autocast"].toBool();
+      AutocastGuard as_in_forward(
+          inputs[0].device().type(),
+          autocast ? static_cast<c10::ScalarType>(ctx->saved_data["autocast_dtype"].toInt()) : c10::kBFloat16,
+          autocast);
+      // The block sees views of the detached inputs, not the leaves themselves: autocast caches its
+      // lower-precision copy of a leaf that needs a gradient and reuses it for every use, so the
+      // gradients of silu_emb's three modulations would be summed in bf16 before the cast back
+      // (3e-4 off the forward's, where each use had its own cast).
+      const auto as_in_forward_graph = [](const torch::Tensor& t) { return t.defined() ? t.view_as(t) : t; };
       DitBlockContext c;
-      c.silu_emb = inputs[1];
-      c.adaln_lora = inputs[2];
-      c.context = inputs[3];
+      c.silu_emb = as_in_forward_graph(inputs[1]);
+      c.adaln_lora = as_in_forward_graph(inputs[2]);
+      c.context = as_in_forward_graph(inputs[3]);
       c.cos = saved[4];
       c.sin = saved[5];
       c.mask = mask_of(saved[6]);
-      out = reinterpret_cast<DitBlockImpl*>(ctx->saved_data["block"].toInt())->forward(inputs[0], c);
+      out = reinterpret_cast<DitBlockImpl*>(ctx->saved_data["block"].toInt())
+                ->forward(as_in_forward_graph(inputs[0]), c);
     }
     torch::autograd::backward({out}, {grad_out[0]});
     torch::autograd::variable_list grads;
@@ -707,11 +723,6 @@ torch::Tensor ActionDitImpl::forward_impl(const DitInputs& in,
 
   x = x.view({B, T, S, D});
   const bool recompute = recompute_blocks && torch::GradMode::is_enabled() && in.kv_cache == nullptr;
-  // Under autocast the recomputed blocks' gradients drifted 1.2 % from the stored ones' (measured,
-  // DitCheckpointing tests): refused until the recompute reproduces the forward's precision.
-  DOJO_CHECK(!recompute || !AutocastGuard::is_enabled(in.x.device().type()),
-             "activation checkpointing runs in float32 only: train with --precision fp32 or without "
-             "--checkpoint-activations");
   for (int64_t i = 0; i < c.num_blocks; ++i) {
     ctx.cache = in.kv_cache != nullptr ? &(*in.kv_cache)[i] : nullptr;
     x = recompute ? RecomputedBlock::apply(x, ctx.silu_emb, ctx.adaln_lora, ctx.context, ctx.cos, ctx.sin,

@@ -228,6 +228,29 @@ void DataParallel::average_gradients(const std::vector<torch::Tensor>& params, i
 #endif
 }
 
+std::function<void()> DataParallel::start_sum(const torch::Tensor& flat, const std::string& what) {
+  DOJO_CHECK(flat.is_contiguous(), what + ": the all-reduce needs a contiguous tensor");
+  if (!active()) return [] {};
+#ifdef DOJO_HAVE_GLOO
+  c10::intrusive_ptr<c10d::Work> work;
+  try {
+    std::vector<torch::Tensor> tensors = {flat};
+    work = group_->gloo->allreduce(tensors);
+  } catch (const std::exception& e) {
+    peer_lost(world_, what, e);
+  }
+  return [this, work, what] {
+    try {
+      work->wait();
+    } catch (const std::exception& e) {
+      peer_lost(world_, what, e);
+    }
+  };
+#else
+  return [] {};
+#endif
+}
+
 void DataParallel::all_gather_into(const torch::Tensor& mine, const std::vector<torch::Tensor>& out,
                                    const std::string& what) {
   gather(mine, out, /*to_main=*/false, what);

@@ -15,8 +15,9 @@
 //                draws from step_generator(seed, k * shards + r * accumulate + j) (BatchShards), so
 //                2 processes see exactly the batches 1 process sees with --accumulate 2, and a world
 //                of 1 with no accumulation draws from step_generator(seed, k) as before
-//   gradients    averaged over ranks in buckets after the backward pass; clipping and the optimiser
-//                step then see the same gradient on every rank, so parameters stay identical
+//   gradients    averaged over ranks in buckets, after the backward pass or, for the flat-buffer
+//                trainers, as it runs (overlapped_average.h); clipping and the optimiser step then
+//                see the same gradient on every rank, so parameters stay identical
 //   rank 0       alone draws progress, writes curves, checkpoints and summaries; the others log
 //                warnings and errors only, and their standard output goes to /dev/null
 //   failures     a peer that dies or stops answering makes every collective throw dojo::Error
@@ -72,6 +73,10 @@ class DataParallel {
   // reduced concurrently. A gradient no rank computed stays undefined; one computed on some ranks
   // only counts as zero on the others.
   void average_gradients(const std::vector<torch::Tensor>& params, int64_t bucket_bytes = 32 << 20);
+  // Starts summing `flat` (contiguous, the same size on every rank) over the ranks in place and
+  // returns the function that waits for the sum; every rank must start the same sums in the same
+  // order (OverlappedGradientAverage's buckets). `what` names the collective in a failure.
+  std::function<void()> start_sum(const torch::Tensor& flat, const std::string& what);
   std::vector<double> mean(std::vector<double> values);  // elementwise over the ranks
   // Every rank's `mine` [n] (the same n and dtype on every rank) copied into out[r] (world tensors
   // of n, e.g. views of one buffer), on every rank. `what` names the collective in a failure.

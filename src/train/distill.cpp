@@ -215,7 +215,8 @@ torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& p
 
 torch::Tensor warmup_loss_at(models::ActionDitImpl& student, const torch::Tensor& points,
                              const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
-                             int64_t window_frames, torch::Tensor index, int64_t sink_frames) {
+                             int64_t window_frames, torch::Tensor index, int64_t sink_frames,
+                             const torch::Tensor& context_offset) {
   const int64_t B = points.size(0), P = points.size(1), T = points.size(3);
   DOJO_CHECK(static_cast<int64_t>(timesteps.size()) == P, "warmup: one timestep per trajectory point");
   DOJO_CHECK(index.size(0) == B && index.size(1) == T, "warmup: one trajectory point per clip and frame");
@@ -223,14 +224,20 @@ torch::Tensor warmup_loss_at(models::ActionDitImpl& student, const torch::Tensor
   index.select(1, 0).fill_(P - 1);  // frame 0: clean
   const auto device = student.parameters().front().device();
   const auto b = torch::arange(B).unsqueeze(1), f = torch::arange(T).unsqueeze(0);
-  const auto x = points.permute({0, 3, 1, 2, 4, 5})
-                     .index({b, f, index})  // [B, T, 16, h, w]
-                     .permute({0, 2, 1, 3, 4})
-                     .to(device);  // [B, 16, T, h, w]
+  auto x = points.permute({0, 3, 1, 2, 4, 5})
+               .index({b, f, index})  // [B, T, 16, h, w]
+               .permute({0, 2, 1, 3, 4})
+               .to(device);  // [B, 16, T, h, w]
   const auto sigma = (torch::tensor(timesteps, torch::kFloat64).to(torch::kFloat32) / 1000.0)
                          .index({index})
-                         .to(device);                      // [B, T]
-  const auto target = points.select(1, P - 1).to(device);  // [B, 16, T, h, w]
+                         .to(device);                // [B, T]
+  auto target = points.select(1, P - 1).to(device);  // [B, 16, T, h, w]
+  if (context_offset.defined()) {
+    DOJO_CHECK(context_offset.sizes() == x.sizes(), "warmup: one context offset per latent");
+    const auto offset = context_offset.to(device);
+    x = x + offset;
+    target = target + offset;
+  }
   const auto& c = student.config;
   const int64_t tokens = (x.size(3) / c.patch_spatial) * (x.size(4) / c.patch_spatial);
   models::DitInputs base;
@@ -250,6 +257,20 @@ torch::Tensor with_clean_context(torch::Tensor point_index, double share, int64_
   const auto frontier = torch::randint(1, T, {B}, generator, torch::kLong);   // [B]
   const auto before = torch::arange(T).unsqueeze(0) < frontier.unsqueeze(1);  // [B, T]
   return point_index.masked_fill(before & chosen.unsqueeze(1), points - 1);
+}
+
+torch::Tensor context_noise_offsets(const torch::Tensor& point_index, int64_t points,
+                                    at::IntArrayRef latent_shape, double max_level,
+                                    torch::Generator& generator) {
+  if (max_level <= 0) return {};
+  const int64_t B = point_index.size(0), T = point_index.size(1);
+  DOJO_CHECK(latent_shape.size() == 3, "warmup: context noise needs the latent's [16, h, w]");
+  const auto level = torch::rand({B, 1, 1, 1, 1}, generator) * max_level;  // [B, 1, 1, 1, 1]
+  const auto eps =
+      torch::randn({B, latent_shape[0], T, latent_shape[1], latent_shape[2]}, generator);  // [B, 16, T, h, w]
+  auto clean = point_index.eq(points - 1);                                                 // [B, T]
+  clean.select(1, 0).fill_(false);  // frame 0 is the recorded frame, streamed as it is
+  return level * eps * clean.to(torch::kFloat32).view({B, 1, T, 1, 1});
 }
 
 torch::Tensor draw_trajectories(const MixtureIndex& mixture, int64_t copies, int64_t count,
@@ -428,6 +449,9 @@ DistillResult run_warmup(const DistillJob& job) {
       {"actions", action_ranges}, {"student", settings.to_json()}, {"teacher", fingerprint["teacher"]}};
   if (data.config.contains("views")) extras["views"] = data.config["views"];  // a multi-view teacher's canvas
   trainer.set_config_extras(extras);
+  // Sharded before a resume adopts the saved moments: each rank then copies its slice only.
+  group.check_same("--zero1", job.zero1 ? "on" : "off");
+  if (job.zero1) trainer.shard_optimizer_state();
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("distill: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
@@ -469,7 +493,8 @@ DistillResult run_warmup(const DistillJob& job) {
                                            {"clips", n},
                                            {"trajectories", trajectory_settings},
                                            {"mixture", mixture_record},
-                                           {"clean_context_share", job.clean_context_share}};
+                                           {"clean_context_share", job.clean_context_share},
+                                           {"context_noise", job.context_noise}};
   const auto run = run_training_loop(
       loop, start_step,
       [&](const LoopStep& info) {
@@ -482,15 +507,19 @@ DistillResult run_warmup(const DistillJob& job) {
         const auto point_index =
             with_clean_context(torch::randint(pts.size(1), {pts.size(0), pts.size(3)}, gen, torch::kLong),
                                job.clean_context_share, pts.size(1), gen);
+        const auto context_offset = context_noise_offsets(
+            point_index, pts.size(1), {pts.size(2), pts.size(4), pts.size(5)}, job.context_noise, gen);
         const auto s = trainer.step_loss(
             [&](models::ActionDitImpl& net, int64_t j) {
               const int64_t row = shards.row_offset(j), m = shards.micro_batch;
               AutocastGuard autocast(job.device.type(), job.precision);
-              return warmup_loss_at(net, pts.narrow(0, row, m), acts.narrow(0, row, m),
-                                    trajectories.timesteps, settings.window_frames,
-                                    point_index.narrow(0, row, m), settings.sink_frames);
+              return warmup_loss_at(
+                  net, pts.narrow(0, row, m), acts.narrow(0, row, m), trajectories.timesteps,
+                  settings.window_frames, point_index.narrow(0, row, m), settings.sink_frames,
+                  context_offset.defined() ? context_offset.narrow(0, row, m) : torch::Tensor());
             },
             shards.accumulate);
+        if (info.saves) trainer.gather_optimizer_state();  // every rank, before rank 0 saves
         recent.push_back(s.loss);
         if (recent.size() > 20) recent.pop_front();
         if (info.index + 1 - start_step == std::min<int64_t>(20, job.steps - start_step))
@@ -522,7 +551,11 @@ DistillResult run_warmup(const DistillJob& job) {
                                   {"device", job.device.str()},
                                   {"precision", dojo::to_string(job.precision)},
                                   {"options", job.options.to_json()},
-                                  {"clean_context_share", job.clean_context_share}};
+                                  {"clean_context_share", job.clean_context_share},
+                                  {"context_noise", job.context_noise},
+                                  {"zero1", job.zero1 && group.active()},
+                                  {"optimizer_moment_mib_per_process",
+                                   static_cast<double>(trainer.optimizer_moment_bytes()) / (1 << 20)}};
   if (group.main()) write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
   return result;
 }
@@ -596,6 +629,11 @@ DistillResult run_self_forcing(const DistillJob& job) {
     generator_extras["views"] = critic_extras["views"] = data.config["views"];
   generator.set_config_extras(generator_extras);
   critic.set_config_extras(critic_extras);
+  group.check_same("--zero1", job.zero1 ? "on" : "off");
+  if (job.zero1) {
+    generator.shard_optimizer_state();
+    critic.shard_optimizer_state();
+  }
   if (resuming) {
     // Both are saved at the same iterations; a crash between the two saves leaves them apart.
     const auto iterations = [](const fs::path& dir) {
@@ -698,6 +736,10 @@ DistillResult run_self_forcing(const DistillJob& job) {
           recent_critic.push_back(s.loss);
           if (recent_critic.size() > 40) recent_critic.pop_front();
         }
+        if (info.saves) {  // every rank, before rank 0 saves
+          generator.gather_optimizer_state();
+          critic.gather_optimizer_state();
+        }
         std::ostringstream note;
         note << "generator " << mean_of(recent_generator) << " critic " << mean_of(recent_critic);
         const double nan = std::nan("");
@@ -718,21 +760,26 @@ DistillResult run_self_forcing(const DistillJob& job) {
   result.first_loss = result.last_loss = mean_of(recent_generator);
   result.fixed_batch_loss_end = group.main() ? fixed_batch_loss() : std::nan("");
   result.seconds = run.seconds;
-  const nlohmann::json summary = {{"stage", "self-forcing"},
-                                  {"iterations", result.steps},
-                                  {"generator_updates", generator.steps_done()},
-                                  {"critic_updates", critic.steps_done()},
-                                  {"clips", n},
-                                  {"mixture", mixture_record},
-                                  {"generator_loss", mean_of(recent_generator)},
-                                  {"critic_loss", mean_of(recent_critic)},
-                                  {"fixed_batch_latent_mse_start", result.fixed_batch_loss_start},
-                                  {"fixed_batch_latent_mse_end", result.fixed_batch_loss_end},
-                                  {"seconds", result.seconds},
-                                  {"student", student.to_json()},
-                                  {"device", job.device.str()},
-                                  {"precision", dojo::to_string(job.precision)},
-                                  {"options", sf.to_json()}};
+  const nlohmann::json summary = {
+      {"stage", "self-forcing"},
+      {"iterations", result.steps},
+      {"generator_updates", generator.steps_done()},
+      {"critic_updates", critic.steps_done()},
+      {"clips", n},
+      {"mixture", mixture_record},
+      {"generator_loss", mean_of(recent_generator)},
+      {"critic_loss", mean_of(recent_critic)},
+      {"fixed_batch_latent_mse_start", result.fixed_batch_loss_start},
+      {"fixed_batch_latent_mse_end", result.fixed_batch_loss_end},
+      {"seconds", result.seconds},
+      {"student", student.to_json()},
+      {"device", job.device.str()},
+      {"precision", dojo::to_string(job.precision)},
+      {"options", sf.to_json()},
+      {"zero1", job.zero1 && group.active()},
+      {"optimizer_moment_mib_per_process",
+       static_cast<double>(generator.optimizer_moment_bytes() + critic.optimizer_moment_bytes()) /
+           (1 << 20)}};
   if (group.main()) write_file_atomic(job.out / "distill_summary.json", summary.dump(2) + "\n");
   return result;
 }

@@ -78,15 +78,27 @@ torch::Tensor warmup_loss(models::ActionDitImpl& student, const torch::Tensor& p
                           int64_t window_frames, torch::Generator generator, int64_t sink_frames = 0);
 // The same with the points chosen: point_index [B, T] (frame 0's the clean one, P - 1), as
 // warmup_loss draws it with torch::randint(P, {B, T}, generator).
+// `context_offset` (defined: [B, 16, T, h, w], from context_noise_offsets) is added to the input
+// frames and to their targets: a clean frame with noise on it is still clean context, and its own
+// loss term stays zero.
 torch::Tensor warmup_loss_at(models::ActionDitImpl& student, const torch::Tensor& points,
                              const torch::Tensor& actions, const std::vector<int64_t>& timesteps,
-                             int64_t window_frames, torch::Tensor point_index, int64_t sink_frames = 0);
+                             int64_t window_frames, torch::Tensor point_index, int64_t sink_frames = 0,
+                             const torch::Tensor& context_offset = {});
 
 // point_index [B, T] with a share of its rows (drawn from `generator`) turned into a clean context:
 // in such a row, frames before a frontier drawn uniformly in [1, T) take the clean point P - 1.
 // Share 0 draws nothing and returns point_index unchanged.
 torch::Tensor with_clean_context(torch::Tensor point_index, double share, int64_t points,
                                  torch::Generator& generator);
+
+// Gaussian noise for the clean frames after frame 0 (those at point P - 1 in point_index [B, T]),
+// one level per clip drawn uniformly in [0, max_level): the student streams on latents it made
+// itself, and a context it cannot copy exactly pushes it to read the actions. [B, 16, T, h, w] on
+// the CPU, zero elsewhere; max_level 0 draws nothing and returns an undefined tensor.
+torch::Tensor context_noise_offsets(const torch::Tensor& point_index, int64_t points,
+                                    at::IntArrayRef latent_shape, double max_level,
+                                    torch::Generator& generator);
 
 // A warm-up batch's trajectory indices: trajectory j is clip j % N under copy j / N's actions
 // (N = the mixture's clips, `copies` per clip). Weighted: the clip from `mixture`, the copy
@@ -126,6 +138,11 @@ struct DistillJob {
   // points (with_clean_context). The student streams on its own clean frames, which the per-frame
   // draws (frame f clean with probability 1/P) almost never show it for late frames.
   double clean_context_share = 0;
+  // Warm-up: noise on the clean context frames (context_noise_offsets), level ~ U(0, this).
+  double context_noise = 0;
+  // Under data parallelism, each process keeps 1/world of the AdamW moments (student, and in
+  // Self-Forcing the critic too; WmTrainer::shard_optimizer_state): the same bits as without.
+  bool zero1 = false;
   // Where the teacher, student and critic run and at what precision (bf16: their forward passes
   // under autocast, weights, moments and losses float32, as WmTrainer); every draw stays on the
   // CPU, so a seed gives the same batches on any device. Checkpoints are CPU float32 either way.

@@ -72,6 +72,8 @@ class FusedAdamW {
   int64_t moment_elements() const { return exp_avg_.numel() + exp_avg_sq_.numel(); }
 
   const torch::Tensor& flat_grad() const { return grad_; }
+  // Where each parameter's elements start in the flat buffers, in the order given.
+  const std::vector<int64_t>& offsets() const { return offsets_; }
 
  private:
   torch::optim::AdamW& optimizer_;

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdlib>
 #include <deque>
 #include <map>
 #include <optional>
@@ -158,6 +159,12 @@ WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options, torch::Devic
   optimizer_ = std::make_unique<torch::optim::AdamW>(
       params_, torch::optim::AdamWOptions(options_.lr).weight_decay(options_.weight_decay));
   fused_ = std::make_unique<FusedAdamW>(*optimizer_, params_, ema_params_);
+  auto& group = data_parallel();
+  const char* overlap = std::getenv("DOJO_DIST_OVERLAP");
+  if (group.active() && !(overlap != nullptr && std::string(overlap) == "0"))
+    overlap_ = std::make_unique<OverlappedGradientAverage>(
+        params_, fused_->offsets(), fused_->flat_grad(), group.world(),
+        [&group](const torch::Tensor& flat) { return group.start_sum(flat, "the gradient all-reduce"); });
   ema_gamma_ = diffusion::power_ema_gamma(options_.ema_sigma_rel);
 }
 
@@ -203,12 +210,16 @@ WmStepStats WmTrainer::step_loss(
   double loss_sum = 0;
   for (int64_t j = 0; j < count; ++j) {
     const auto loss = loss_fn(*net_, j);
+    if (overlap_ && j == count - 1) overlap_->arm();  // the last pass: buckets start as they fill
     // One micro-batch alone is backpropagated unscaled: the step is bit for bit the plain one.
     (count == 1 ? loss : loss / static_cast<double>(count)).backward();
     loss_sum += loss.item<double>();
   }
   auto& group = data_parallel();
-  group.average_gradients(params_);
+  if (overlap_)
+    overlap_->finish();
+  else
+    group.average_gradients(params_);
   // Clipping, AdamW and the EMA in one pass over flat buffers (fused_adamw.h).
   s.grad_norm = fused_->step(options_.grad_clip, s.lr, diffusion::power_ema_beta(steps_ + 1, ema_gamma_));
   ++steps_;
@@ -554,6 +565,8 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
       {"accumulate", job.accumulate},
       {"zero1", job.zero1 && group.active()},
       {"optimizer_moment_mib_per_process", static_cast<double>(trainer.optimizer_moment_bytes()) / (1 << 20)},
+      {"allreduce_buckets", trainer.overlap_stats().buckets},
+      {"allreduce_buckets_started_in_backward", trainer.overlap_stats().started_in_backward},
       {"options", job.options.to_json()}};
   if (group.main()) write_file_atomic(job.out / "train_summary.json", summary.dump(2) + "\n");
   return result;

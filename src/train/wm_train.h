@@ -24,6 +24,7 @@
 #include "models/dit.h"
 #include "train/fused_adamw.h"
 #include "train/latent_cache.h"
+#include "train/overlapped_average.h"
 
 namespace dojo::train {
 
@@ -109,6 +110,11 @@ class WmTrainer {
   void gather_optimizer_state();
   // Bytes of AdamW moments this process holds.
   int64_t optimizer_moment_bytes() const { return fused_->moment_elements() * 4; }
+  // The last step's gradient buckets and how many of them started during the backward pass
+  // (zero buckets: no overlap, a world of 1 or DOJO_DIST_OVERLAP=0).
+  OverlappedGradientAverage::Stats overlap_stats() const {
+    return overlap_ ? overlap_->last_step() : OverlappedGradientAverage::Stats{};
+  }
 
  private:
   double lr_at(int64_t step) const;
@@ -120,6 +126,9 @@ class WmTrainer {
   std::vector<torch::Tensor> params_, ema_params_;
   std::unique_ptr<torch::optim::AdamW> optimizer_;
   std::unique_ptr<FusedAdamW> fused_;  // flat parameters, gradients, moments and EMA over optimizer_
+  // Under data parallelism: the gradient all-reduce started during the last backward pass
+  // (DOJO_DIST_OVERLAP=0: after it, DataParallel::average_gradients).
+  std::unique_ptr<OverlappedGradientAverage> overlap_;
   double ema_gamma_;
   int64_t steps_ = 0;
   nlohmann::json config_extras_ = nlohmann::json::object();

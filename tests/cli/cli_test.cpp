@@ -18,6 +18,18 @@ TEST(Cli, HelpListsCommands) {
     EXPECT_NE(result.output.find(name), std::string::npos) << name;
 }
 
+// The matmul rooflines in both training precisions: a row each, measured (a positive rate).
+TEST(Cli, BenchMeasuresTheMatmulRooflineInFloat32AndBf16) {
+  const auto result =
+      test::run_dojo("--threads 1 bench --only matmul_f32 matmul_bf16 -r 1 --warmup 0 --json");
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  const auto report = nlohmann::json::parse(result.output.substr(result.output.find('{')));
+  std::map<std::string, double> rate;
+  for (const auto& row : report.at("rows")) rate[row.at("name")] = row.at("mean");
+  EXPECT_GT(rate["matmul_f32"], 0);
+  EXPECT_GT(rate["matmul_bf16"], 0);
+}
+
 TEST(Cli, VersionJson) {
   const auto result = test::run_dojo("--threads 2 version --json");
   ASSERT_EQ(result.exit_code, 0) << result.output;

@@ -106,6 +106,18 @@ TEST(DataParallelCli, TwoProcessesTrainAsOneProcessWithTwoMicroBatches) {
       << "two micro-batches of 2 are other draws than one batch of 4: the comparison above is not trivial";
   const auto summary = nlohmann::json::parse(test::read_file(tmp / "wm2" / "train_summary.json"));
   EXPECT_EQ(summary.at("processes"), 2);
+  // The all-reduce ran during the backward pass (buckets started before it returned), and gave the
+  // bits of the all-reduce after it (DOJO_DIST_OVERLAP=0).
+  EXPECT_GT(summary.at("allreduce_buckets").get<int64_t>(), 1);
+  EXPECT_GT(summary.at("allreduce_buckets_started_in_backward").get<int64_t>(), 0);
+  const std::string after_backward = "DOJO_DIST_OVERLAP=0 " + std::string(DOJO_EXE) + " ";
+  r = test::run_command(after_backward + launch(8) + wm_args + " --steps 1" + out("wm4"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = test::run_command(after_backward + launch(9) + wm_args + " --steps 3" + out("wm4"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_EQ(max_difference(tmp / "wm2" / "checkpoint", tmp / "wm4" / "checkpoint"), 0.0);
+  EXPECT_EQ(
+      nlohmann::json::parse(test::read_file(tmp / "wm4" / "train_summary.json")).at("allreduce_buckets"), 0);
   // ZeRO-1: each process keeps half the moments; the weights, the EMA and the gathered moments of
   // the checkpoint are those of plain data parallelism bit for bit, across a resume too.
   r = test::run_dojo(launch(6) + wm_args + " --zero1 --steps 1" + out("wm3"));
@@ -154,6 +166,27 @@ TEST(DataParallelCli, TwoProcessesTrainAsOneProcessWithTwoMicroBatches) {
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_LT(max_difference(tmp / "sf1" / "checkpoint", tmp / "sf2" / "checkpoint"), kTolerance);
   EXPECT_LT(max_difference(tmp / "sf1" / "critic", tmp / "sf2" / "critic"), kTolerance);
+  // ZeRO-1 for both stages: the bits of plain data parallelism, half the moments a process.
+  r = test::run_dojo(launch(8) + distill_args + " --zero1" + out("d3"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_EQ(max_difference(tmp / "d2" / "checkpoint", tmp / "d3" / "checkpoint"), 0.0);
+  EXPECT_GT(equal_trainer_states(tmp / "d2" / "checkpoint", tmp / "d3" / "checkpoint"), 0);
+  r = test::run_dojo(launch(7) + sf_args + " --zero1" + out("sf3"));
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_EQ(max_difference(tmp / "sf2" / "checkpoint", tmp / "sf3" / "checkpoint"), 0.0);
+  EXPECT_EQ(max_difference(tmp / "sf2" / "critic", tmp / "sf3" / "critic"), 0.0);
+  EXPECT_GT(equal_trainer_states(tmp / "sf2" / "checkpoint", tmp / "sf3" / "checkpoint"), 0);
+  EXPECT_GT(equal_trainer_states(tmp / "sf2" / "critic", tmp / "sf3" / "critic"), 0);
+  for (const char* run : {"d", "sf"}) {
+    const auto plain =
+        nlohmann::json::parse(test::read_file(tmp / (std::string(run) + "2") / "distill_summary.json"));
+    const auto sharded =
+        nlohmann::json::parse(test::read_file(tmp / (std::string(run) + "3") / "distill_summary.json"));
+    EXPECT_EQ(sharded.at("zero1"), true) << run;
+    EXPECT_NEAR(sharded.at("optimizer_moment_mib_per_process").get<double>(),
+                plain.at("optimizer_moment_mib_per_process").get<double>() / 2, 1e-3)
+        << run;
+  }
 
   // LAM (frame pairs from its clip loader).
   const std::string lam_args = "lam train --model tiny --steps 2 --batch 2 --lr 1e-3" + data;

@@ -114,8 +114,10 @@ TEST(DitKernels, ForwardWithoutGradientsEqualsThePlainPath) {
 }
 
 // Activation checkpointing recomputes each block in the backward pass: the loss and every
-// gradient (weights and inputs that need one) as when every activation is kept.
-TEST(DitCheckpointing, RecomputedBlocksGiveTheGradientsOfStoredOnes) {
+// gradient (weights and inputs that need one) as when every activation is kept, in float32 and
+// under bf16 autocast (the backward pass runs outside the step's autocast region; the recompute
+// must run as the forward did).
+void expect_recomputed_gradients_equal_stored(bool bf16, double tolerance) {
   test::OneThread one_thread;
   auto c = DitConfig::small();
   c.num_blocks = 3;
@@ -132,8 +134,12 @@ TEST(DitCheckpointing, RecomputedBlocksGiveTheGradientsOfStoredOnes) {
     net->recompute_blocks = recompute;
     net->zero_grad();
     in.x.mutable_grad() = torch::Tensor();
-    const auto loss = net->forward(in).pow(2).mean();
-    loss.backward();
+    torch::Tensor loss;
+    {
+      AutocastGuard autocast(torch::kCPU, torch::kBFloat16, bf16);
+      loss = net->forward(in).to(torch::kFloat32).pow(2).mean();
+    }
+    loss.backward();  // outside autocast, as the trainers run it
     std::vector<torch::Tensor> grads = {in.x.grad().clone()};
     for (const auto& p : net->parameters())
       grads.push_back(p.grad().defined() ? p.grad().clone() : torch::zeros_like(p));
@@ -141,29 +147,26 @@ TEST(DitCheckpointing, RecomputedBlocksGiveTheGradientsOfStoredOnes) {
   };
   const auto [stored_loss, stored] = run(false);
   const auto [recomputed_loss, recomputed] = run(true);
-  EXPECT_NEAR(recomputed_loss, stored_loss, 1e-6 * stored_loss);
+  EXPECT_LE(std::abs(recomputed_loss - stored_loss), tolerance * stored_loss);
   ASSERT_EQ(stored.size(), recomputed.size());
+  std::vector<std::string> names = {"input x"};
+  for (const auto& p : net->named_parameters()) names.push_back(p.key());
   for (size_t i = 0; i < stored.size(); ++i) {
     const double scale = std::max(stored[i].abs().max().item<double>(), 1e-12);
-    EXPECT_LT(test::max_abs(recomputed[i], stored[i]), 1e-5 * scale) << "gradient " << i;
+    EXPECT_LE(test::max_abs(recomputed[i], stored[i]), tolerance * scale) << "gradient of " << names[i];
   }
   EXPECT_GT(stored[0].abs().max().item<double>(), 0);  // the input's gradient flowed through the blocks
 }
 
-// Under bf16 autocast the recompute did not reproduce the forward's gradients (1.2 % apart):
-// the combination is refused with a message until it does.
-TEST(DitCheckpointing, IsRefusedUnderAutocast) {
-  auto c = DitConfig::small();
-  c.num_blocks = 1;
-  ActionDit net(c);
-  net->recompute_blocks = true;
-  DitInputs in;
-  in.x = torch::randn({1, c.in_channels, 2, 8, 8});
-  in.timesteps = torch::rand({1, 2}) * 1000;
-  in.condition_mask = torch::zeros({1, 1, 2, 8, 8});
-  AutocastGuard autocast(torch::kCPU, torch::kBFloat16);
-  const auto message = test::error_message([&] { net->forward(in); });
-  EXPECT_NE(message.find("float32 only"), std::string::npos) << message;
+TEST(DitCheckpointing, RecomputedBlocksGiveTheGradientsOfStoredOnes) {
+  expect_recomputed_gradients_equal_stored(/*bf16=*/false, 1e-6);
+}
+
+// To float32 rounding (bit for bit here): the recompute runs the forward's ops in the forward's precision.
+// Recomputed in float32, the gradients were 1.2 % off; with autocast on but the inputs' casts cached, the
+// time-embedding path's were 3e-4 off.
+TEST(DitCheckpointing, RecomputedBlocksUnderBf16AutocastGiveTheGradientsOfStoredOnes) {
+  expect_recomputed_gradients_equal_stored(/*bf16=*/true, 1e-6);
 }
 
 }  // namespace

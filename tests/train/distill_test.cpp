@@ -67,6 +67,28 @@ TEST(Distill, CleanContextRowsAreCleanBeforeAFrontierAndDrawnAsBeforeAfterIt) {
   EXPECT_THROW(with_clean_context(drawn, 1.5, P, g), Error);
 }
 
+TEST(Distill, ContextNoiseLandsOnTheCleanFramesAfterTheFirstOnly) {
+  const int64_t B = 64, T = 13, P = 5;
+  auto g = step_generator(7, 1);
+  const auto index = torch::randint(P, {B, T}, g, torch::kLong);
+  auto none = step_generator(7, 2);
+  EXPECT_FALSE(context_noise_offsets(index, P, {16, 4, 4}, 0, none).defined());
+  auto h = step_generator(7, 2);
+  const auto offset = context_noise_offsets(index, P, {16, 4, 4}, 0.5, h);  // [B, 16, T, 4, 4]
+  ASSERT_EQ(offset.sizes(), (std::vector<int64_t>{B, 16, T, 4, 4}));
+  const auto touched = offset.abs().amax({1, 3, 4}).gt(0);  // [B, T]
+  auto expected = index.eq(P - 1);
+  expected.select(1, 0).fill_(false);
+  EXPECT_TRUE(torch::equal(touched, expected));
+  EXPECT_GT(expected.sum().item<int64_t>(), B);  // the draw put clean frames in most rows
+  // One level a clip, below the maximum: the noise's spread per clip stays under 0.5.
+  const auto per_clip =
+      (offset.pow(2).sum({1, 2, 3, 4}) / (expected.sum(1).to(torch::kFloat32) * 16 * 4 * 4).clamp_min(1))
+          .sqrt();  // [B]
+  EXPECT_LT(per_clip.max().item<double>(), 0.5 * 1.2);
+  EXPECT_GT(per_clip.max().item<double>(), 0.25);
+}
+
 TEST(Distill, TrajectoriesAreTheTeachersOdePointsPerClipAndResume) {
   test::OneThread one;
   torch::manual_seed(0);
