@@ -9,6 +9,7 @@
 
 #include <chrono>
 #include <filesystem>
+#include <fstream>
 #include <nlohmann/json.hpp>
 #include <thread>
 
@@ -195,6 +196,43 @@ TEST(DataParallelCli, TwoProcessesTrainAsOneProcessWithTwoMicroBatches) {
   r = test::run_dojo(launch(5) + lam_args + out("lam2"));
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_LT(max_difference(tmp / "lam1" / "checkpoint", tmp / "lam2" / "checkpoint"), kTolerance);
+}
+
+// The trainers on run_adamw_loop that the test above does not run (it runs the fast decoder's and
+// the LAM's): the keypoint probe, behaviour cloning and the success detector, each a plain run, one
+// process with two micro-batches and two processes.
+TEST(DataParallelCli, ProbeBehaviourCloningAndDetectorTrainAsOneProcessWithTwoMicroBatches) {
+  test::TempDir tmp;
+  test::SyntheticOptions g;
+  g.episodes = 3;
+  g.frames = 26;
+  g.val_episodes = 1;
+  test::write_synthetic_dataset(tmp / "robot", g);
+  const auto out = [&](const std::string& name) { return " --out " + (tmp / name).string(); };
+  // Each trainer: one process with --accumulate 2 and two processes end alike, and far from a
+  // plain run of one batch (other draws): the agreement is not that of weights that did not move.
+  const auto expect_equivalent = [&](const std::string& name, const std::string& args, int port_index) {
+    auto r = test::run_dojo("--threads 1 " + args + " --accumulate 2" + out(name + "1"));
+    ASSERT_EQ(r.exit_code, 0) << name << ": " << r.output;
+    r = test::run_dojo(launch(port_index) + args + out(name + "2"));
+    ASSERT_EQ(r.exit_code, 0) << name << ": " << r.output;
+    r = test::run_dojo("--threads 1 " + args + out(name + "_plain"));
+    ASSERT_EQ(r.exit_code, 0) << name << ": " << r.output;
+    const auto checkpoint = [&](const std::string& run) { return tmp / run / "checkpoint"; };
+    EXPECT_LT(max_difference(checkpoint(name + "1"), checkpoint(name + "2")), kTolerance) << name;
+    EXPECT_GT(moved(checkpoint(name + "_plain"), checkpoint(name + "1")), 1e-4) << name;
+  };
+  expect_equivalent("probe",
+                    "probe train --data " + (tmp / "robot").string() +
+                        " --split all --size 32 --width 8 --steps 3 --batch 4 --lr 1e-3",
+                    0);
+#ifdef DOJO_WITH_SIM
+  expect_equivalent("bc", "policy train --episodes 4 --frames 24 --steps 4 --batch 8", 1);
+  std::ofstream(tmp / "set.json")
+      << R"({"policies": [{"name": "expert"}, {"name": "idle", "behavior": "idle"}]})";
+  expect_equivalent("detector",
+                    "policy detector --scenes 2 --steps 4 --policies " + (tmp / "set.json").string(), 2);
+#endif
 }
 
 TEST(DataParallelCli, ALauncherStopsEveryRankWhenOneFailsAndReportsItsStatus) {
