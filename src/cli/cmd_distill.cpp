@@ -32,6 +32,7 @@ struct DistillArgs {
   double minutes = 0, lr = 1e-4, weight_decay = 0.1, grad_clip = 0.1, clean_context_share = 0,
          context_noise = 0;
   bool fp32_times = false, zero1 = false;
+  std::string warmup_anchor = "latent";
   train::SelfForcingOptions self_forcing;
   uint64_t seed = 0;
 };
@@ -79,6 +80,7 @@ int run_distill(DistillArgs a) {
   job.trajectories.seed = a.seed;
   job.trajectories.counterfactual_copies = a.counterfactual_copies;
   job.trajectories.chunks = a.warmup_chunks;
+  job.trajectories.reencode_anchor = a.warmup_anchor == "reencoded";
   job.clean_context_share = a.clean_context_share;
   job.context_noise = a.context_noise;
   job.zero1 = a.zero1;
@@ -191,6 +193,12 @@ void register_distill(CLI::App& app) {
                   "warm-up: teacher chunks chained per trajectory (1: 13 frames; 4: 49 frames, the "
                   "positions a streaming student reaches in an evaluation rollout)")
       ->check(CLI::Range(1, 8))
+      ->capture_default_str();
+  cmd->add_option("--warmup-anchor", a->warmup_anchor,
+                  "warm-up with --warmup-chunks > 1: what each later teacher chunk starts from: the "
+                  "previous chunk's last latent as it is (latent), or its last frame decoded and "
+                  "encoded alone (reencoded), as the teacher's own rollouts start")
+      ->check(CLI::IsMember({"latent", "reencoded"}))
       ->capture_default_str();
   cmd->add_option("--clean-context-share", a->clean_context_share,
                   "warm-up: share of clips trained on a clean context, as the student streams (frames "

@@ -65,7 +65,8 @@ torch::Tensor teacher_points(models::ActionDitImpl& teacher, const diffusion::Si
 // Computed where the teacher's weights are; returned on the CPU.
 torch::Tensor chained_teacher_points(models::ActionDitImpl& teacher, const diffusion::SigmaSchedule& schedule,
                                      const torch::Tensor& first, const torch::Tensor& actions,
-                                     const std::vector<int64_t>& clip_ids, const TrajectorySpec& spec) {
+                                     const std::vector<int64_t>& clip_ids, const TrajectorySpec& spec,
+                                     models::WanVaeImpl* tokenizer) {
   const int64_t P = static_cast<int64_t>(spec.query_steps.size()) + 1;
   const auto device = teacher.parameters().front().device();
   auto anchor = first.to(device);  // [m, 16, 1, h, w]
@@ -82,7 +83,16 @@ torch::Tensor chained_teacher_points(models::ActionDitImpl& teacher, const diffu
                                        torch::stack(noise).to(device), spec.query_steps,
                                        spec.precision);  // [m, P, 16, 4, h, w]
     pieces.push_back(c == 0 ? points : points.narrow(3, 1, 3));
-    anchor = points.select(1, P - 1).narrow(2, 3, 1);  // the chunk's last latent, clean
+    if (c + 1 == spec.chunks) break;                // the last chunk anchors nothing
+    const auto chunk_x0 = points.select(1, P - 1);  // [m, 16, 4, h, w]
+    if (spec.reencode_anchor) {
+      // As WorldModel::rollout: the chunk's frames as uint8, the last one encoded on its own.
+      torch::NoGradGuard no_grad;
+      const auto frames = models::model_to_video(tokenizer->decode_latents(chunk_x0));  // [m, 13, H, W, 3]
+      anchor = tokenizer->encode_latents(models::video_to_model(frames.narrow(1, 12, 1).to(device)));
+    } else {
+      anchor = chunk_x0.narrow(2, 3, 1);  // the chunk's last latent, clean
+    }
   }
   return torch::cat(pieces, 3).to(torch::kCPU);
 }
@@ -98,8 +108,11 @@ std::vector<int> TrajectorySpec::query_steps_for(int teacher_steps) {
 
 TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, double shift,
                                                const LatentClips& clips, const TrajectorySpec& spec,
-                                               const nlohmann::json& fingerprint, const fs::path& dir) {
+                                               const nlohmann::json& fingerprint, const fs::path& dir,
+                                               models::WanVaeImpl* tokenizer) {
   DOJO_CHECK(spec.chunks >= 1, "distill: trajectories need at least one teacher chunk");
+  DOJO_CHECK(!spec.reencode_anchor || spec.chunks == 1 || tokenizer != nullptr,
+             "distill: re-encoded anchors need the tokenizer");
   DOJO_CHECK(clips.latents.dim() == 5 && clips.latents.size(2) == 1 + 3 * spec.chunks &&
                  clips.actions.size(1) == 12 * spec.chunks,
              "distill: trajectories of " + std::to_string(spec.chunks) + " teacher chunks need clips of " +
@@ -122,6 +135,7 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
                          {"seed", spec.seed}};
   if (spec.counterfactual_copies > 0) meta["counterfactual_copies"] = spec.counterfactual_copies;
   if (spec.chunks > 1) meta["chunks"] = spec.chunks;
+  if (spec.chunks > 1 && spec.reencode_anchor) meta["anchor"] = "reencoded";
   if (spec.precision != Precision::kFloat32) meta["precision"] = dojo::to_string(spec.precision);
   fs::create_directories(dir);
   // Trajectory j: clip j % N's first frame and noise, with the actions of clip (j + k·stride) % N
@@ -156,8 +170,8 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
       std::vector<int64_t> ids;
       for (int64_t j = b; j < b + m; ++j) ids.push_back(j % clip_count);
       const auto first = clips.latents.narrow(2, 0, 1).index_select(0, torch::tensor(ids, torch::kLong));
-      shard.push_back(
-          chained_teacher_points(teacher, schedule, first, all_actions.narrow(0, b, m), ids, spec));
+      shard.push_back(chained_teacher_points(teacher, schedule, first, all_actions.narrow(0, b, m), ids, spec,
+                                             tokenizer));
       if (progress) progress->advance(m);
     }
     auto shard_points = torch::cat(shard).contiguous();
@@ -404,8 +418,14 @@ DistillResult run_warmup(const DistillJob& job) {
   auto teacher = models::load_world_model(job.teacher, job.device);
   auto trajectory_spec = job.trajectories;
   trajectory_spec.precision = job.precision;
+  models::WanVae tokenizer{nullptr};  // re-encoded anchors: the tokenizer the clips were encoded with
+  if (trajectory_spec.reencode_anchor && trajectory_spec.chunks > 1) {
+    tokenizer = models::load_tokenizer(job.data.front().tokenizer);
+    tokenizer->to(job.device);
+    tokenizer->eval();
+  }
   const auto trajectories = load_or_build_trajectories(*teacher, shift, clips, trajectory_spec, fingerprint,
-                                                       job.out / "trajectories");
+                                                       job.out / "trajectories", tokenizer.get());
   const int64_t n = trajectories.size();
   // Trajectory j is clip j % N under copy j / N's actions (N clips; copy 0 its own).
   const int64_t clip_count = clips.size();
@@ -420,8 +440,10 @@ DistillResult run_warmup(const DistillJob& job) {
   const bool resuming = checkpoint_exists(ckpt_dir);
   // What the trajectories are made of besides teacher and data (their shards check those): a run
   // resumed on other trajectories would continue a student trained on the old ones, so it is refused.
-  const nlohmann::json trajectory_settings = {
-      {"chunks", job.trajectories.chunks}, {"counterfactual_copies", job.trajectories.counterfactual_copies}};
+  nlohmann::json trajectory_settings = {{"chunks", job.trajectories.chunks},
+                                        {"counterfactual_copies", job.trajectories.counterfactual_copies}};
+  if (job.trajectories.chunks > 1 && job.trajectories.reencode_anchor)
+    trajectory_settings["anchor"] = "reencoded";
   if (resuming) {
     const auto extra = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).trainer_extra();
     const auto before =

@@ -22,6 +22,7 @@
 
 #include "infer/streaming.h"
 #include "models/dit.h"
+#include "models/wan_vae.h"
 #include "train/latent_cache.h"
 #include "train/self_forcing.h"
 #include "train/train_util.h"
@@ -56,6 +57,10 @@ struct TrajectorySpec {
   // frame there instead) into 1 + 3 K latents (1 + 12 K frames), so the warm-up also teaches the
   // positions a streaming student reaches after its first 13 frames.
   int chunks = 1;
+  // How chunk k > 0 is anchored: false, on chunk k-1's last latent as it is (it holds frames 9-12,
+  // where the teacher was trained on a single frame's latent); true, as the teacher's own rollouts
+  // are: that chunk decoded to uint8 frames, its last frame encoded alone (needs the tokenizer).
+  bool reencode_anchor = false;
   // The teacher's matmuls under autocast at this precision (bf16: a different trajectory from
   // fp32's, so it is part of the shards' fingerprint); the teacher runs where its weights are.
   Precision precision = Precision::kFloat32;
@@ -65,10 +70,12 @@ struct TrajectorySpec {
 // K = spec.chunks; only each clip's first latent and its actions are read),
 // written to / read from dir/shard-<k>.safetensors. `fingerprint` identifies teacher and data;
 // shards made from anything else are rebuilt.
+// `tokenizer` (on the teacher's device) re-encodes the anchors when spec.reencode_anchor is set.
 TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, double shift,
                                                const LatentClips& clips, const TrajectorySpec& spec,
                                                const nlohmann::json& fingerprint,
-                                               const std::filesystem::path& dir);
+                                               const std::filesystem::path& dir,
+                                               models::WanVaeImpl* tokenizer = nullptr);
 
 // The warm-up regression loss of `student` on a batch of trajectory points: frames ≥ 1 each at a
 // random point (drawn from `generator`), frame 0 clean, under the block-causal mask of the window

@@ -202,6 +202,55 @@ TEST(Distill, ChainedTrajectoriesRollTheTeacherOutChunkByChunk) {
   EXPECT_THROW(load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path()), Error);
 }
 
+// With re-encoded anchors, chunk 1 starts where the teacher's own rollout would: chunk 0 decoded
+// to uint8 frames, its last frame encoded alone, not chunk 0's last latent (frames 9-12).
+TEST(Distill, ReencodedAnchorsStartEachChunkFromItsPredecessorsLastFrameEncodedAlone) {
+  test::OneThread one;
+  torch::manual_seed(0);
+  models::ActionDit teacher(test_fixtures::tiny_dit(/*live_actions=*/true));
+  teacher->eval();
+  models::WanVae tokenizer(models::WanVaeConfig::tiny());  // 32x32 frames <-> [16, T, 4, 4] latents
+  tokenizer->eval();
+  const auto short_clips = action_clips(3, 4);
+  LatentClips clips;
+  clips.latents = torch::cat({short_clips.latents, torch::randn({3, 16, 3, 4, 4}, gen(9))}, 2);
+  clips.actions = torch::cat({short_clips.actions, short_clips.actions.flip(0)}, 1);
+  TrajectorySpec spec;
+  spec.teacher_steps = 6;
+  spec.query_steps = {0, 2, 4};
+  spec.chunks = 2;
+  spec.reencode_anchor = true;
+  TempDir dir;
+  EXPECT_THROW(load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path()),
+               Error);  // no tokenizer
+  const auto t = load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path(), tokenizer.get());
+  ASSERT_EQ(t.points.sizes(), (std::vector<int64_t>{3, 4, 16, 7, 4, 4}));
+  torch::Tensor anchor;
+  {
+    torch::NoGradGuard no_grad;
+    const auto frames =
+        models::model_to_video(tokenizer->decode_latents(t.points.select(1, 3).narrow(2, 0, 4)));
+    anchor = tokenizer->encode_latents(models::video_to_model(frames.narrow(1, 12, 1)));  // [3, 16, 1, 4, 4]
+  }
+  EXPECT_GT((anchor - t.points.select(1, 3).narrow(2, 3, 1)).abs().max().item<double>(), 1e-3)
+      << "the re-encoded frame is not the chunk's last latent";
+  LatentClips next;
+  next.latents = short_clips.latents.clone();
+  next.latents.narrow(2, 0, 1).copy_(anchor);
+  next.actions = short_clips.actions.flip(0);
+  spec.seed += 1000003;  // chunk 1's noise
+  spec.chunks = 1;
+  TempDir second_chunk;
+  const auto second = load_or_build_trajectories(*teacher, 5.0, next, spec, {}, second_chunk.path());
+  EXPECT_LT((t.points.narrow(3, 4, 3) - second.points.narrow(3, 1, 3)).abs().max().item<double>(), 1e-5);
+  // Latent anchors are another trajectory: the shards record the anchor and are rebuilt.
+  spec.seed -= 1000003;
+  spec.chunks = 2;
+  spec.reencode_anchor = false;
+  const auto latent = load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path());
+  EXPECT_GT((latent.points.narrow(3, 4, 3) - t.points.narrow(3, 4, 3)).abs().max().item<double>(), 1e-4);
+}
+
 TEST(Distill, WarmupRegressionLearnsTheTeachersX0) {
   test::OneThread one;
   torch::manual_seed(0);
