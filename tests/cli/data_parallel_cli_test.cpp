@@ -68,13 +68,19 @@ constexpr double kTolerance = 1e-4;
 // parameter moved at all.
 double moved(const fs::path& start, const fs::path& end) { return max_difference(start, end); }
 
-TEST(DataParallelCli, TwoProcessesTrainAsOneProcessWithTwoMicroBatches) {
-  test::TempDir tmp;
+// Three synthetic robot episodes of 26 frames and a held-out one: enough for a few steps of
+// every trainer.
+void write_tiny_robot_set(const fs::path& dir) {
   test::SyntheticOptions g;
   g.episodes = 3;
   g.frames = 26;
   g.val_episodes = 1;
-  test::write_synthetic_dataset(tmp / "robot", g);
+  test::write_synthetic_dataset(dir, g);
+}
+
+TEST(DataParallelCli, TwoProcessesTrainAsOneProcessWithTwoMicroBatches) {
+  test::TempDir tmp;
+  write_tiny_robot_set(tmp / "robot");
   const auto data = " --data " + (tmp / "robot").string();
   const auto out = [&](const std::string& name) { return " --out " + (tmp / name).string(); };
 
@@ -203,11 +209,7 @@ TEST(DataParallelCli, TwoProcessesTrainAsOneProcessWithTwoMicroBatches) {
 // process with two micro-batches and two processes.
 TEST(DataParallelCli, ProbeBehaviourCloningAndDetectorTrainAsOneProcessWithTwoMicroBatches) {
   test::TempDir tmp;
-  test::SyntheticOptions g;
-  g.episodes = 3;
-  g.frames = 26;
-  g.val_episodes = 1;
-  test::write_synthetic_dataset(tmp / "robot", g);
+  write_tiny_robot_set(tmp / "robot");
   const auto out = [&](const std::string& name) { return " --out " + (tmp / name).string(); };
   // Each trainer: one process with --accumulate 2 and two processes end alike, and far from a
   // plain run of one batch (other draws): the agreement is not that of weights that did not move.

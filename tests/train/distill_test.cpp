@@ -168,19 +168,32 @@ TEST(Distill, CounterfactualTrajectoriesPairEachFirstFrameWithOtherActions) {
 
 // Chained chunks: chunk 0 is the one-chunk trajectory of the clip; chunk 1 is the teacher's
 // trajectory from chunk 0's final last latent with the next 12 actions and its own noise.
+// 7 latents (25 frames) and 24 actions from 4-latent clips: the second chunk's actions are the
+// clips' own in reverse clip order. Only the first latent and the actions are read.
+LatentClips two_chunk_clips(const LatentClips& short_clips) {
+  LatentClips clips;
+  clips.latents = torch::cat({short_clips.latents, torch::randn({3, 16, 3, 4, 4}, gen(9))}, 2);
+  clips.actions = torch::cat({short_clips.actions, short_clips.actions.flip(0)}, 1);
+  return clips;
+}
+
+// Two teacher chunks of 6 steps, the points before steps 0, 2 and 4.
+TrajectorySpec two_chunk_spec() {
+  TrajectorySpec spec;
+  spec.teacher_steps = 6;
+  spec.query_steps = {0, 2, 4};
+  spec.chunks = 2;
+  return spec;
+}
+
 TEST(Distill, ChainedTrajectoriesRollTheTeacherOutChunkByChunk) {
   test::OneThread one;
   torch::manual_seed(0);
   models::ActionDit teacher(test_fixtures::tiny_dit(/*live_actions=*/true));
   teacher->eval();
   const auto short_clips = action_clips(3, 4);
-  LatentClips clips;  // 7 latents (25 frames), 24 actions: only the first latent and the actions are read
-  clips.latents = torch::cat({short_clips.latents, torch::randn({3, 16, 3, 4, 4}, gen(9))}, 2);
-  clips.actions = torch::cat({short_clips.actions, short_clips.actions.flip(0)}, 1);
-  TrajectorySpec spec;
-  spec.teacher_steps = 6;
-  spec.query_steps = {0, 2, 4};
-  spec.chunks = 2;
+  const auto clips = two_chunk_clips(short_clips);
+  auto spec = two_chunk_spec();
   TempDir dir;
   const auto t = load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path());
   ASSERT_EQ(t.points.sizes(), (std::vector<int64_t>{3, 4, 16, 7, 4, 4}));
@@ -212,13 +225,8 @@ TEST(Distill, ReencodedAnchorsStartEachChunkFromItsPredecessorsLastFrameEncodedA
   models::WanVae tokenizer(models::WanVaeConfig::tiny());  // 32x32 frames <-> [16, T, 4, 4] latents
   tokenizer->eval();
   const auto short_clips = action_clips(3, 4);
-  LatentClips clips;
-  clips.latents = torch::cat({short_clips.latents, torch::randn({3, 16, 3, 4, 4}, gen(9))}, 2);
-  clips.actions = torch::cat({short_clips.actions, short_clips.actions.flip(0)}, 1);
-  TrajectorySpec spec;
-  spec.teacher_steps = 6;
-  spec.query_steps = {0, 2, 4};
-  spec.chunks = 2;
+  const auto clips = two_chunk_clips(short_clips);
+  auto spec = two_chunk_spec();
   spec.reencode_anchor = true;
   TempDir dir;
   EXPECT_THROW(load_or_build_trajectories(*teacher, 5.0, clips, spec, {}, dir.path()),
