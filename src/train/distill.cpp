@@ -424,8 +424,9 @@ DistillResult run_warmup(const DistillJob& job) {
     tokenizer->to(job.device);
     tokenizer->eval();
   }
-  const auto trajectories = load_or_build_trajectories(*teacher, shift, clips, trajectory_spec, fingerprint,
-                                                       job.out / "trajectories", tokenizer.get());
+  const auto trajectories =
+      load_or_build_trajectories(*teacher, shift, clips, trajectory_spec, fingerprint,
+                                 job.out / "trajectories", tokenizer.is_empty() ? nullptr : tokenizer.get());
   const int64_t n = trajectories.size();
   // Trajectory j is clip j % N under copy j / N's actions (N clips; copy 0 its own).
   const int64_t clip_count = clips.size();
