@@ -152,7 +152,7 @@ void Session::handle(const nlohmann::json& m) {
     start_ = m;
     start_requested_ = true;
     steps_.clear();
-    if (m.value("record", false)) record_requested_ = true;  // from the start frame on
+    if (m.value("record", false)) request_record(true);  // from the start frame on
   } else if (type == "control" || type == "command") {
     DOJO_CHECK(streaming_ && !start_requested_, type + ": start a session and wait for 'ready' first");
     const auto& key = type == "control" ? "velocity" : "value";
@@ -186,7 +186,7 @@ void Session::handle(const nlohmann::json& m) {
     reset_requested_ = true;
   } else if (type == "record") {
     DOJO_CHECK(m.contains("on") && m["on"].is_boolean(), "record: 'on' must be true or false");
-    record_requested_ = m["on"].get<bool>();
+    request_record(m["on"].get<bool>());
   } else {
     throw Error("unknown message type '" + type + "'");
   }
@@ -246,16 +246,27 @@ void Session::start_stream() {
   frame_dt_ = 1.0 / fps;
 }
 
+void Session::request_record(bool on) {
+  constexpr size_t kMaxPending = 8;
+  if (!record_requests_.empty() && record_requests_.back() == on) return;
+  // Full (a client toggling faster than the steps run): the last request is taken back instead,
+  // which leaves the newest wish at the end.
+  if (record_requests_.size() >= kMaxPending)
+    record_requests_.pop_back();
+  else
+    record_requests_.push_back(on);
+}
+
 void Session::worker() {
   auto next_due = std::chrono::steady_clock::now();
   while (true) {
     bool start = false, reset = false;
-    std::optional<bool> record;
+    std::deque<bool> records;
     torch::Tensor step_rows;
     {
       std::unique_lock<std::mutex> lock(mutex_);
       const auto requested = [&] {
-        return stop_ || start_requested_ || reset_requested_ || record_requested_ || !steps_.empty();
+        return stop_ || start_requested_ || reset_requested_ || !record_requests_.empty() || !steps_.empty();
       };
       // Only a live stream has a clock to keep; otherwise sleep until a message wakes the worker.
       if (streaming_ && mode_ == "live")
@@ -265,7 +276,7 @@ void Session::worker() {
       if (stop_) break;
       start = std::exchange(start_requested_, false);
       reset = std::exchange(reset_requested_, false);
-      record = std::exchange(record_requested_, std::nullopt);
+      records.swap(record_requests_);
       if (!start && !steps_.empty()) {
         step_rows = steps_.front();
         steps_.pop_front();
@@ -314,8 +325,8 @@ void Session::worker() {
         send_frames(first, false);
         next_due = std::chrono::steady_clock::now();
       }
-      if (record) {
-        if (*record && !recorder_ && generator_) {
+      for (const bool record : records) {
+        if (record && !recorder_ && generator_) {
           const auto name =
               "session-" + std::to_string(std::chrono::system_clock::now().time_since_epoch().count());
           fs::create_directories(options_.recordings);
@@ -328,7 +339,7 @@ void Session::worker() {
           recorder_ = std::make_unique<SessionRecorder>(options_.recordings, name, start_frame_,
                                                         1.0 / frame_dt_, about);
           send_text({{"type", "recording"}, {"name", name}});
-        } else if (!*record && recorder_) {
+        } else if (!record && recorder_) {
           const auto where = recorder_->finish();
           recorder_.reset();
           send_text({{"type", "recorded"}, {"path", where.string()}});

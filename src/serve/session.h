@@ -103,7 +103,10 @@ class Session {
   std::mutex mutex_;
   std::condition_variable wake_;
   bool stop_ = false, start_requested_ = false, reset_requested_ = false;
-  std::optional<bool> record_requested_;
+  // Record on / off in the order asked, so an off that comes before the worker took the on still
+  // ends (and reports) a recording; repeats are dropped and the list is bounded.
+  std::deque<bool> record_requests_;
+  void request_record(bool on);                       // under mutex_
   nlohmann::json start_;                              // the last start message
   std::string upload_;                                // the last binary upload (a JPEG)
   torch::Tensor velocity_, command_request_;          // live controls [w]

@@ -318,6 +318,13 @@ TEST_F(ServeTest, LiveSessionStreamsFramesAndSurvivesBadMessages) {
   ws.send({{"type", "record"}, {"on", false}});
   const auto from_start = std::filesystem::path(ws.until("recorded")["path"].get<std::string>());
   EXPECT_EQ(nlohmann::json::parse(test::read_file(from_start / "session.json"))["first_step"], 0);
+  // On and off back to back, while the worker computes a step: the off used to replace the on
+  // before the worker saw it, and the page waited for a "recorded" that never came.
+  ws.send({{"type", "record"}, {"on", true}});
+  ws.send({{"type", "record"}, {"on", false}});
+  ws.until("recording");
+  const auto quick = std::filesystem::path(ws.until("recorded")["path"].get<std::string>());
+  EXPECT_TRUE(std::filesystem::exists(quick / "video.mp4"));
   ws.send({{"type", "start"}, {"record", 1}});
   EXPECT_NE(ws.until("error")["message"].get<std::string>().find("'record' must be true or false"),
             std::string::npos);
