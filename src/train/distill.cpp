@@ -111,7 +111,7 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
                                                const nlohmann::json& fingerprint, const fs::path& dir,
                                                models::WanVaeImpl* tokenizer) {
   DOJO_CHECK(spec.chunks >= 1, "distill: trajectories need at least one teacher chunk");
-  DOJO_CHECK(!spec.reencode_anchor || spec.chunks == 1 || tokenizer != nullptr,
+  DOJO_CHECK(!spec.reencodes_anchors() || tokenizer != nullptr,
              "distill: re-encoded anchors need the tokenizer");
   DOJO_CHECK(clips.latents.dim() == 5 && clips.latents.size(2) == 1 + 3 * spec.chunks &&
                  clips.actions.size(1) == 12 * spec.chunks,
@@ -135,7 +135,7 @@ TeacherTrajectories load_or_build_trajectories(models::ActionDitImpl& teacher, d
                          {"seed", spec.seed}};
   if (spec.counterfactual_copies > 0) meta["counterfactual_copies"] = spec.counterfactual_copies;
   if (spec.chunks > 1) meta["chunks"] = spec.chunks;
-  if (spec.chunks > 1 && spec.reencode_anchor) meta["anchor"] = "reencoded";
+  if (spec.reencodes_anchors()) meta["anchor"] = "reencoded";
   if (spec.precision != Precision::kFloat32) meta["precision"] = dojo::to_string(spec.precision);
   fs::create_directories(dir);
   // Trajectory j: clip j % N's first frame and noise, with the actions of clip (j + k·stride) % N
@@ -419,7 +419,7 @@ DistillResult run_warmup(const DistillJob& job) {
   auto trajectory_spec = job.trajectories;
   trajectory_spec.precision = job.precision;
   models::WanVae tokenizer{nullptr};  // re-encoded anchors: the tokenizer the clips were encoded with
-  if (trajectory_spec.reencode_anchor && trajectory_spec.chunks > 1) {
+  if (trajectory_spec.reencodes_anchors()) {
     tokenizer = models::load_tokenizer(job.data.front().tokenizer);
     tokenizer->to(job.device);
     tokenizer->eval();
@@ -443,8 +443,7 @@ DistillResult run_warmup(const DistillJob& job) {
   // resumed on other trajectories would continue a student trained on the old ones, so it is refused.
   nlohmann::json trajectory_settings = {{"chunks", job.trajectories.chunks},
                                         {"counterfactual_copies", job.trajectories.counterfactual_copies}};
-  if (job.trajectories.chunks > 1 && job.trajectories.reencode_anchor)
-    trajectory_settings["anchor"] = "reencoded";
+  if (job.trajectories.reencodes_anchors()) trajectory_settings["anchor"] = "reencoded";
   if (resuming) {
     const auto extra = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).trainer_extra();
     const auto before =

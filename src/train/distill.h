@@ -61,6 +61,8 @@ struct TrajectorySpec {
   // where the teacher was trained on a single frame's latent); true, as the teacher's own rollouts
   // are: that chunk decoded to uint8 frames, its last frame encoded alone (needs the tokenizer).
   bool reencode_anchor = false;
+  // Whether any chunk is anchored on a re-encoded frame (one chunk anchors nothing).
+  bool reencodes_anchors() const { return reencode_anchor && chunks > 1; }
   // The teacher's matmuls under autocast at this precision (bf16: a different trajectory from
   // fp32's, so it is part of the shards' fingerprint); the teacher runs where its weights are.
   Precision precision = Precision::kFloat32;
