@@ -49,6 +49,13 @@ int run_step_speed(StepSpeedArgs& a) {
   row("training step", r["train"], "clips");
   row("sampling step", r["sample"], "clips");
   row("streaming step", r["stream"], "frames");
+  const auto& gemm = r["train"]["gemm"];
+  std::printf(
+      "\nTraining step's matrix products (%lld, %.2f GFLOP): %.1f ms in the step, %.1f ms alone (%.1f "
+      "GFLOP/s, the step's roofline); the step runs at %.0f %% of it\n",
+      static_cast<long long>(gemm["calls"].get<int64_t>()), gemm["gflop"].get<double>(),
+      gemm["ms_in_place"].get<double>(), gemm["ms_alone"].get<double>(), gemm["gflops_alone"].get<double>(),
+      100 * gemm["fraction_of_roofline"].get<double>());
   return 0;
 }
 

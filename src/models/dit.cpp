@@ -330,7 +330,17 @@ DitModulation::DitModulation(int64_t dim, int64_t lora_dim, int64_t out)
 namespace {
 // LayerNorm without affine parameters (eps 1e-6), then adaLN: norm · (1 + scale) + shift.
 torch::Tensor modulate(const torch::Tensor& x, const torch::Tensor& shift, const torch::Tensor& scale) {
-  return fused_dit_kernels_apply(x) ? modulate_fused(x, shift, scale) : modulate_plain(x, shift, scale);
+  // Under bf16 autocast the shift and scale come out of the modulation MLP in bf16: plain path.
+  const bool fused = fused_dit_kernels_apply(x) && shift.scalar_type() == torch::kFloat32 &&
+                     scale.scalar_type() == torch::kFloat32;
+  return fused ? modulate_fused(x, shift, scale) : modulate_plain(x, shift, scale);
+}
+
+// The residual branch r added back under its gate: x + gate · r.
+torch::Tensor gated_residual(const torch::Tensor& x, const torch::Tensor& gate, const torch::Tensor& r) {
+  const bool fused = fused_dit_kernels_apply(x) && gate.scalar_type() == torch::kFloat32 &&
+                     r.scalar_type() == torch::kFloat32;
+  return fused ? gated_residual_fused(x, gate, r) : gated_residual_plain(x, gate, r);
 }
 }  // namespace
 
@@ -361,14 +371,14 @@ torch::Tensor DitBlockImpl::forward(const torch::Tensor& input, const DitBlockCo
   auto x = input;  // [B, T, S, D]
   auto y = modulate(x, sa[0], sa[1]).view({B, T * S, D});
   auto r = self_attn->self_attention(y, ctx.cos, ctx.sin, ctx.mask, ctx.cache, ctx.store_kv);
-  x = x + sa[2] * r.view({B, T, S, D});
+  x = gated_residual(x, sa[2], r.view({B, T, S, D}));
 
   y = modulate(x, ca[0], ca[1]).view({B, T * S, D});
   r = cross_attn->cross_attention(y, ctx.context);
-  x = r.view({B, T, S, D}) * ca[2] + x;
+  x = gated_residual(x, ca[2], r.view({B, T, S, D}));
 
   y = modulate(x, ml[0], ml[1]);
-  return x + ml[2] * mlp(y);
+  return gated_residual(x, ml[2], mlp(y));
 }
 
 namespace {
@@ -394,7 +404,11 @@ struct RecomputedBlock : torch::autograd::Function<RecomputedBlock> {
     const auto device = x.device().type();
     ctx->saved_data["autocast"] = AutocastGuard::is_enabled(device);
     ctx->saved_data["autocast_dtype"] = static_cast<int64_t>(AutocastGuard::dtype(device));
-    PlainDitKernelsScope plain;  // the backward pass's run records gradients: the plain kernels
+    // No gradients here, gradients in the recompute: the fused kernels' two paths share their
+    // arithmetic, so in float32 both runs compute the same values bit for bit; under autocast the
+    // recompute takes the plain path (dit_kernels.h), and so does this run.
+    std::optional<PlainDitKernelsScope> plain;
+    if (AutocastGuard::is_enabled(device)) plain.emplace();
     DitBlockContext c;
     c.silu_emb = silu_emb;
     c.adaln_lora = adaln_lora;

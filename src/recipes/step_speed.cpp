@@ -9,6 +9,7 @@
 
 #include "core/atomic_file.h"
 #include "core/error.h"
+#include "core/gemm_census.h"
 #include "core/log.h"
 #include "core/runtime.h"
 #include "core/safetensors.h"
@@ -158,6 +159,16 @@ nlohmann::json time_training(models::ActionDit& net, const StepSpeedOptions& o, 
     }
   }
   auto report = summarize(ms, o.train_batch, "clips");
+  // One more step, untimed, counts the step's matrix products; timed alone they are the step's
+  // roofline on this machine.
+  std::vector<GemmRecord> products;
+  {
+    GemmCensus census;
+    trainer.step(clips.x0, clips.actions, train::cpu_generator(step_seed + o.warmup + o.repeats));
+    products = census.records();
+  }
+  const auto roofline = time_alone(products, 5);
+  report["gemm"] = roofline.to_json(report["ms_p50"].get<double>() / 1e3, products, 12);
   report["step_seed"] = step_seed;
   report["options"] = to.to_json();
   report["ema_gamma"] = diffusion::power_ema_gamma(to.ema_sigma_rel);

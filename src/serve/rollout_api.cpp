@@ -136,6 +136,13 @@ HttpReply run_rollout_request(const ModelHost& host, const std::string& body, Se
     for (int64_t i = 0; i < layout.size(0); i += per_step) {
       const double spent =
           std::chrono::duration<double>(std::chrono::steady_clock::now() - start_time).count();
+      if (limits.stopping != nullptr && limits.stopping->load()) {
+        metrics.error();
+        return {503, "application/json",
+                nlohmann::json{{"error", "the server is stopping (after " +
+                                             std::to_string(frames.size() - 1) + " steps of the rollout)"}}
+                    .dump()};
+      }
       if (spent > limits.max_seconds) {
         metrics.error();
         return {

@@ -7,6 +7,8 @@
 // -> video/mp4, or {"frames": ["<base64 JPEG>", ...]} with the start frame first.
 #pragma once
 
+#include <atomic>
+
 #include <cstdint>
 #include <string>
 
@@ -28,6 +30,9 @@ struct RolloutLimits {
   int64_t max_frames = 1200;
   double max_seconds = 300;
   int jpeg_quality = 85;
+  // The server's stop flag: a rollout checks it before each step and answers 503 when it is set,
+  // so a stopping server waits one step for a running rollout, not its max_seconds.
+  const std::atomic<bool>* stopping = nullptr;
 };
 
 // Runs the request to completion (seconds to minutes for the teacher). Bad input: a 400 reply

@@ -467,9 +467,9 @@ class HttpConnection : public std::enable_shared_from_this<HttpConnection<Stream
       auto self = shared_from_this();
       server_.run_in_background([self, req = std::move(req)]() mutable {
         const auto& o = self->server_.options;
-        auto r =
-            run_rollout_request(*self->server_.host, req.body(), self->server_.metrics,
-                                RolloutLimits{o.max_rollout_frames, o.max_rollout_seconds, o.jpeg_quality});
+        auto r = run_rollout_request(*self->server_.host, req.body(), self->server_.metrics,
+                                     RolloutLimits{o.max_rollout_frames, o.max_rollout_seconds,
+                                                   o.jpeg_quality, &self->server_.stopping});
         --self->server_.sessions;
         auto res = reply(req, static_cast<http::status>(r.status), r.content_type, std::move(r.body));
         net::post(self->executor_, [self, res = std::move(res)]() mutable { self->write(std::move(res)); });
@@ -661,8 +661,8 @@ void Server::stop() {
       s.acceptor.close(ec);
     });
   });
-  // 2. Sessions close (their recordings are written); rollout jobs and study requests already
-  //    running finish and post their answers.
+  // 2. Sessions close (their recordings are written); study requests already running finish and
+  //    post their answers, rollout jobs answer 503 after the step they are in.
   s.close_connections(Server::Impl::ConnectionKind::kWebSocket);
   for (int waited = 0; s.sessions > 0 && waited < 300; ++waited)
     std::this_thread::sleep_for(std::chrono::milliseconds(10));

@@ -58,6 +58,7 @@ ParallelWorld parallel_world_from_environment() {
   w.master_addr = env_or("MASTER_ADDR", w.master_addr);
   w.master_port = static_cast<int>(env_integer("MASTER_PORT", w.master_port, 1, 65535));
   w.timeout_s = static_cast<double>(env_integer("DOJO_DIST_TIMEOUT", 600, 1, 7 * 24 * 3600));
+  w.overlap_backward = env_integer("DOJO_DIST_OVERLAP", 1, 0, 1) == 1;
   return w;
 }
 

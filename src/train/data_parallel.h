@@ -47,9 +47,11 @@ struct ParallelWorld {
   int rank = 0, world = 1, local_rank = 0;
   std::string master_addr = "127.0.0.1";
   int master_port = 29500;
-  double timeout_s = 600;
+  double timeout_s = 600;        // DOJO_DIST_TIMEOUT
+  bool overlap_backward = true;  // DOJO_DIST_OVERLAP=0: all-reduce after the backward pass
 };
-// The torchrun variables above; a malformed or inconsistent one throws dojo::Error naming it.
+// The torchrun variables above and the DOJO_DIST_* ones; a malformed or inconsistent one throws
+// dojo::Error naming it.
 ParallelWorld parallel_world_from_environment();
 
 class DataParallel {
@@ -64,6 +66,8 @@ class DataParallel {
   int local_rank() const { return world_.local_rank; }
   bool main() const { return world_.rank == 0; }
   bool active() const { return world_.world > 1; }
+  // Whether trainers that can start their all-reduce during the backward pass do (overlapped_average.h).
+  bool overlaps_backward() const { return world_.overlap_backward; }
 
   // Overwrites `tensors` (same shapes on every rank) with rank 0's values.
   void broadcast_from_main(const std::vector<torch::Tensor>& tensors);

@@ -472,8 +472,7 @@ DistillResult run_warmup(const DistillJob& job) {
   if (data.config.contains("views")) extras["views"] = data.config["views"];  // a multi-view teacher's canvas
   trainer.set_config_extras(extras);
   // Sharded before a resume adopts the saved moments: each rank then copies its slice only.
-  group.check_same("--zero1", job.zero1 ? "on" : "off");
-  if (job.zero1) trainer.shard_optimizer_state();
+  trainer.apply_zero1(job.zero1);
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("distill: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
@@ -651,11 +650,8 @@ DistillResult run_self_forcing(const DistillJob& job) {
     generator_extras["views"] = critic_extras["views"] = data.config["views"];
   generator.set_config_extras(generator_extras);
   critic.set_config_extras(critic_extras);
-  group.check_same("--zero1", job.zero1 ? "on" : "off");
-  if (job.zero1) {
-    generator.shard_optimizer_state();
-    critic.shard_optimizer_state();
-  }
+  generator.apply_zero1(job.zero1);
+  critic.apply_zero1(job.zero1);
   if (resuming) {
     // Both are saved at the same iterations; a crash between the two saves leaves them apart.
     const auto iterations = [](const fs::path& dir) {

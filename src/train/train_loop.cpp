@@ -5,6 +5,7 @@
 #include <optional>
 #include <sstream>
 
+#include "core/gemm_census.h"
 #include "core/log.h"
 #include "core/progress.h"
 #include "train/data_parallel.h"
@@ -63,8 +64,9 @@ LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
     return budget > 0 ? group.mean({mine})[0] : mine;
   };
 
-  int64_t timed_items = 0;
+  int64_t timed_items = 0, timed_steps = 0;
   double timed_seconds = 0;
+  std::vector<GemmRecord> products;
   for (int64_t s = start_step; s < o.steps; ++s) {
     LoopStep info;
     info.index = s;
@@ -74,13 +76,22 @@ LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
     info.last = s + 1 == o.steps || result.out_of_time;
     info.saves = info.last || (o.save_every > 0 && (s + 1) % o.save_every == 0);
 
+    // The first steps of a run warm up allocators, caches and thread pools; the first steady one
+    // is counted (which slows it: it stays out of the throughput) when a later one will be timed.
+    const bool counted = o.roofline && s - start_step == 2 && s + 1 < o.steps;
+    std::optional<GemmCensus> census;
+    if (counted) census.emplace();
     const auto t0 = std::chrono::steady_clock::now();
     const StepRecord record = step(info);
     const double secs = seconds_between(t0, std::chrono::steady_clock::now());
-    // The first steps of a run warm up allocators, caches and thread pools.
-    if (s - start_step >= 2) {
+    if (census) {
+      products = census->records();
+      census.reset();
+    }
+    if (s - start_step >= 2 && !counted) {
       timed_items += record.items;
       timed_seconds += secs;
+      ++timed_steps;
     }
     if (curve) curve->add(curve_row(s + 1, record.values));
     if (progress) progress->advance(1, record.note);
@@ -96,6 +107,15 @@ LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
     LOG_INFO(o.name, ": time budget of ", o.time_budget_s, " s reached at step ", result.end_step);
   result.seconds = seconds_between(start, std::chrono::steady_clock::now());
   result.items_per_second = timed_seconds > 0 ? static_cast<double>(timed_items) / timed_seconds : 0;
+  if (!products.empty() && timed_steps > 0) {
+    const auto roofline = time_alone(products, 3);
+    result.products = roofline.calls;
+    result.products_flops = roofline.flops;
+    result.step_seconds = timed_seconds / static_cast<double>(timed_steps);
+    result.products_seconds_alone = roofline.seconds_alone;
+    result.roofline_fraction = roofline.fraction_of(result.step_seconds);
+    if (main) LOG_INFO(o.name, ": ", describe(roofline, result.step_seconds));
+  }
   return result;
 }
 

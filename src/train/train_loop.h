@@ -9,6 +9,8 @@
 //                rows after its checkpoint's step, so the curve never repeats a step
 //   saves        every save_every steps and after the last step
 //   throughput   items per second over the steady state (the first steps warm allocators up)
+//   roofline     the first steady step's matrix products are counted (core/gemm_census.h) and
+//                timed alone after the run: the log says what share of their speed the steps run at
 //   rank 0       only the main process draws progress, writes the curve and saves
 #pragma once
 
@@ -30,6 +32,7 @@ struct LoopOptions {
   std::string unit = "clips";        // what StepRecord::items counts
   bool progress = true;              // draw a progress line (main process only)
   bool main_process = true;          // false on ranks > 0: no progress, curve or saves
+  bool roofline = true;              // count one step's matrix products and time them alone
 };
 
 // What the step function is told about the step it is asked to run.
@@ -52,6 +55,13 @@ struct LoopResult {
   double seconds = 0;           // wall time of the loop
   double items_per_second = 0;  // steady state: steps after the first two of this run
   bool out_of_time = false;     // the time budget ended the run
+  // With LoopOptions::roofline and at least 4 steps in this run: the steady steps' mean time
+  // against their matrix products' time alone (0 when not measured).
+  int64_t products = 0;       // matrix products in the counted step
+  double products_flops = 0;  // and their FLOPs
+  double step_seconds = 0;
+  double products_seconds_alone = 0;
+  double roofline_fraction = 0;
 };
 
 // Runs step(s) for s = start_step, start_step + 1, ... until options.steps or the time budget,

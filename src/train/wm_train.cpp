@@ -160,8 +160,7 @@ WmTrainer::WmTrainer(models::ActionDit net, WmTrainOptions options, torch::Devic
       params_, torch::optim::AdamWOptions(options_.lr).weight_decay(options_.weight_decay));
   fused_ = std::make_unique<FusedAdamW>(*optimizer_, params_, ema_params_);
   auto& group = data_parallel();
-  const char* overlap = std::getenv("DOJO_DIST_OVERLAP");
-  if (group.active() && !(overlap != nullptr && std::string(overlap) == "0"))
+  if (group.active() && group.overlaps_backward())
     overlap_ = std::make_unique<OverlappedGradientAverage>(
         params_, fused_->offsets(), fused_->flat_grad(), group.world(),
         [&group](const torch::Tensor& flat) { return group.start_sum(flat, "the gradient all-reduce"); });
@@ -254,6 +253,12 @@ void WmTrainer::save(const fs::path& dir, const nlohmann::json& extra) const {
   for (auto& t : capture_rng_state()) ts.tensors.push_back(std::move(t));
   data.trainer = ts;
   save_checkpoint(dir, data);
+}
+
+void WmTrainer::apply_zero1(bool requested) {
+  auto& group = data_parallel();
+  group.check_same("--zero1", requested ? "on" : "off");
+  if (requested) shard_optimizer_state();
 }
 
 void WmTrainer::shard_optimizer_state() {
@@ -471,8 +476,7 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
   if (!views.is_null()) extras["views"] = views;
   if (!extras.empty()) trainer.set_config_extras(extras);
   // Sharded before a resume adopts the saved moments: each rank then copies its slice only.
-  group.check_same("--zero1", job.zero1 ? "on" : "off");
-  if (job.zero1) trainer.shard_optimizer_state();
+  trainer.apply_zero1(job.zero1);
   if (resuming) {
     trainer.resume(ckpt_dir);
     LOG_INFO("wm train: resumed from ", ckpt_dir.string(), " at step ", trainer.steps_done());
@@ -561,6 +565,9 @@ WmTrainResult run_wm_training(const WmTrainJob& job) {
       {"seconds", result.seconds},
       {"clips_per_second", result.clips_per_second},
       {"gflops", result.gflops},
+      {"step_ms", 1e3 * run.step_seconds},
+      {"matmul_ms_alone", 1e3 * run.products_seconds_alone},
+      {"roofline_fraction", run.roofline_fraction},
       {"processes", group.world()},
       {"accumulate", job.accumulate},
       {"zero1", job.zero1 && group.active()},

@@ -105,6 +105,9 @@ class WmTrainer {
   // the parameters stay bit for bit those of plain data parallelism. Call before resume() (each
   // rank then adopts its slice of the saved moments) and the first step; a world of 1: no change.
   void shard_optimizer_state();
+  // Every rank calls it with the --zero1 it was given: the ranks check they agree (a collective),
+  // then shard when it is on.
+  void apply_zero1(bool requested);
   // Before rank 0 saves a sharded trainer: every rank calls it (a collective) so the checkpoint
   // holds the whole moments. Nothing to do unsharded.
   void gather_optimizer_state();

@@ -119,8 +119,14 @@ TEST(ServeLoad, StudyVotersAreAcknowledgedStoredAndCountedWhenTheServerGoes) {
             run.answers_acknowledged);
 
   load.seconds = 30;
+  // Stop once the voters have stored a trial of this run (so some vote was acknowledged before
+  // the cut), not after a fixed delay a slow disk could outlast.
+  const auto stored_before = static_cast<int64_t>(VoteStore(tmp / "s" / "votes.sqlite").all().size());
   std::thread stopper([&] {
-    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    const auto waiting_since = std::chrono::steady_clock::now();
+    while (static_cast<int64_t>(VoteStore(tmp / "s" / "votes.sqlite").all().size()) < stored_before + 4 &&
+           std::chrono::steady_clock::now() - waiting_since < std::chrono::seconds(10))
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
     server.stop();
   });
   const auto cut_start = std::chrono::steady_clock::now();

@@ -29,6 +29,9 @@
 #include "synthetic_data.h"
 #include "test_util.h"
 
+#include <chrono>
+#include <thread>
+
 namespace dojo::serve {
 namespace {
 
@@ -394,6 +397,34 @@ TEST_F(ServeTest, StepModeRolloutApiAndSessionCap) {
   EXPECT_NE(r.body.find("--max-rollout-seconds"), std::string::npos) << r.body;
   EXPECT_EQ(request(hasty_port, http::verb::get, "/health").status, 200) << "and it keeps serving";
   hasty.stop();
+
+  // A server stopped under a long rollout waits for the step in flight, not the whole rollout:
+  // the rollout answers 503, saying how far it got.
+  Server busy(options(), shared);
+  const auto busy_port = busy.start();
+  body["actions"] = nlohmann::json::array();
+  for (int i = 0; i < 1196; ++i) body["actions"].push_back({1 + 0.0002 * i, 0.5, 1.8, 0.8, 0, 0.5});
+  HttpResult long_rollout;
+  std::thread client(
+      [&] { long_rollout = request(busy_port, http::verb::post, "/v1/rollout", body.dump()); });
+  // Stop once the rollout has generated frames (the counter past the start frame's).
+  const auto started = std::chrono::steady_clock::now();
+  auto frames_generated = [&] {
+    const auto text = request(busy_port, http::verb::get, "/metrics").body;
+    const std::string key = "\ndojo_frames_generated_total ";
+    const auto at = text.find(key);
+    return at == std::string::npos ? 0.0 : std::stod(text.substr(at + key.size()));
+  };
+  while (frames_generated() < 8 && std::chrono::steady_clock::now() - started < std::chrono::seconds(60))
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  const auto stop_start = std::chrono::steady_clock::now();
+  busy.stop();
+  const double stop_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - stop_start).count();
+  client.join();
+  EXPECT_EQ(long_rollout.status, 503) << long_rollout.body;
+  EXPECT_NE(long_rollout.body.find("the server is stopping (after "), std::string::npos) << long_rollout.body;
+  EXPECT_LT(stop_seconds, 5) << "the rollout had 299 steps to go";
 }
 
 }  // namespace

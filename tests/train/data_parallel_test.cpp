@@ -72,6 +72,13 @@ TEST(DataParallel, TheEnvironmentIsReadAsTorchrunWritesItAndBadValuesAreNamed) {
   EXPECT_EQ(w.local_rank, 1);
   EXPECT_EQ(w.master_addr, "10.0.0.2");
   EXPECT_EQ(w.master_port, 29999);
+  EXPECT_TRUE(w.overlap_backward);
+  setenv("DOJO_DIST_OVERLAP", "0", 1);
+  EXPECT_FALSE(parallel_world_from_environment().overlap_backward);
+  setenv("DOJO_DIST_OVERLAP", "off", 1);
+  EXPECT_NE(test::error_message([] { parallel_world_from_environment(); }).find("DOJO_DIST_OVERLAP=off"),
+            std::string::npos);
+  unsetenv("DOJO_DIST_OVERLAP");
   setenv("RANK", "4", 1);
   EXPECT_NE(test::error_message([] { parallel_world_from_environment(); }).find("RANK=4"), std::string::npos);
   setenv("RANK", "0", 1);
