@@ -4,7 +4,6 @@
 #include <torch/torch.h>
 
 #include <algorithm>
-#include <atomic>
 #include <chrono>
 #include <map>
 #include <mutex>
@@ -20,7 +19,8 @@ namespace {
 using Clock = std::chrono::steady_clock;
 
 auto key(const GemmShape& s) {
-  return std::tie(s.batch, s.m, s.k, s.n, s.a_transposed, s.b_transposed, s.dtype);
+  return std::make_tuple(s.batch, s.m, s.k, s.n, s.a_transposed, s.b_transposed, s.dtype,
+                         static_cast<int>(s.device.type()), static_cast<int>(s.device.index()));
 }
 
 // A column-major view (a transposed contiguous matrix): BLAS reads it as "T".
@@ -67,15 +67,21 @@ bool GemmShape::operator<(const GemmShape& other) const { return key(*this) < ke
 bool GemmShape::operator==(const GemmShape& other) const { return key(*this) == key(other); }
 
 struct GemmCensus::State {
-  std::mutex mutex;
   std::map<GemmShape, GemmRecord> records;
   at::CallbackHandle handle = 0;
 };
 
 namespace {
 
-std::atomic<GemmCensus::State*>& active_census() {
-  static std::atomic<GemmCensus::State*> state{nullptr};
+// The census recording now, and the lock that every record and the census's end take: a product
+// finishing on an autograd thread never writes into a census being destroyed.
+std::mutex& census_mutex() {
+  static std::mutex mutex;
+  return mutex;
+}
+
+GemmCensus::State*& active_census() {
+  static GemmCensus::State* state = nullptr;
   return state;
 }
 
@@ -85,9 +91,11 @@ thread_local int gemm_depth = 0;
 }  // namespace
 
 GemmCensus::GemmCensus() : state_(std::make_unique<State>()) {
-  State* expected = nullptr;
-  DOJO_CHECK(active_census().compare_exchange_strong(expected, state_.get()),
-             "gemm census: another census is recording");
+  {
+    std::lock_guard<std::mutex> lock(census_mutex());
+    DOJO_CHECK(active_census() == nullptr, "gemm census: another census is recording");
+    active_census() = state_.get();
+  }
   auto start = [](const at::RecordFunction& fn) -> std::unique_ptr<at::ObserverContext> {
     GemmShape shape;
     if (!gemm_of(fn, shape)) return nullptr;
@@ -101,28 +109,32 @@ GemmCensus::GemmCensus() : state_(std::make_unique<State>()) {
     if (ctx == nullptr) return;
     --gemm_depth;
     auto* in_flight = dynamic_cast<InFlight*>(ctx);
-    State* state = active_census().load();
-    if (in_flight == nullptr || state == nullptr) return;
+    if (in_flight == nullptr) return;
     const double seconds = std::chrono::duration<double>(Clock::now() - in_flight->start).count();
-    std::lock_guard<std::mutex> lock(state->mutex);
+    std::lock_guard<std::mutex> lock(census_mutex());
+    State* state = active_census();
+    if (state == nullptr) return;
     auto& record = state->records[in_flight->shape];
     record.shape = in_flight->shape;
     record.calls += 1;
     record.seconds_in_place += seconds;
   };
-  state_->handle = at::addGlobalCallback(
+  // Thread-local: libtorch hands it to the autograd threads that run this thread's backward
+  // passes, not to unrelated threads (data loaders) whose products are not the work's.
+  state_->handle = at::addThreadLocalCallback(
       at::RecordFunctionCallback(start, end).needsInputs(true).scopes({at::RecordScope::FUNCTION}));
 }
 
 GemmCensus::~GemmCensus() {
   at::removeCallback(state_->handle);
-  active_census().store(nullptr);
+  std::lock_guard<std::mutex> lock(census_mutex());
+  active_census() = nullptr;
 }
 
 std::vector<GemmRecord> GemmCensus::records() const {
   std::vector<GemmRecord> out;
   {
-    std::lock_guard<std::mutex> lock(state_->mutex);
+    std::lock_guard<std::mutex> lock(census_mutex());
     for (const auto& [shape, record] : state_->records) out.push_back(record);
   }
   std::sort(out.begin(), out.end(), [](const GemmRecord& a, const GemmRecord& b) {

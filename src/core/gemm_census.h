@@ -36,10 +36,11 @@ struct GemmRecord {
   double seconds_in_place = 0;  // summed over calls, timed inside the work
 };
 
-// While it lives, records every float matrix product (aten::mm, addmm, bmm, baddbmm) any thread
-// runs (forward and backward passes alike), with its time in place. One census at a time.
-// Recording asks libtorch for every operator's inputs, which slows the work: time the work
-// without a census and count its products with one.
+// While it lives, records every float matrix product (aten::mm, addmm, bmm, baddbmm) that the
+// thread which made it runs, and the autograd threads running that thread's backward passes,
+// with its time in place. One census at a time, destroyed on the thread that made it. Recording
+// asks libtorch for every operator's inputs, which slows the work: time the work without a census
+// and count its products with one.
 class GemmCensus {
  public:
   GemmCensus();

@@ -4,7 +4,6 @@
 #include <torch/torch.h>
 
 #include <cmath>
-#include <mutex>
 #include <vector>
 
 #include "core/autocast.h"
@@ -287,7 +286,6 @@ struct RmsNormRopeFunction : torch::autograd::Function<RmsNormRopeFunction> {
     const int64_t B = x.size(0), L = x.size(1), H = x.size(2), d = x.size(3);
     const bool rotate = cos.numel() > 0;
     auto dx = torch::empty_like(x);
-    auto d_weight = torch::zeros({d}, x.options());
     const float* xp = x.data_ptr<float>();
     const float* wp = w.data_ptr<float>();
     const float* cp = rotate ? cos.data_ptr<float>() : nullptr;
@@ -295,19 +293,26 @@ struct RmsNormRopeFunction : torch::autograd::Function<RmsNormRopeFunction> {
     const float* gp = g.data_ptr<float>();
     const float* rp = rms.data_ptr<float>();
     float* dxp = dx.data_ptr<float>();
-    std::mutex merge;
-    at::parallel_for(0, B * L * H, kRowsPerTask, [&](int64_t begin, int64_t end) {
-      std::vector<float> local(static_cast<size_t>(2 * d), 0.f);  // the weight's gradient, then dy scratch
-      for (int64_t r = begin; r < end; ++r) {
-        const int64_t l = (r / H) % L;
-        rms_norm_rope_row_backward(xp + r * d, wp, rotate ? cp + l * d : nullptr,
-                                   rotate ? sp + l * d : nullptr, gp + r * d, rp[r], factor, dxp + r * d,
-                                   local.data(), local.data() + d, d);
+    // The weight's gradient sums over every row: each block of rows sums into a slot of its own,
+    // and the slots are added in order, so the result does not depend on the thread count.
+    const int64_t rows = B * L * H, blocks = (rows + kRowsPerTask - 1) / kRowsPerTask;
+    auto partial = torch::zeros({blocks, 2 * d}, x.options());  // per block: its sum, then dy scratch
+    float* pp = partial.data_ptr<float>();
+    at::parallel_for(0, blocks, 1, [&](int64_t first, int64_t last) {
+      for (int64_t block = first; block < last; ++block) {
+        float* sum = pp + block * 2 * d;
+        for (int64_t r = block * kRowsPerTask; r < std::min(rows, (block + 1) * kRowsPerTask); ++r) {
+          const int64_t l = (r / H) % L;
+          rms_norm_rope_row_backward(xp + r * d, wp, rotate ? cp + l * d : nullptr,
+                                     rotate ? sp + l * d : nullptr, gp + r * d, rp[r], factor, dxp + r * d,
+                                     sum, sum + d, d);
+        }
       }
-      std::lock_guard<std::mutex> lock(merge);
-      float* dw = d_weight.data_ptr<float>();
-      for (int64_t i = 0; i < d; ++i) dw[i] += local[static_cast<size_t>(i)];
     });
+    auto d_weight = torch::zeros({d}, x.options());
+    float* dw = d_weight.data_ptr<float>();
+    for (int64_t block = 0; block < blocks; ++block)
+      for (int64_t i = 0; i < d; ++i) dw[i] += pp[block * 2 * d + i];
     return {dx, d_weight, torch::Tensor(), torch::Tensor(), torch::Tensor(), torch::Tensor()};
   }
 };

@@ -107,14 +107,16 @@ LoopResult run_training_loop(const LoopOptions& o, int64_t start_step,
     LOG_INFO(o.name, ": time budget of ", o.time_budget_s, " s reached at step ", result.end_step);
   result.seconds = seconds_between(start, std::chrono::steady_clock::now());
   result.items_per_second = timed_seconds > 0 ? static_cast<double>(timed_items) / timed_seconds : 0;
-  if (!products.empty() && timed_steps > 0) {
+  // Timed alone by the main process only (ranks sharing a machine would time each other's
+  // products), and not past a time budget the run has spent.
+  if (main && !result.out_of_time && !products.empty() && timed_steps > 0) {
     const auto roofline = time_alone(products, 3);
     result.products = roofline.calls;
     result.products_flops = roofline.flops;
     result.step_seconds = timed_seconds / static_cast<double>(timed_steps);
     result.products_seconds_alone = roofline.seconds_alone;
     result.roofline_fraction = roofline.fraction_of(result.step_seconds);
-    if (main) LOG_INFO(o.name, ": ", describe(roofline, result.step_seconds));
+    LOG_INFO(o.name, ": ", describe(roofline, result.step_seconds));
   }
   return result;
 }

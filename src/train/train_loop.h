@@ -10,7 +10,8 @@
 //   saves        every save_every steps and after the last step
 //   throughput   items per second over the steady state (the first steps warm allocators up)
 //   roofline     the first steady step's matrix products are counted (core/gemm_census.h) and
-//                timed alone after the run: the log says what share of their speed the steps run at
+//                timed alone after the run by the main process (not when the time budget ended
+//                it): the log says what share of their speed the steps run at
 //   rank 0       only the main process draws progress, writes the curve and saves
 #pragma once
 
@@ -55,8 +56,9 @@ struct LoopResult {
   double seconds = 0;           // wall time of the loop
   double items_per_second = 0;  // steady state: steps after the first two of this run
   bool out_of_time = false;     // the time budget ended the run
-  // With LoopOptions::roofline and at least 4 steps in this run: the steady steps' mean time
-  // against their matrix products' time alone (0 when not measured).
+  // With LoopOptions::roofline, at least 4 steps in this run and no time budget spent: the
+  // steady steps' mean time against their matrix products' time alone (main process; 0 when not
+  // measured).
   int64_t products = 0;       // matrix products in the counted step
   double products_flops = 0;  // and their FLOPs
   double step_seconds = 0;

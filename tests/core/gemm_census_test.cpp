@@ -6,6 +6,7 @@
 #include <torch/torch.h>
 
 #include <nlohmann/json.hpp>
+#include <thread>
 
 #include "test_util.h"
 
@@ -83,6 +84,18 @@ TEST(GemmCensus, CountsTheBackwardPassProducts) {
   double flops = 0;
   for (const auto& r : records) flops += r.shape.flops() * static_cast<double>(r.calls);
   EXPECT_DOUBLE_EQ(flops, 3 * 2.0 * 8 * 5 * 3);
+}
+
+TEST(GemmCensus, CountsItsOwnThreadNotOthers) {
+  test::OneThread one_thread;
+  torch::NoGradGuard no_grad;
+  const auto a = torch::randn({6, 5}), b = torch::randn({5, 7});
+  GemmCensus census;
+  std::thread other([&] { (void)torch::mm(a, b); });  // a data loader's product, say
+  other.join();
+  EXPECT_TRUE(census.records().empty());
+  (void)torch::mm(a, b);
+  EXPECT_EQ(census.records().size(), 1u);
 }
 
 TEST(GemmCensus, OneAtATime) {
