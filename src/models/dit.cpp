@@ -271,7 +271,7 @@ torch::Tensor DitAttentionImpl::self_attention(const torch::Tensor& x, const tor
   const auto k_raw = lora_forward(k_proj, k_lora, x).view({B, L, heads, head_dim});
   torch::Tensor q, k;           // [B, h, L, d]
   std::optional<double> scale;  // attention's default 1/sqrt(d), unless folded into q
-  if (fused_dit_kernels_apply(q_raw)) {
+  if (fused_dit_kernels_apply({q_raw})) {
     q = rms_norm_rope_fused(q_raw, q_norm->weight, q_norm->eps, cos, sin,
                             1.0 / std::sqrt(static_cast<double>(head_dim)))
             .transpose(1, 2);
@@ -296,7 +296,7 @@ torch::Tensor DitAttentionImpl::cross_attention(const torch::Tensor& x, const to
   const auto q_raw = lora_forward(q_proj, q_lora, x).view({B, L, heads, head_dim});
   const auto k_raw = lora_forward(k_proj, k_lora, context).view({B, Lc, heads, head_dim});
   const auto v = lora_forward(v_proj, v_lora, context).view({B, Lc, heads, head_dim}).transpose(1, 2);
-  if (fused_dit_kernels_apply(q_raw)) {
+  if (fused_dit_kernels_apply({q_raw})) {
     const auto q = rms_norm_rope_fused(q_raw, q_norm->weight, q_norm->eps, {}, {},
                                        1.0 / std::sqrt(static_cast<double>(head_dim)));
     const auto k = rms_norm_rope_fused(k_raw, k_norm->weight, k_norm->eps, {}, {});
@@ -331,16 +331,14 @@ namespace {
 // LayerNorm without affine parameters (eps 1e-6), then adaLN: norm · (1 + scale) + shift.
 torch::Tensor modulate(const torch::Tensor& x, const torch::Tensor& shift, const torch::Tensor& scale) {
   // Under bf16 autocast the shift and scale come out of the modulation MLP in bf16: plain path.
-  const bool fused = fused_dit_kernels_apply(x) && shift.scalar_type() == torch::kFloat32 &&
-                     scale.scalar_type() == torch::kFloat32;
-  return fused ? modulate_fused(x, shift, scale) : modulate_plain(x, shift, scale);
+  return fused_dit_kernels_apply({x, shift, scale}) ? modulate_fused(x, shift, scale)
+                                                    : modulate_plain(x, shift, scale);
 }
 
 // The residual branch r added back under its gate: x + gate · r.
 torch::Tensor gated_residual(const torch::Tensor& x, const torch::Tensor& gate, const torch::Tensor& r) {
-  const bool fused = fused_dit_kernels_apply(x) && gate.scalar_type() == torch::kFloat32 &&
-                     r.scalar_type() == torch::kFloat32;
-  return fused ? gated_residual_fused(x, gate, r) : gated_residual_plain(x, gate, r);
+  return fused_dit_kernels_apply({x, gate, r}) ? gated_residual_fused(x, gate, r)
+                                               : gated_residual_plain(x, gate, r);
 }
 }  // namespace
 

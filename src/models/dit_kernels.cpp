@@ -4,7 +4,6 @@
 #include <torch/torch.h>
 
 #include <cmath>
-#include <vector>
 
 #include "core/autocast.h"
 #include "core/error.h"
@@ -143,12 +142,14 @@ thread_local int plain_scopes = 0;
 PlainDitKernelsScope::PlainDitKernelsScope() { ++plain_scopes; }
 PlainDitKernelsScope::~PlainDitKernelsScope() { --plain_scopes; }
 
-bool fused_dit_kernels_apply(const torch::Tensor& x) {
-  if (!x.is_cpu() || x.scalar_type() != torch::kFloat32 || plain_scopes > 0 || plain_kernels()) return false;
+bool fused_dit_kernels_apply(std::initializer_list<torch::Tensor> inputs) {
+  if (inputs.size() == 0 || plain_scopes > 0 || plain_kernels()) return false;
+  for (const auto& t : inputs)
+    if (!t.is_cpu() || t.scalar_type() != torch::kFloat32) return false;
   // Training under bf16 autocast keeps libtorch's operators: the fused backward passes are for
   // float32 training (under autocast their float32 sums, cast to bf16 on the way back, differ from
   // the plain path's by a bf16 rounding here and there).
-  return !(torch::GradMode::is_enabled() && AutocastGuard::is_enabled(x.device().type()));
+  return !(torch::GradMode::is_enabled() && AutocastGuard::is_enabled(c10::DeviceType::CPU));
 }
 
 torch::Tensor modulate_plain(const torch::Tensor& x, const torch::Tensor& shift, const torch::Tensor& scale) {

@@ -16,11 +16,13 @@
 
 #include <torch/types.h>
 
+#include <initializer_list>
+
 namespace dojo::models {
 
-// Whether the fused path applies to `x` now: float32 on the CPU, outside a PlainDitKernelsScope,
-// and not DOJO_PLAIN_KERNELS=1.
-bool fused_dit_kernels_apply(const torch::Tensor& x);
+// Whether the fused path applies to these inputs now: all float32 on the CPU, outside a
+// PlainDitKernelsScope, not DOJO_PLAIN_KERNELS=1, and not recording gradients under autocast.
+bool fused_dit_kernels_apply(std::initializer_list<torch::Tensor> inputs);
 
 // Holds this thread on the plain paths for a scope (the reference the tests compare against).
 class PlainDitKernelsScope {

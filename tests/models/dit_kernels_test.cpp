@@ -58,16 +58,17 @@ TEST(DitKernels, ApplyToCpuFloatOutsideAPlainScope) {
   const auto x = torch::randn({2, 2});
   {
     torch::AutoGradMode recording(true);
-    EXPECT_TRUE(fused_dit_kernels_apply(x));  // with gradients: the fused backward passes
+    EXPECT_TRUE(fused_dit_kernels_apply({x}));  // with gradients: the fused backward passes
     AutocastGuard bf16(torch::kCPU, torch::kBFloat16, true);
-    EXPECT_FALSE(fused_dit_kernels_apply(x));  // bf16 training keeps libtorch's operators
+    EXPECT_FALSE(fused_dit_kernels_apply({x}));  // bf16 training keeps libtorch's operators
   }
   {
     torch::NoGradGuard no_grad;
-    EXPECT_TRUE(fused_dit_kernels_apply(x));
-    EXPECT_FALSE(fused_dit_kernels_apply(x.to(torch::kDouble)));
+    EXPECT_TRUE(fused_dit_kernels_apply({x}));
+    EXPECT_FALSE(fused_dit_kernels_apply({x.to(torch::kDouble)}));
+    EXPECT_FALSE(fused_dit_kernels_apply({x, x.to(torch::kBFloat16)}));  // every input float32
     PlainDitKernelsScope plain;
-    EXPECT_FALSE(fused_dit_kernels_apply(x));
+    EXPECT_FALSE(fused_dit_kernels_apply({x}));
   }
 }
 
