@@ -123,7 +123,10 @@ void register_distill(CLI::App& app) {
   cmd->add_option("--stage", a->stage,
                   "warmup (regress the teacher's ODE points) | self-forcing (DMD, needs --init)")
       ->capture_default_str();
-  cmd->add_option("--init", a->init, "self-forcing: the warmed-up student checkpoint");
+  cmd->add_option(
+      "--init", a->init,
+      "self-forcing: the warmed-up student checkpoint; warmup: start from this student of the same "
+      "teacher instead of the teacher (a second warm-up on other trajectories, a fresh optimizer)");
   cmd->add_option("--teacher", a->teacher, "Post-trained world model (default: the reference set's)");
   cmd->add_option("--tokenizer", a->tokenizer, "Its tokenizer (default with the reference set: its own)");
   add_data_option(cmd, a->data,

@@ -393,6 +393,18 @@ models::ActionDit fresh_copy(const std::filesystem::path& checkpoint) {
   return models::load_world_model(checkpoint);
 }
 
+// A warm-up from --init continues another student of the same network: the trajectories are the
+// teacher's, so the student must have the teacher's architecture (its adapters apart).
+void check_init_matches_teacher(const nlohmann::json& init_config, const models::ActionDitImpl& teacher,
+                                const std::filesystem::path& init) {
+  DOJO_CHECK(init_config.contains("config"), init.string() + "/config.json: no 'config' (not a world model)");
+  auto student = models::DitConfig::from_json(init_config.at("config"));
+  auto reference = teacher.config;
+  student.lora = reference.lora = models::LoraConfig{};
+  DOJO_CHECK(student.to_json() == reference.to_json(),
+             init.string() + ": --init is not a student of this teacher (another architecture)");
+}
+
 double mean_of(const std::deque<double>& values) {
   double sum = 0;
   for (double v : values) sum += v;
@@ -416,6 +428,22 @@ DistillResult run_warmup(const DistillJob& job) {
   const double shift = data.shift;
 
   auto teacher = models::load_world_model(job.teacher, job.device);
+  // The student starts as the teacher (its weights, its architecture), or as --init's student (a
+  // second warm-up on other trajectories); a resumed run from its own.
+  const bool resuming = checkpoint_exists(ckpt_dir);
+  const bool from_init = !resuming && !job.init.empty();
+  if (resuming && !job.init.empty())
+    LOG_INFO("distill: ", ckpt_dir.string(), " holds a warm-up in progress: it resumes, --init is not read");
+  // A resumed run keeps the architecture and the student settings (window, hops) it was started with;
+  // a run from --init its student's.
+  const fs::path student_source = resuming ? ckpt_dir : from_init ? job.init : fs::path();
+  const auto saved = student_source.empty()
+                         ? nlohmann::json()
+                         : Checkpoint::open(resolve_checkpoint_dir(student_source)).config();
+  const auto settings = saved.contains("student")
+                            ? resumed_student_settings(saved["student"], job.student, student_source)
+                            : job.student;
+  if (from_init) check_init_matches_teacher(saved, *teacher, job.init);  // before the trajectories' minutes
   auto trajectory_spec = job.trajectories;
   trajectory_spec.precision = job.precision;
   models::WanVae tokenizer{nullptr};  // re-encoded anchors: the tokenizer the clips were encoded with
@@ -437,8 +465,6 @@ DistillResult run_warmup(const DistillJob& job) {
   const auto& mixture = drawn.first;
   const auto& mixture_record = drawn.second;
 
-  // The student starts as the teacher (its weights, its architecture); a resumed run from its own.
-  const bool resuming = checkpoint_exists(ckpt_dir);
   // What the trajectories are made of besides teacher and data (their shards check those): a run
   // resumed on other trajectories would continue a student trained on the old ones, so it is refused.
   nlohmann::json trajectory_settings = {{"chunks", job.trajectories.chunks},
@@ -452,16 +478,11 @@ DistillResult run_warmup(const DistillJob& job) {
                ckpt_dir.string() + ": the warm-up was started on trajectories " + before.dump() + ", not " +
                    trajectory_settings.dump() + "; give another --out or remove it to start afresh");
   }
-  // A resumed run keeps the architecture and the student settings (window, hops) it was started with.
-  const auto saved =
-      resuming ? Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).config() : nlohmann::json();
-  const auto settings = resuming && saved.contains("student")
-                            ? resumed_student_settings(saved["student"], job.student, ckpt_dir)
-                            : job.student;
   torch::manual_seed(job.seed);
+  models::ActionDit start = from_init ? fresh_copy(job.init) : teacher;
   models::ActionDit student = resuming ? models::ActionDit(models::DitConfig::from_json(saved.at("config")))
-                              : job.lora.enabled() ? with_lora_adapters(teacher, job.lora)
-                                                   : teacher;
+                              : job.lora.enabled() ? with_lora_adapters(start, job.lora)
+                                                   : start;
   warn_if_lora_differs(*student, job.lora, resuming, ckpt_dir);
   // LoRA distillation trains the adapters alone: the action MLPs already read the actions.
   if (student->config.lora.enabled())
@@ -510,12 +531,18 @@ DistillResult run_warmup(const DistillJob& job) {
     return recent.empty() ? 0.0 : sum / static_cast<double>(recent.size());
   };
   // The trainer state every warm-up checkpoint records (the no-step save as the periodic ones).
-  const nlohmann::json checkpoint_extra = {{"stage", "warmup"},
-                                           {"clips", n},
-                                           {"trajectories", trajectory_settings},
-                                           {"mixture", mixture_record},
-                                           {"clean_context_share", job.clean_context_share},
-                                           {"context_noise", job.context_noise}};
+  nlohmann::json checkpoint_extra = {{"stage", "warmup"},
+                                     {"clips", n},
+                                     {"trajectories", trajectory_settings},
+                                     {"mixture", mixture_record},
+                                     {"clean_context_share", job.clean_context_share},
+                                     {"context_noise", job.context_noise}};
+  // Where the student started, kept across resumes.
+  if (from_init) checkpoint_extra["init"] = job.init.string();
+  if (resuming) {
+    const auto before = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).trainer_extra();
+    if (before.contains("init")) checkpoint_extra["init"] = before["init"];
+  }
   const auto run = run_training_loop(
       loop, start_step,
       [&](const LoopStep& info) {

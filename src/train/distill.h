@@ -127,7 +127,7 @@ struct DistillJob {
   std::vector<double> weights;
   std::filesystem::path teacher;  // the post-trained teacher checkpoint
   std::filesystem::path out;      // out/latents-<i>, out/trajectories/, out/checkpoint, out/loss.csv
-  std::filesystem::path init;     // self-forcing: the warmed-up student
+  std::filesystem::path init;     // self-forcing: the warmed-up student; warm-up: a student to start from
   infer::StudentConfig student;   // warm-up: the student made; self-forcing: from init's config
   SelfForcingOptions self_forcing;
   // rank > 0: the student trains LoRA adapters alone (warm-up: on the teacher's weights;

@@ -3,6 +3,7 @@
 // errors naming the line.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -49,6 +50,36 @@ TEST(StreamCli, DistillThenStreamAndEvaluateTheStudent) {
   EXPECT_EQ(config.at("student").at("sink_frames"), 1);     // the first frame kept in view
   EXPECT_TRUE(config.at("actions").contains("dojosim_robot")) << "the teacher's action ranges travel on";
   EXPECT_TRUE(std::filesystem::exists(out / "trajectories" / "shard-00000.safetensors"));
+
+  // A second warm-up from the student (--init) on other trajectories: at learning rate 0 it keeps
+  // the student's weights (up to the EMA's rounding of an unchanged weight), not the teacher's, and
+  // records where it started.
+  const auto second = tmp / "second";
+  r = test::run_dojo("--threads 1 distill --data " + data +
+                     " --split all --max-clips 4 --teacher-steps 4 --steps 1 --batch 2 --lr 0 "
+                     "--counterfactual-copies 1 --init " +
+                     (out / "checkpoint").string() + " --out " + second.string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto first_student = SafetensorsFile::open(out / "checkpoint" / "model.safetensors");
+  const auto second_student = SafetensorsFile::open(second / "checkpoint" / "model.safetensors");
+  const auto teacher = SafetensorsFile::open(std::filesystem::path(DOJO_SOURCE_DIR) / "models" / "reference" /
+                                             "wm_posttrain" / "model.safetensors");
+  double from_first = 0, first_from_teacher = 0;
+  for (const auto& name : first_student.keys()) {
+    const auto first = first_student.tensor(name).to(torch::kFloat);
+    from_first = std::max(from_first,
+                          (second_student.tensor(name).to(torch::kFloat) - first).abs().max().item<double>());
+    first_from_teacher = std::max(
+        first_from_teacher, (teacher.tensor(name).to(torch::kFloat) - first).abs().max().item<double>());
+  }
+  EXPECT_LT(from_first, 1e-6);
+  EXPECT_GT(first_from_teacher, 1e-4) << "the first warm-up moved the student off the teacher";
+  EXPECT_EQ(
+      nlohmann::json::parse(test::read_file(second / "checkpoint" / "trainer_state.json"))["extra"]["init"],
+      (out / "checkpoint").string());
+  r = test::run_dojo("--threads 1 distill --data " + data + " --split all --max-clips 4 --steps 1 --init " +
+                     (tmp / "robot").string() + " --out " + (tmp / "bad_init").string());
+  EXPECT_NE(r.exit_code, 0) << r.output;
 
   // Self-Forcing from the warmed-up student on a weighted mixture (the second set weighs 1), then
   // resumed for one more iteration.
