@@ -42,7 +42,8 @@ void register_demo(CLI::App& app) {
   cmd->add_option("--posttrain-steps", o->posttrain_steps, "World-model post-training steps")
       ->capture_default_str();
   cmd->add_option("--warmup-steps", o->warmup_steps, "Student warm-up steps")->capture_default_str();
-  cmd->add_option("--self-forcing-steps", o->self_forcing_steps, "Student Self-Forcing iterations")
+  cmd->add_option("--self-forcing-steps", o->self_forcing_steps,
+                  "Student Self-Forcing iterations (0: none, the warmed-up student is the student)")
       ->capture_default_str();
   cmd->add_option("--fast-decoder-steps", o->fast_decoder_steps, "Fast streaming decoder steps")
       ->capture_default_str();

@@ -172,12 +172,14 @@ std::string write_demo_report(const fs::path& out, const nlohmann::json& stages)
   html.table(scores.header, scores.rows);
   if (student) {
     html.heading("The real-time student");
+    const bool self_forcing =
+        stages.value(nlohmann::json::json_pointer("/student/result/self_forcing_iterations"), 0) > 0;
     html.paragraph(
-        "The post-trained world model distilled into a causal 4-step student (warm-up on the teacher's ODE "
-        "trajectories, then Self-Forcing), streamed one latent frame (4 video frames) per step through its "
-        "KV "
-        "cache and decoded by the fast decoder. Its rows in the tables above are labelled \"student\". "
-        "Generated "
+        std::string("The post-trained world model distilled into a causal 4-step student (warm-up on "
+                    "the teacher's ODE trajectories") +
+        (self_forcing ? ", then Self-Forcing" : "") +
+        "), streamed one latent frame (4 video frames) per step through its KV cache and decoded "
+        "by the fast decoder. Its rows in the tables above are labelled \"student\". Generated "
         "frames/s of the evaluation rollouts:");
     html.table(speed.header, speed.rows);
     const auto& stream = stages["eval_student"]["result"]["streaming"];

@@ -41,7 +41,8 @@ recipes::DemoOptions tiny_demo(const fs::path& out) {
   o.workers = 1;
   o.matmul_threads = 1;
   o.lam_steps = o.probe_steps = o.pretrain_steps = o.posttrain_steps = 2;
-  o.warmup_steps = o.self_forcing_steps = o.fast_decoder_steps = 2;
+  o.warmup_steps = o.fast_decoder_steps = 2;
+  o.self_forcing_steps = 0;  // the default: the warmed-up student (the CLI demo test runs Self-Forcing)
   o.max_clips = 4;
   o.stream_frames = 8;
   o.tokenizer = fs::path(DOJO_SOURCE_DIR) / "models" / "reference" / "tokenizer";
@@ -200,6 +201,9 @@ TEST(Demo, ReRunsExactlyTheStagesWhoseInputsChanged) {
 
   o.fast_decoder_steps = 3;
   EXPECT_EQ(stages_run(o), (Set{"fast_decoder", "eval_student"})) << "fast decoder steps";
+
+  o.warmup_clean_context_share = 0.25;  // how the student is distilled
+  EXPECT_EQ(stages_run(o), (Set{"student", "eval_student"})) << "warm-up clean-context share";
 
   // A record that says it ran on another device or precision than the stage computes on now is
   // never re-used.
