@@ -470,10 +470,12 @@ DistillResult run_warmup(const DistillJob& job) {
   nlohmann::json trajectory_settings = {{"chunks", job.trajectories.chunks},
                                         {"counterfactual_copies", job.trajectories.counterfactual_copies}};
   if (job.trajectories.reencodes_anchors()) trajectory_settings["anchor"] = "reencoded";
+  // The resumed run's trainer state: what its trajectories were, where its student started.
+  const auto resumed_extra = resuming ? Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).trainer_extra()
+                                      : nlohmann::json::object();
   if (resuming) {
-    const auto extra = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).trainer_extra();
     const auto before =
-        extra.value("trajectories", nlohmann::json{{"chunks", 1}, {"counterfactual_copies", 0}});
+        resumed_extra.value("trajectories", nlohmann::json{{"chunks", 1}, {"counterfactual_copies", 0}});
     DOJO_CHECK(before == trajectory_settings,
                ckpt_dir.string() + ": the warm-up was started on trajectories " + before.dump() + ", not " +
                    trajectory_settings.dump() + "; give another --out or remove it to start afresh");
@@ -539,10 +541,7 @@ DistillResult run_warmup(const DistillJob& job) {
                                      {"context_noise", job.context_noise}};
   // Where the student started, kept across resumes.
   if (from_init) checkpoint_extra["init"] = job.init.string();
-  if (resuming) {
-    const auto before = Checkpoint::open(resolve_checkpoint_dir(ckpt_dir)).trainer_extra();
-    if (before.contains("init")) checkpoint_extra["init"] = before["init"];
-  }
+  if (resumed_extra.contains("init")) checkpoint_extra["init"] = resumed_extra["init"];
   const auto run = run_training_loop(
       loop, start_step,
       [&](const LoopStep& info) {
