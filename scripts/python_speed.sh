@@ -21,6 +21,12 @@ python=${DOJO_PYTHON:-/usr/bin/python3}
   exit 1
 }
 mkdir -p "$out"
+# The same OpenBLAS kernels for both: dojo replaces a set older than the CPU when it starts
+# (src/core/blas_kernels.h), where Python would keep it.
+if [ -z "${OPENBLAS_CORETYPE:-}" ]; then
+  kernels=$("$dojo" -q version --json | "$python" -c 'import json, sys; print(json.load(sys.stdin).get("blas_kernels", ""))')
+  [ -z "$kernels" ] || export OPENBLAS_CORETYPE=$kernels
+fi
 options=(--repeats "$repeats" --stream-steps "$((2 * repeats))")
 "$dojo" -q wm step-speed "${options[@]}" --export "$out/export" --json > "$out/cpp_0.json"
 # dojo keeps freed memory in its heap (src/core/heap.h); the same settings for Python, by glibc's

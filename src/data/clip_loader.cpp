@@ -3,6 +3,7 @@
 #include <torch/torch.h>
 
 #include <chrono>
+#include <numeric>
 
 #include "core/error.h"
 #include "core/log.h"
@@ -119,9 +120,14 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
                                                std::to_string(window.steps.back()) + " beyond " +
                                                std::to_string(frames) + " frames");
 
-  EpisodeData arrays = source_->read_arrays(episode);
   const auto steps = torch::tensor(window.steps, torch::kLong);  // [T + 1]
-  {
+  const auto decoded = decoded_episode(episode);
+  EpisodeData arrays;
+  if (decoded) {
+    arrays = decoded->arrays;                                         // shared: only read below
+    clip.video = decoded->frames.index_select(0, steps.slice(0, 1));  // [T, H, W, 3] u8
+  } else {
+    arrays = source_->read_arrays(episode);
     const auto raw = source_->read_frames(episode, window.frame_indices());   // [T, h, w, 3] u8
     clip.video = io::resize_center_crop(raw, config_.height, config_.width);  // [T, H, W, 3] u8
   }
@@ -152,6 +158,49 @@ Clip ClipDataset::read(size_t episode, const ClipWindow& window) const {
                                     config_.width);  // [T, K, 3]
   }
   return clip;
+}
+
+std::shared_ptr<const ClipDataset::DecodedEpisode> ClipDataset::decoded_episode(size_t episode) const {
+  const int64_t budget = config_.decoded_cache_mib * (int64_t{1} << 20);
+  if (budget <= 0) return nullptr;
+  const int64_t frames = source_->info().episodes[episode].frames;
+  const int64_t bytes = frames * config_.height * config_.width * 3;
+  {
+    std::lock_guard<std::mutex> lock(cache_mutex_);
+    if (auto it = decoded_.find(episode); it != decoded_.end()) return it->second;
+    if (decoded_bytes_ + bytes > budget) return nullptr;
+    decoded_bytes_ += bytes;  // reserved while decoding, so that workers together stay in budget
+  }
+  auto made = std::make_shared<DecodedEpisode>();
+  try {
+    made->arrays = source_->read_arrays(episode);
+    // In runs of frames, so that a long episode at its source size is never in memory whole.
+    constexpr int64_t kRun = 32;
+    std::vector<at::Tensor> runs;
+    for (int64_t first = 0; first < frames; first += kRun) {
+      std::vector<int64_t> indices(static_cast<size_t>(std::min(kRun, frames - first)));
+      std::iota(indices.begin(), indices.end(), first);
+      runs.push_back(io::resize_center_crop(source_->read_frames(episode, indices), config_.height,
+                                            config_.width));  // [n, H, W, 3] u8
+    }
+    made->frames = torch::cat(runs);  // [T, H, W, 3] u8
+  } catch (const std::exception&) {
+    // Kept from now on as "read per clip": a clip that avoids the damage (a video shorter than
+    // its table says) still reads, and one that does not fails naming it, as without the cache.
+    made = nullptr;
+  }
+  std::lock_guard<std::mutex> lock(cache_mutex_);
+  const auto [it, inserted] = decoded_.emplace(episode, made);
+  if (!inserted || made == nullptr) decoded_bytes_ -= bytes;  // another worker kept it first
+  return it->second;
+}
+
+int64_t ClipDataset::decoded_cache_bytes() const {
+  std::lock_guard<std::mutex> lock(cache_mutex_);
+  int64_t kept = 0;
+  for (const auto& [episode, decoded] : decoded_)
+    if (decoded) kept += decoded->frames.numel();
+  return kept;
 }
 
 Clip ClipDataset::sample(std::mt19937_64& rng) const {

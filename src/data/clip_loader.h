@@ -69,8 +69,16 @@ class ClipDataset {
   const ClipConfig& config() const { return config_; }
   const std::vector<size_t>& episodes() const { return episodes_; }
 
-  // Reads one clip. Throws dojo::Error naming the episode on bad data.
+  // Reads one clip. Throws dojo::Error naming the episode on bad data. The first clip read from an
+  // episode decodes all of its frames at the clip size and keeps them, with its arrays, while the
+  // kept episodes fit in config.decoded_cache_mib (the first ones read stay; no eviction: clips
+  // are drawn uniformly, so any set of episodes serves as well as another). A kept episode gives
+  // the same clips as one decoded for each clip, bit for bit. Why: decoding a clip's frames costs
+  // more CPU than a small model's training step spends outside its matrix products, and on a
+  // machine whose cores the matrix products share, the decoder thread stalls them.
   Clip read(size_t episode, const ClipWindow& window) const;
+  // Bytes of decoded frames kept now (<= config.decoded_cache_mib MiB).
+  int64_t decoded_cache_bytes() const;
   // Samples an episode (frame-count weighted) and a window. With skip_bad, broken episodes are
   // remembered and avoided; throws when no usable episode is left.
   Clip sample(std::mt19937_64& rng) const;
@@ -85,6 +93,16 @@ class ClipDataset {
   bool skip_bad_;
   mutable std::mutex bad_mutex_;
   mutable std::set<size_t> bad_;
+
+  struct DecodedEpisode {
+    at::Tensor frames;  // [T, H, W, 3] u8 at the clip size
+    EpisodeData arrays;
+  };
+  // The episode decoded and kept, or nullptr when it does not fit in what is left of the budget.
+  std::shared_ptr<const DecodedEpisode> decoded_episode(size_t episode) const;
+  mutable std::mutex cache_mutex_;
+  mutable std::map<size_t, std::shared_ptr<const DecodedEpisode>> decoded_;
+  mutable int64_t decoded_bytes_ = 0;  // kept and reserved by decodes under way
 };
 
 // Datasets drawn with fixed probabilities (e.g. weights 1:2:10).

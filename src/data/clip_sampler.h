@@ -25,6 +25,9 @@ struct ClipConfig {
   // a world model's, so that datasets whose ranges differ (an evaluation split, a second
   // training set) mean the same motion by the same numbers. Must match the action width.
   std::optional<ArrayStats> action_stats;
+  // Decoded episodes a ClipDataset keeps in memory at the clip's size, so that later clips of an
+  // episode are sliced instead of decoded again (0: decode every clip). See ClipDataset::read.
+  int64_t decoded_cache_mib = 512;
 };
 
 // A clip's position in its episode. steps[0] is the action baseline, steps[1..] are the frames:

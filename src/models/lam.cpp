@@ -8,6 +8,8 @@
 #include "core/state_dict.h"
 #include "io/frame_ops.h"
 #include "models/attention.h"
+#include "models/dit_kernels.h"
+#include "models/lam_kernels.h"
 
 namespace dojo::models {
 
@@ -156,13 +158,29 @@ torch::Tensor LamSelfAttentionImpl::forward(const torch::Tensor& x) {
   auto split = [&](const torch::Tensor& t) {
     return t.view({N, L, heads, D}).transpose(1, 2);
   };  // [N, h, L, D]
-  auto q = split(to_q(x)), k = split(to_k(x)), v = split(to_v(x));
+  // One product for the three projections: three of [L, E] x [E, E] on 2 cores spend as long
+  // waking the BLAS threads as multiplying (the weights stay three parameters, as released).
+  const auto qkv = torch::linear(x, torch::cat({to_q->weight, to_k->weight, to_v->weight})).chunk(3, -1);
+  auto q = split(qkv[0]), k = split(qkv[1]), v = split(qkv[2]);
   if (rotary_embedding) {
     q = rotary_embedding->rotate(q);
     k = rotary_embedding->rotate(k);
   }
   auto o = attention(q, k, v, std::nullopt, false, 1.0 / std::sqrt(static_cast<double>(D)));  // [N, h, L, D]
   return to_out->forward(o.transpose(1, 2).reshape({N, L, E}));
+}
+
+torch::Tensor LamSelfAttentionImpl::forward_along_axis1(const torch::Tensor& x) {
+  const int64_t G = x.size(0), L = x.size(1), R = x.size(2), E = x.size(3), D = E / heads;
+  if (L <= kShortAttentionMaxLength && fused_dit_kernels_apply({x, to_q->weight})) {
+    const auto qkv =
+        torch::linear(x, torch::cat({to_q->weight, to_k->weight, to_v->weight}));  // [G, L, R, 3E]
+    const auto freqs = rotary_embedding ? rotary_embedding->freqs : torch::Tensor();
+    const auto o = short_attention_fused(qkv, heads, freqs, 1.0 / std::sqrt(static_cast<double>(D)));
+    return to_out->forward(o);  // [G, L, R, E]
+  }
+  const auto y = forward(x.transpose(1, 2).reshape({G * R, L, E}));  // [(G R), L, E]
+  return y.view({G, R, L, E}).transpose(1, 2);
 }
 
 static nn::Sequential make_ffn(int64_t dim, double dropout) {
@@ -186,10 +204,9 @@ torch::Tensor LamSpatioTemporalBlockImpl::forward(const torch::Tensor& input) {
   // Spatial: each frame of each sample on its own.
   auto x = input.reshape({B * T, S, E});  // [(B T), S, E]
   x = x + spatial_attn(norm1(x));
-  // Temporal: each token position of each sample on its own; rows (b s) are un-flattened as (b s).
-  x = x.view({B, T, S, E}).transpose(1, 2).reshape({B * S, T, E});  // [(B S), T, E]
-  x = x + temporal_attn(norm2(x));
-  x = x.view({B, S, T, E}).transpose(1, 2);  // [B, T, S, E]
+  // Temporal: each token position of each sample on its own.
+  x = x.view({B, T, S, E});
+  x = x + temporal_attn->forward_along_axis1(norm2(x));  // [B, T, S, E]
   return x + ffn->forward(norm3(x));
 }
 

@@ -74,6 +74,10 @@ TORCH_MODULE(LamLayerNorm);
 struct LamSelfAttentionImpl : torch::nn::Module {
   LamSelfAttentionImpl(int64_t dim, int64_t heads, double dropout, bool rotary);
   torch::Tensor forward(const torch::Tensor& x);  // [N, L, E] -> [N, L, E]
+  // Attention over axis 1 for every (g, r): [G, L, R, E] -> [G, L, R, E], the numbers forward()
+  // gives on x.transpose(1, 2).reshape({G R, L, E}), transposed back. Float32 on the CPU with a
+  // short axis: the fused kernel (models/lam_kernels.h), without the transposes.
+  torch::Tensor forward_along_axis1(const torch::Tensor& x);
   int64_t heads;
   torch::nn::Linear to_q{nullptr}, to_k{nullptr}, to_v{nullptr};
   torch::nn::Sequential to_out{nullptr};

@@ -4,7 +4,6 @@
 
 #include <chrono>
 #include <cmath>
-#include <limits>
 #include <map>
 #include <sstream>
 
@@ -55,13 +54,16 @@ LamTrainer::LamTrainer(models::LatentActionModel model, LamTrainOptions options,
     : model_(std::move(model)), options_(options), device_(device), precision_(precision) {
   check_training_precision("lam train", precision_);
   model_->to(device_);  // before the optimiser sees the parameters
-  std::vector<torch::Tensor> params;
   for (auto& p : model_->parameters())
-    if (p.requires_grad()) params.push_back(p);  // rotary freqs are frozen
+    if (p.requires_grad()) params_.push_back(p);  // rotary freqs are frozen
   // Every data-parallel rank starts from rank 0's weights.
   data_parallel().broadcast_from_main(*model_);
   optimizer_ = std::make_unique<torch::optim::AdamW>(
-      params, torch::optim::AdamWOptions(options_.lr).weight_decay(options_.weight_decay));
+      params_, torch::optim::AdamWOptions(options_.lr).weight_decay(options_.weight_decay));
+  // Clipping and AdamW in one pass over flat buffers: torch's per-tensor AdamW and clipping took
+  // about 8 ms of the small LAM's ~100 ms step (docs/benchmarks.md). Every parameter takes part in
+  // every forward pass, so every one has a gradient, as FusedAdamW assumes.
+  fused_ = std::make_unique<FusedAdamW>(*optimizer_, params_);
 }
 
 LamStepStats LamTrainer::step(const torch::Tensor& videos_in) {
@@ -71,7 +73,7 @@ LamStepStats LamTrainer::step(const torch::Tensor& videos_in) {
 LamStepStats LamTrainer::step(const std::vector<torch::Tensor>& micro_batches,
                               const std::vector<uint64_t>& seeds) {
   model_->train();
-  optimizer_->zero_grad();
+  fused_->zero_grad();
   const auto count = static_cast<int64_t>(micro_batches.size());
   double loss = 0, mse = 0, kl = 0;
   for (int64_t j = 0; j < count; ++j) {
@@ -89,12 +91,9 @@ LamStepStats LamTrainer::step(const std::vector<torch::Tensor>& micro_batches,
     kl += l.kl.item<double>() / static_cast<double>(count);
   }
   auto& group = data_parallel();
-  const auto& params = optimizer_->param_groups()[0].params();
-  group.average_gradients(params);
+  group.average_gradients(params_);
   LamStepStats s;
-  double clip = options_.grad_clip > 0 ? options_.grad_clip : std::numeric_limits<double>::infinity();
-  s.grad_norm = torch::nn::utils::clip_grad_norm_(params, clip);
-  optimizer_->step();
+  s.grad_norm = fused_->step(options_.grad_clip, options_.lr, /*ema_beta=*/1.0);  // no EMA here
   ++steps_;
   const auto means = group.mean({loss, mse, kl});
   s.loss = means[0];
@@ -108,6 +107,7 @@ NamedTensors LamTrainer::optimizer_state() const { return adamw_state(*optimizer
 
 void LamTrainer::load_optimizer_state(const NamedTensors& tensors) {
   load_adamw_state(*optimizer_, *model_, tensors);
+  fused_->adopt_state();
 }
 
 void LamTrainer::save(const std::filesystem::path& dir, const nlohmann::json& extra) const {

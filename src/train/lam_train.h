@@ -14,6 +14,7 @@
 #include "core/autocast.h"
 #include "core/safetensors.h"
 #include "models/lam.h"
+#include "train/fused_adamw.h"
 
 namespace dojo::train {
 
@@ -64,7 +65,9 @@ class LamTrainer {
   LamTrainOptions options_;
   torch::Device device_;
   Precision precision_;
+  std::vector<torch::Tensor> params_;  // the trained ones (not the rotary frequencies)
   std::unique_ptr<torch::optim::AdamW> optimizer_;
+  std::unique_ptr<FusedAdamW> fused_;  // views optimizer_'s state (fused_adamw.h)
   int64_t steps_ = 0;
 };
 

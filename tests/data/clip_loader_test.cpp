@@ -234,4 +234,59 @@ TEST(ClipLoader, GivenActionStatsReplaceTheDatasets) {
   EXPECT_THROW(ClipDataset(EpisodeStore::open(tmp / "robot"), config), Error);
 }
 
+// Episodes kept decoded give the clips that decoding each clip gives, bit for bit (frames with
+// texture, resized from 32 to 24 x 16 so that the resize matters), within the budget; an episode
+// that does not fit is read per clip, and a damaged one is read per clip and still fails naming it.
+TEST(ClipLoader, DecodedEpisodesGiveTheSameClipsWithinTheirBudget) {
+  test::TempDir tmp;
+  make_dataset(tmp / "robot", Embodiment::kRobot, 3, 40);
+  for (int e = 0; e < 3; ++e) {  // replace the flat grey frames with textured ones
+    char id[16];
+    std::snprintf(id, sizeof id, "%06d", e);
+    const auto dir = tmp / "robot" / "episodes" / id;
+    auto ep = EpisodeStore::open(tmp / "robot").load(static_cast<size_t>(e));
+    const auto yx = torch::arange(32).view({1, 32, 1, 1}) * 5 + torch::arange(32).view({1, 1, 32, 1}) * 3;
+    ep.frames =
+        (yx + torch::arange(40).view({40, 1, 1, 1}) * (7 + e) + torch::arange(3).view({1, 1, 1, 3}) * 60)
+            .remainder(256)
+            .to(torch::kUInt8);  // [40, 32, 32, 3]
+    write_episode(dir, ep, 10.0);
+  }
+  auto config = small_config();
+  config.height = 24;
+  config.width = 16;
+  auto uncached_config = config;
+  uncached_config.decoded_cache_mib = 0;
+  ClipDataset cached(EpisodeStore::open(tmp / "robot"), config);
+  ClipDataset uncached(EpisodeStore::open(tmp / "robot"), uncached_config);
+  std::mt19937_64 a(5), b(5);
+  for (int i = 0; i < 30; ++i) {
+    const auto x = cached.sample(a), y = uncached.sample(b);
+    ASSERT_EQ(x.episode, y.episode);
+    EXPECT_TRUE(torch::equal(x.video, y.video)) << i;
+    EXPECT_TRUE(torch::equal(x.actions, y.actions)) << i;
+  }
+  EXPECT_EQ(cached.decoded_cache_bytes(), 3 * 40 * 24 * 16 * 3);
+  EXPECT_EQ(uncached.decoded_cache_bytes(), 0);
+
+  // At 512 x 512 an episode is 30 MiB: a budget of 1 MiB keeps none, and every clip still reads.
+  config.height = config.width = 512;
+  config.decoded_cache_mib = 1;
+  ClipDataset over(EpisodeStore::open(tmp / "robot"), config);
+  std::mt19937_64 c(1);
+  for (int i = 0; i < 3; ++i) EXPECT_EQ(over.sample(c).video.size(1), 512);
+  EXPECT_EQ(over.decoded_cache_bytes(), 0);
+
+  std::ofstream(tmp / "robot" / "episodes" / "000001" / "video.mp4", std::ios::binary) << "garbage";
+  ClipDataset damaged(EpisodeStore::open(tmp / "robot"), small_config());
+  (void)damaged.read(0, make_window(0, 1, 13));
+  try {
+    (void)damaged.read(1, make_window(0, 1, 13));
+    ADD_FAILURE() << "a damaged episode read";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("000001"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(damaged.decoded_cache_bytes(), 40 * 16 * 16 * 3);
+}
+
 }  // namespace dojo::data
