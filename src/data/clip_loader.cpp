@@ -174,16 +174,18 @@ std::shared_ptr<const ClipDataset::DecodedEpisode> ClipDataset::decoded_episode(
   auto made = std::make_shared<DecodedEpisode>();
   try {
     made->arrays = source_->read_arrays(episode);
-    // In runs of frames, so that a long episode at its source size is never in memory whole.
+    // In runs of frames, so that a long episode at its source size is never in memory whole, and
+    // into the kept tensor directly, so that the episode is never in memory twice.
     constexpr int64_t kRun = 32;
-    std::vector<at::Tensor> runs;
+    made->frames = torch::empty({frames, config_.height, config_.width, 3}, torch::kUInt8);
     for (int64_t first = 0; first < frames; first += kRun) {
-      std::vector<int64_t> indices(static_cast<size_t>(std::min(kRun, frames - first)));
+      const int64_t n = std::min(kRun, frames - first);
+      std::vector<int64_t> indices(static_cast<size_t>(n));
       std::iota(indices.begin(), indices.end(), first);
-      runs.push_back(io::resize_center_crop(source_->read_frames(episode, indices), config_.height,
-                                            config_.width));  // [n, H, W, 3] u8
+      made->frames.narrow(0, first, n)
+          .copy_(io::resize_center_crop(source_->read_frames(episode, indices), config_.height,
+                                        config_.width));  // [n, H, W, 3] u8
     }
-    made->frames = torch::cat(runs);  // [T, H, W, 3] u8
   } catch (const std::exception&) {
     // Kept from now on as "read per clip": a clip that avoids the damage (a video shorter than
     // its table says) still reads, and one that does not fails naming it, as without the cache.
@@ -197,10 +199,7 @@ std::shared_ptr<const ClipDataset::DecodedEpisode> ClipDataset::decoded_episode(
 
 int64_t ClipDataset::decoded_cache_bytes() const {
   std::lock_guard<std::mutex> lock(cache_mutex_);
-  int64_t kept = 0;
-  for (const auto& [episode, decoded] : decoded_)
-    if (decoded) kept += decoded->frames.numel();
-  return kept;
+  return decoded_bytes_;
 }
 
 Clip ClipDataset::sample(std::mt19937_64& rng) const {

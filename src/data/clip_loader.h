@@ -77,7 +77,8 @@ class ClipDataset {
   // more CPU than a small model's training step spends outside its matrix products, and on a
   // machine whose cores the matrix products share, the decoder thread stalls them.
   Clip read(size_t episode, const ClipWindow& window) const;
-  // Bytes of decoded frames kept now (<= config.decoded_cache_mib MiB).
+  // Bytes of decoded frames kept, with those reserved by decodes under way (<= the budget; the
+  // episodes' arrays, a few KiB each, are not counted).
   int64_t decoded_cache_bytes() const;
   // Samples an episode (frame-count weighted) and a window. With skip_bad, broken episodes are
   // remembered and avoided; throws when no usable episode is left.

@@ -12,6 +12,9 @@
 
 namespace dojo::data {
 
+// What the pixel-clip trainers (LAM, tokenizer) keep decoded, per dataset and process.
+constexpr int64_t kTrainingDecodedCacheMib = 512;
+
 struct ClipConfig {
   int num_frames = 13;  // 1 conditioning frame + 12 predicted
   std::vector<int> strides = {1, 2, 3, 4};
@@ -26,8 +29,10 @@ struct ClipConfig {
   // training set) mean the same motion by the same numbers. Must match the action width.
   std::optional<ArrayStats> action_stats;
   // Decoded episodes a ClipDataset keeps in memory at the clip's size, so that later clips of an
-  // episode are sliced instead of decoded again (0: decode every clip). See ClipDataset::read.
-  int64_t decoded_cache_mib = 512;
+  // episode are sliced instead of decoded again (0: decode every clip). See ClipDataset::read. Off
+  // by default: a reader of a few clips per episode (a rollout, an evaluation) would decode whole
+  // episodes for them; the trainers that draw many clips turn it on (kTrainingDecodedCacheMib).
+  int64_t decoded_cache_mib = 0;
 };
 
 // A clip's position in its episode. steps[0] is the action baseline, steps[1..] are the frames:

@@ -2,6 +2,7 @@
 
 #include <cmath>
 
+#include "core/autocast.h"
 #include "core/checkpoint.h"
 #include "core/error.h"
 #include "core/json_file.h"
@@ -172,7 +173,9 @@ torch::Tensor LamSelfAttentionImpl::forward(const torch::Tensor& x) {
 
 torch::Tensor LamSelfAttentionImpl::forward_along_axis1(const torch::Tensor& x) {
   const int64_t G = x.size(0), L = x.size(1), R = x.size(2), E = x.size(3), D = E / heads;
-  if (L <= kShortAttentionMaxLength && fused_dit_kernels_apply({x, to_q->weight})) {
+  // Not under CPU autocast at all: the projections would hand the kernel bf16.
+  if (L <= kShortAttentionMaxLength && fused_dit_kernels_apply({x, to_q->weight}) &&
+      !AutocastGuard::is_enabled(c10::DeviceType::CPU)) {
     const auto qkv =
         torch::linear(x, torch::cat({to_q->weight, to_k->weight, to_v->weight}));  // [G, L, R, 3E]
     const auto freqs = rotary_embedding ? rotary_embedding->freqs : torch::Tensor();

@@ -12,7 +12,7 @@
 //
 // One difference from torch::optim::AdamW: every parameter has a (zero-filled) gradient, so a
 // parameter that got no gradient in a step is still decayed and counted as stepped; the trainers
-// that use it (WmTrainer: world model, distillation) train every parameter they hand it.
+// that use it (WmTrainer: world model, distillation; LamTrainer) train every parameter they hand it.
 //
 // ZeRO-1 (shard()): under data parallelism each rank keeps the moments of its own slice of the
 // flat parameters only (1/world of them), updates that slice, gathers every rank's updated slice

@@ -160,6 +160,7 @@ LamStepStats run_lam_training(const LamTrainJob& job) {
   clip.action_chunk = 4;
   clip.height = static_cast<int>(config.height);
   clip.width = static_cast<int>(config.width);
+  clip.decoded_cache_mib = data::kTrainingDecodedCacheMib;
   auto mixture = std::make_shared<data::ClipMixture>();
   for (const auto& [dir, weight] : job.datasets)
     mixture->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(dir), clip, "train"), weight);

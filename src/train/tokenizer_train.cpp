@@ -233,6 +233,7 @@ TokenizerBatches tokenizer_batches(const std::vector<TokenizerDataset>& datasets
     auto m = std::make_shared<data::ClipMixture>();
     data::ClipConfig c = clip;
     c.num_frames = frames;
+    c.decoded_cache_mib = data::kTrainingDecodedCacheMib;
     for (const auto& d : datasets)
       m->add(std::make_shared<data::ClipDataset>(data::EpisodeStore::open(d.dir), c, d.split), d.weight);
     return m;

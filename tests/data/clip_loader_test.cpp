@@ -256,7 +256,8 @@ TEST(ClipLoader, DecodedEpisodesGiveTheSameClipsWithinTheirBudget) {
   config.height = 24;
   config.width = 16;
   auto uncached_config = config;
-  uncached_config.decoded_cache_mib = 0;
+  EXPECT_EQ(uncached_config.decoded_cache_mib, 0);  // off unless a trainer asks
+  config.decoded_cache_mib = 512;
   ClipDataset cached(EpisodeStore::open(tmp / "robot"), config);
   ClipDataset uncached(EpisodeStore::open(tmp / "robot"), uncached_config);
   std::mt19937_64 a(5), b(5);
@@ -277,8 +278,30 @@ TEST(ClipLoader, DecodedEpisodesGiveTheSameClipsWithinTheirBudget) {
   for (int i = 0; i < 3; ++i) EXPECT_EQ(over.sample(c).video.size(1), 512);
   EXPECT_EQ(over.decoded_cache_bytes(), 0);
 
+  // At 256 x 256 an episode is 7.5 MiB: 16 MiB keeps two of the three, drawn by one thread or by
+  // two workers at once, and the clips stay those of a fresh decode.
+  const int64_t episode_bytes = 40 * 256 * 256 * 3;
+  config.height = config.width = uncached_config.height = uncached_config.width = 256;
+  config.decoded_cache_mib = 16;
+  ClipDataset partial(EpisodeStore::open(tmp / "robot"), config);
+  ClipDataset partial_reference(EpisodeStore::open(tmp / "robot"), uncached_config);
+  std::mt19937_64 d(9), e(9);
+  for (int i = 0; i < 30; ++i)
+    EXPECT_TRUE(torch::equal(partial.sample(d).video, partial_reference.sample(e).video));
+  EXPECT_EQ(partial.decoded_cache_bytes(), 2 * episode_bytes);
+  auto threaded = std::make_shared<ClipMixture>(), reference = std::make_shared<ClipMixture>();
+  auto threaded_dataset = std::make_shared<ClipDataset>(EpisodeStore::open(tmp / "robot"), config);
+  threaded->add(threaded_dataset, 1.0);
+  reference->add(std::make_shared<ClipDataset>(EpisodeStore::open(tmp / "robot"), uncached_config), 1.0);
+  PrefetchLoader two(threaded, {4, 2, 4, 3}), one(reference, {4, 1, 4, 3});
+  for (int i = 0; i < 6; ++i) EXPECT_TRUE(torch::equal(two.next().video, one.next().video)) << "batch " << i;
+  EXPECT_GT(threaded_dataset->decoded_cache_bytes(), 0);
+  EXPECT_LE(threaded_dataset->decoded_cache_bytes(), 2 * episode_bytes);
+
   std::ofstream(tmp / "robot" / "episodes" / "000001" / "video.mp4", std::ios::binary) << "garbage";
-  ClipDataset damaged(EpisodeStore::open(tmp / "robot"), small_config());
+  auto damaged_config = small_config();
+  damaged_config.decoded_cache_mib = 1;
+  ClipDataset damaged(EpisodeStore::open(tmp / "robot"), damaged_config);
   (void)damaged.read(0, make_window(0, 1, 13));
   try {
     (void)damaged.read(1, make_window(0, 1, 13));

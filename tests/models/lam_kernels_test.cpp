@@ -6,6 +6,7 @@
 
 #include <torch/torch.h>
 
+#include "core/autocast.h"
 #include "models/dit_kernels.h"
 #include "models/lam.h"
 #include "test_util.h"
@@ -90,18 +91,59 @@ TEST(LamKernels, TrainingGradientsEqualThePlainPath) {
         << "parameter " << i;
 }
 
+// The kernel alone against the formula in libtorch operators (softmax(q kᵀ · scale) v over axis 1,
+// q and k rotated by interleaved pairs), whatever the network's switches say.
+TEST(LamKernels, ShortAttentionIsTheFormula) {
+  torch::manual_seed(2);
+  const int64_t G = 2, L = 3, R = 5, heads = 2, D = 6, E = heads * D;
+  const auto qkv = torch::randn({G, L, R, 3 * E});
+  const auto freqs = torch::rand({D / 2});
+  const auto parts = qkv.chunk(3, -1);
+  auto heads_first = [&](const torch::Tensor& t) {  // [G, L, R, E] -> [G, R, heads, L, D]
+    return t.reshape({G, L, R, heads, D}).permute({0, 2, 3, 1, 4});
+  };
+  const auto angles = torch::arange(L, torch::kFloat32).unsqueeze(1) * freqs.unsqueeze(0);  // [L, D/2]
+  auto rotate = [&](const torch::Tensor& x) {
+    const auto pairs = x.reshape({G, R, heads, L, D / 2, 2});
+    const auto a = pairs.select(-1, 0), b = pairs.select(-1, 1);
+    return torch::stack({a * angles.cos() - b * angles.sin(), b * angles.cos() + a * angles.sin()}, -1)
+        .reshape({G, R, heads, L, D});
+  };
+  const auto q = rotate(heads_first(parts[0])), k = rotate(heads_first(parts[1])), v = heads_first(parts[2]);
+  const auto probs = torch::softmax(torch::matmul(q, k.transpose(-2, -1)) * 0.3, -1);
+  const auto expected = torch::matmul(probs, v).permute({0, 3, 1, 2, 4}).reshape({G, L, R, E});
+  EXPECT_LT(test::max_abs(short_attention_fused(qkv, heads, freqs, 0.3), expected), 2e-6);
+}
+
 TEST(LamKernels, RefusesWhatItCannotTake) {
   const auto long_axis = torch::randn({1, kShortAttentionMaxLength + 1, 1, 12});
   EXPECT_THROW(short_attention_fused(long_axis, 2, torch::Tensor(), 1.0), std::exception);
   EXPECT_THROW(short_attention_fused(torch::randn({1, 2, 1, 12}), 5, torch::Tensor(), 1.0), std::exception);
   EXPECT_THROW(short_attention_fused(torch::randn({1, 2, 1, 12}), 2, torch::ones({3}), 1.0), std::exception);
-  // A longer axis than the kernel takes goes the plain way inside the network.
+}
+
+// Inside the network a longer axis, and a pass under CPU autocast (whose projections are bf16),
+// take the plain path instead of failing.
+TEST(LamKernels, LongAxesAndAutocastTakeThePlainPath) {
+  torch::manual_seed(3);
   LamSelfAttention attn(12, 2, 0.0, true);
-  torch::NoGradGuard no_grad;
   const auto x = torch::randn({1, kShortAttentionMaxLength + 1, 2, 12});
-  PlainDitKernelsScope scope;
-  const auto plain = attn->forward_along_axis1(x);
-  EXPECT_EQ(plain.sizes(), x.sizes());
+  const auto upstream = torch::randn_like(x);
+  const auto long_pass = attention_pass(attn, x, upstream);
+  Pass plain;
+  {
+    PlainDitKernelsScope scope;
+    plain = attention_pass(attn, x, upstream);
+  }
+  EXPECT_TRUE(torch::equal(long_pass.out, plain.out));
+  EXPECT_TRUE(torch::equal(long_pass.dx, plain.dx));
+
+  const auto pair = torch::randn({2, 2, 3, 12});
+  torch::NoGradGuard no_grad;
+  const auto full = attn->forward_along_axis1(pair);
+  AutocastGuard autocast(c10::DeviceType::CPU, torch::kBFloat16);
+  const auto low = attn->forward_along_axis1(pair);
+  EXPECT_LT(test::max_abs(low.to(torch::kFloat32), full), 0.05 * full.abs().max().item<double>());
 }
 
 }  // namespace
