@@ -154,14 +154,18 @@ LamSelfAttentionImpl::LamSelfAttentionImpl(int64_t dim, int64_t heads_, double d
   if (rotary) rotary_embedding = register_module("rotary_embedding", LamRotary(dim / heads));
 }
 
+torch::Tensor LamSelfAttentionImpl::project_qkv(const torch::Tensor& x) {
+  // One product for the three projections: three of [L, E] x [E, E] on 2 cores spend as long
+  // waking the BLAS threads as multiplying (the weights stay three parameters, as released).
+  return torch::linear(x, torch::cat({to_q->weight, to_k->weight, to_v->weight}));
+}
+
 torch::Tensor LamSelfAttentionImpl::forward(const torch::Tensor& x) {
   const int64_t N = x.size(0), L = x.size(1), E = x.size(2), D = E / heads;
   auto split = [&](const torch::Tensor& t) {
     return t.view({N, L, heads, D}).transpose(1, 2);
   };  // [N, h, L, D]
-  // One product for the three projections: three of [L, E] x [E, E] on 2 cores spend as long
-  // waking the BLAS threads as multiplying (the weights stay three parameters, as released).
-  const auto qkv = torch::linear(x, torch::cat({to_q->weight, to_k->weight, to_v->weight})).chunk(3, -1);
+  const auto qkv = project_qkv(x).chunk(3, -1);
   auto q = split(qkv[0]), k = split(qkv[1]), v = split(qkv[2]);
   if (rotary_embedding) {
     q = rotary_embedding->rotate(q);
@@ -176,8 +180,7 @@ torch::Tensor LamSelfAttentionImpl::forward_along_axis1(const torch::Tensor& x) 
   // Not under CPU autocast at all: the projections would hand the kernel bf16.
   if (L <= kShortAttentionMaxLength && fused_dit_kernels_apply({x, to_q->weight}) &&
       !AutocastGuard::is_enabled(c10::DeviceType::CPU)) {
-    const auto qkv =
-        torch::linear(x, torch::cat({to_q->weight, to_k->weight, to_v->weight}));  // [G, L, R, 3E]
+    const auto qkv = project_qkv(x);  // [G, L, R, 3E]
     const auto freqs = rotary_embedding ? rotary_embedding->freqs : torch::Tensor();
     const auto o = short_attention_fused(qkv, heads, freqs, 1.0 / std::sqrt(static_cast<double>(D)));
     return to_out->forward(o);  // [G, L, R, E]

@@ -78,6 +78,8 @@ struct LamSelfAttentionImpl : torch::nn::Module {
   // gives on x.transpose(1, 2).reshape({G R, L, E}), transposed back. Float32 on the CPU with a
   // short axis: the fused kernel (models/lam_kernels.h), without the transposes.
   torch::Tensor forward_along_axis1(const torch::Tensor& x);
+  // [..., E] -> [..., 3E]: q, k and v side by side, from one product.
+  torch::Tensor project_qkv(const torch::Tensor& x);
   int64_t heads;
   torch::nn::Linear to_q{nullptr}, to_k{nullptr}, to_v{nullptr};
   torch::nn::Sequential to_out{nullptr};
